@@ -1,0 +1,18 @@
+"""The `sfmnerf` command line: one group, each command defined next to the code it drives."""
+
+import click
+
+from service.commands.nerf import nerf
+from service.commands.reconstruct import reconstruct
+from service.commands.serve import serve
+
+
+@click.group()
+@click.version_option(package_name="sfmnerf")
+def main() -> None:
+    """Photographs to 3D: Structure from Motion and Neural Radiance Fields."""
+
+
+main.add_command(reconstruct)
+main.add_command(nerf)
+main.add_command(serve)

@@ -1,0 +1,9 @@
+"""`sfmnerf reconstruct` (being written)."""
+
+import click
+
+
+@click.command()
+def reconstruct() -> None:
+    """Not implemented yet."""
+    raise click.ClickException("not implemented yet")
