@@ -25,7 +25,33 @@ class BundleAdjustmentConfig(BaseModel):
     huber_threshold_px: float = Field(2.0, gt=0, description="Huber robust-loss threshold in pixels.")
     measurement_sigma_px: float = Field(1.0, gt=0, description="Std-dev of a pixel measurement.")
     relative_error_tol: float = Field(1e-6, gt=0, description="Stop when the cost changes less than this.")
+    absolute_error_tol: float = Field(0.0, ge=0, description="Stop when the cost decreases less than this.")
     local_window: int = Field(3, ge=2, description="Cameras optimised in the local BA after a registration.")
+    local_max_iterations: int = Field(
+        10, ge=1, description="LM iterations of each local BA (the global BA at the end converges fully)."
+    )
+    ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
+        "points_first",
+        description="Elimination order: points_first eliminates every point before any camera (the Schur "
+        "complement, as Ceres' SCHUR solvers do); colamd/metis are GTSAM's fill-reducing heuristics.",
+    )
+    linear_solver: Literal[
+        "multifrontal_cholesky", "multifrontal_qr", "sequential_cholesky", "sequential_qr"
+    ] = Field("sequential_cholesky", description="GTSAM linear solver used inside each LM step.")
+    lambda_initial: float = Field(1e-5, gt=0, description="Initial Levenberg-Marquardt damping.")
+    lambda_factor: float = Field(10.0, gt=1, description="Damping is multiplied/divided by this per step.")
+    diagonal_damping: bool = Field(
+        False, description="Damp with lambda * diag(J^T J) (Marquardt) instead of lambda * I (Levenberg)."
+    )
+    fixed_camera_sigma: float = Field(
+        1e-6, gt=0, description="Std-dev (rad and world units) of the near-hard prior on a fixed camera."
+    )
+    scale_sigma_relative: float = Field(
+        1e-2, gt=0,
+        description="Std-dev of the scale prior as a fraction of the reference distance. The pixels say "
+        "nothing about scale, so a soft prior keeps the distance just as well, while a stiff one makes "
+        "LM reject long steps (the distance is nonlinear in the poses).",
+    )
 
 
 class FilterConfig(BaseModel):
@@ -57,4 +83,11 @@ class ReconstructionConfig(BaseModel):
     sift: SiftConfig = SiftConfig()
     min_initial_pair_inliers: int = Field(30, ge=8, description="Fewest inliers for an initial pair.")
     min_pnp_correspondences: int = Field(6, ge=6, description="Fewest 2D-3D matches to register an image.")
+    min_pnp_inliers: int = Field(12, ge=6, description="Fewest PnP RANSAC inliers to accept a registration.")
+    min_initial_pair_median_angle_deg: float = Field(
+        2.0, gt=0, description="Initial pair's median triangulation angle must reach this (rejects rotation)."
+    )
+    initial_pair_candidates: int = Field(
+        10, ge=1, description="Pairs with most F inliers whose parallax is checked for the initial pair."
+    )
     write_figures: bool = Field(True, description="Write the PNG figures into OUT/figures.")

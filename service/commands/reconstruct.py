@@ -1,9 +1,81 @@
-"""`sfmnerf reconstruct` (being written)."""
+"""`sfmnerf reconstruct IMAGES_DIR --out OUT`: Structure from Motion through `estimation.reconstruct`."""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 import click
+from tqdm import tqdm
+
+PERCENT = 100
+DESCRIPTION_WIDTH = 32
+
+
+class StageProgressBars:
+    """A `ProgressCallback` showing one tqdm bar per stage; each bar counts the overall percentage.
+
+    A stage is named by the first word of the callback's text ("register 3.png" and "register 4.png"
+    share the "register" bar, whose description follows the latest text).
+    """
+
+    def __init__(self) -> None:
+        self.stage: str | None = None
+        self.bar: tqdm | None = None
+
+    def __call__(self, text: str, fraction: float) -> None:
+        percent = round(PERCENT * min(max(fraction, 0.0), 1.0), 1)
+        stage = text.split(maxsplit=1)[0] if text.strip() else text
+        if stage != self.stage or self.bar is None:
+            self.close()
+            self.stage = stage
+            self.bar = tqdm(total=PERCENT, initial=percent, desc=f"{text:<{DESCRIPTION_WIDTH}}",
+                            bar_format="{desc} {bar} {n:5.1f}% [{elapsed}]", leave=True)
+        else:
+            self.bar.set_description_str(f"{text:<{DESCRIPTION_WIDTH}}", refresh=False)
+            self.bar.update(max(percent - self.bar.n, 0.0))
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def __enter__(self) -> StageProgressBars:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
 
 
 @click.command()
-def reconstruct() -> None:
-    """Not implemented yet."""
-    raise click.ClickException("not implemented yet")
+@click.argument("images_dir", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
+              help="Output folder (created): sparse/, points.ply, transforms.json, report.json, figures/.")
+@click.option("--calibration", type=click.Path(path_type=Path), default=None,
+              help="3x3 K file; default: calibration.txt in IMAGES_DIR.")
+@click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True,
+              help="auto: the folder's matching{i}.txt files when present, else SIFT.")
+def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str) -> None:
+    """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
+    from estimation import InputError, ReconstructionConfig
+    from estimation import reconstruct as run_reconstruction
+
+    config = ReconstructionConfig(features=features, calibration=calibration)
+    try:
+        with StageProgressBars() as progress:
+            result = run_reconstruction(images_dir, out_dir, config, progress=progress)
+    except InputError as error:
+        raise click.ClickException(str(error)) from None
+    except OSError as error:
+        raise click.ClickException(f"cannot write the outputs: {error}") from None
+
+    report = result.report
+    after = report["reprojection_error_px"]["after_ba"]
+    click.echo(
+        f"registered {report['images_registered']}/{report['images_total']} images, "
+        f"{report['points']} points, "
+        f"reprojection error after BA: RMS {after['rms']:.3f} px, median {after['median']:.3f} px"
+    )
+    for entry in report["unregistered"]:
+        click.echo(f"not registered: {entry['image']} ({entry['reason']})")
+    click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "
+               f"in {report['seconds_total']:.1f} s")

@@ -1,0 +1,68 @@
+"""Similarity alignment of reconstructions to ground truth (SfM recovers the world up to s, R, t)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from estimation.types import CameraPose
+
+
+class Similarity(NamedTuple):
+    """X' = scale * R @ X + t."""
+
+    scale: float
+    R: np.ndarray
+    t: np.ndarray
+
+    def apply_points(self, points: np.ndarray) -> np.ndarray:
+        """X' = s R X + t for points (N, 3)."""
+        return self.scale * points @ self.R.T + self.t
+
+    def apply_pose(self, pose: CameraPose) -> CameraPose:
+        """The same camera in the transformed world: R' = R_cam R^T, C' = s R C + t."""
+        return CameraPose.from_center(pose.R @ self.R.T, self.apply_points(pose.center[None])[0])
+
+
+def align_similarity(source: np.ndarray, target: np.ndarray) -> Similarity:
+    """Umeyama: argmin_{s,R,t} sum ||target_i - (s R source_i + t)||^2 over points (N, 3), N >= 3."""
+    source, target = np.asarray(source, float), np.asarray(target, float)
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    s_c, t_c = source - mu_s, target - mu_t
+    U, D, Vt = np.linalg.svd(t_c.T @ s_c / len(source))
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ S @ Vt
+    scale = float(np.trace(np.diag(D) @ S) / (s_c**2).sum(axis=1).mean())
+    return Similarity(scale=scale, R=R, t=mu_t - scale * R @ mu_s)
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Geodesic angle of R = R_a^T R_b: atan2(|vee(R - R^T)| / 2, (trace(R) - 1) / 2), in degrees."""
+    R = R_a.T @ R_b
+    sin_angle = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return float(np.degrees(np.arctan2(sin_angle, (np.trace(R) - 1.0) / 2.0)))
+
+
+class PoseErrors(NamedTuple):
+    """Per-camera errors after similarity alignment of the estimated centres to the true ones."""
+
+    rotation_deg: np.ndarray   # (M,)
+    center: np.ndarray         # (M,) in ground-truth world units
+
+
+def aligned_pose_errors(estimated: list[CameraPose], truth: list[CameraPose]) -> PoseErrors:
+    """Align estimated camera centres onto the true ones (Umeyama), then compare each pose."""
+    centers_estimated = np.array([p.center for p in estimated])
+    similarity = align_similarity(centers_estimated, np.array([p.center for p in truth]))
+    aligned = [similarity.apply_pose(p) for p in estimated]
+    return PoseErrors(
+        rotation_deg=np.array([rotation_angle_deg(a.R, b.R) for a, b in zip(aligned, truth, strict=True)]),
+        center=np.array([np.linalg.norm(a.center - b.center) for a, b in zip(aligned, truth, strict=True)]),
+    )
+
+
+def relative_pose(reference: CameraPose, other: CameraPose) -> CameraPose:
+    """`other` in the frame of `reference`: R = R_o R_r^T, t = t_o - R t_r (reference: R = I, C = 0)."""
+    R = other.R @ reference.R.T
+    return CameraPose(R=R, t=other.t - R @ reference.t)

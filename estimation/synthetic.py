@@ -1,0 +1,169 @@
+"""Synthetic SfM scenes with known cameras and points: the ground truth for tests and benchmarks.
+
+Cameras sit on an arc (a full ring when there are many) of radius about 6 around the world origin,
+each looking at it with a little random elevation, roll and distance jitter. Points are uniform in
+the cube [-2, 2]^3, kept only where every camera sees them (in front, inside the image), so they fill
+the central part of every image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimation.types import CameraPose, Tracks
+
+SCENE_HALF_SIZE = 2.0
+"""Points are drawn uniformly from [-SCENE_HALF_SIZE, SCENE_HALF_SIZE]^3, kept if every camera sees them."""
+IMAGE_MARGIN_PX = 10.0
+MIN_DEPTH = 1.0
+CAMERA_DISTANCE = 6.0
+"""Mean distance of a camera centre from the origin."""
+ARC_STEP_DEG = 15.0
+"""Azimuth between neighbouring cameras while the arc stays below a full ring."""
+
+
+@dataclass(frozen=True)
+class SyntheticScene:
+    """Ground-truth cameras and points, and the (noisy, outlier-contaminated) tracks they produce."""
+
+    K: np.ndarray                  # (3, 3)
+    width: int
+    height: int
+    poses: list[CameraPose]        # world-to-camera, one per image
+    points: np.ndarray             # (N, 3) world points; track t observes points[t]
+    colors: np.ndarray             # (N, 3) uint8
+    tracks: Tracks
+    inlier_mask: np.ndarray        # (O,) bool: observation o is a (noisy) projection, not a random pixel
+
+    @property
+    def scene_size(self) -> float:
+        """Diagonal of the bounding box of the points and camera centres (the '% of scene size' unit)."""
+        everything = np.vstack([self.points, np.array([p.center for p in self.poses])])
+        return float(np.linalg.norm(everything.max(axis=0) - everything.min(axis=0)))
+
+
+def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """World-to-camera R whose rows are the camera's x (right), y (down), z (forward) axes in world."""
+    z = target - center
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)          # with OpenCV's y pointing down, "up" = -y
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def rotation_about_axis(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rodrigues: R = I + sin(a) [k]x + (1 - cos(a)) [k]x^2 for the unit axis k."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * kx + (1 - np.cos(angle_rad)) * kx @ kx
+
+
+def project(K: np.ndarray, pose: CameraPose, points: np.ndarray) -> np.ndarray:
+    """Pixel projection u ~ K (R X + t) of points (N, 3) -> (N, 2)."""
+    x_cam = points @ pose.R.T + pose.t
+    x_img = x_cam @ K.T
+    return x_img[:, :2] / x_img[:, 2:3]
+
+
+def _camera_poses(num_cameras: int, rng: np.random.Generator) -> list[CameraPose]:
+    full_ring = ARC_STEP_DEG * num_cameras >= 360.0
+    span_deg = 360.0 * (num_cameras - 1) / num_cameras if full_ring else ARC_STEP_DEG * (num_cameras - 1)
+    azimuths = np.deg2rad(np.linspace(-span_deg / 2, span_deg / 2, num_cameras))
+    world_up = np.array([0.0, -1.0, 0.0])     # the world uses OpenCV-like axes: y points down
+    poses = []
+    for azimuth in azimuths:
+        elevation = np.deg2rad(rng.uniform(-10, 10))
+        distance = CAMERA_DISTANCE * rng.uniform(0.9, 1.1)
+        center = distance * np.array(
+            [np.sin(azimuth) * np.cos(elevation), -np.sin(elevation), -np.cos(azimuth) * np.cos(elevation)]
+        )
+        R = look_at(center, rng.normal(0, 0.1, 3), world_up)
+        R = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.deg2rad(rng.uniform(-5, 5))) @ R
+        poses.append(CameraPose.from_center(R, center))
+    return poses
+
+
+def _points_inside_all_images(K: np.ndarray, poses: list[CameraPose], width: int, height: int,
+                              num_points: int, rng: np.random.Generator) -> np.ndarray:
+    """Uniform points in the cube, rejected unless in front of and inside the image of every camera."""
+    kept = np.empty((0, 3))
+    while len(kept) < num_points:
+        candidates = rng.uniform(-SCENE_HALF_SIZE, SCENE_HALF_SIZE, (2 * num_points, 3))
+        ok = np.ones(len(candidates), bool)
+        for pose in poses:
+            uv = project(K, pose, candidates)
+            ok &= (candidates @ pose.R.T + pose.t)[:, 2] > MIN_DEPTH
+            ok &= (uv >= IMAGE_MARGIN_PX).all(axis=1)
+            ok &= (uv[:, 0] < width - IMAGE_MARGIN_PX) & (uv[:, 1] < height - IMAGE_MARGIN_PX)
+        kept = np.vstack([kept, candidates[ok]])
+    return kept[:num_points]
+
+
+def _visible_mask(num_points: int, num_cameras: int, visibility: float, rng: np.random.Generator
+                  ) -> np.ndarray:
+    """(N, M) bool: which camera sees which point; every point keeps at least two cameras."""
+    visible = rng.random((num_points, num_cameras)) < visibility
+    for n in np.flatnonzero(visible.sum(axis=1) < 2):
+        visible[n, rng.choice(num_cameras, size=2, replace=False)] = True
+    return visible
+
+
+def observe(K: np.ndarray, poses: list[CameraPose], points: np.ndarray, colors: np.ndarray,
+            visible: np.ndarray, noise_px: float, outlier_fraction: float, image_size: tuple[int, int],
+            rng: np.random.Generator) -> tuple[Tracks, np.ndarray]:
+    """Tracks of `points` seen where `visible` (N, M): uv = pi(K (R X + t)) + N(0, noise_px^2), and a
+    fraction of all observations replaced by uniform random pixels. Returns (tracks, inlier_mask (O,))."""
+    track_index, image_index = np.nonzero(visible)          # sorted by track, then image
+    uv_all = np.stack([project(K, pose, points) for pose in poses], axis=1)   # (N, M, 2)
+    uv = uv_all[track_index, image_index] + rng.normal(0.0, noise_px, (track_index.size, 2))
+    inlier_mask = np.ones(track_index.size, bool)
+    outliers = rng.choice(track_index.size, size=round(outlier_fraction * track_index.size), replace=False)
+    inlier_mask[outliers] = False
+    uv[outliers] = rng.uniform([0.0, 0.0], image_size, (outliers.size, 2))
+    tracks = Tracks(
+        image_names=[f"{m + 1}.png" for m in range(len(poses))],
+        track_index=track_index.astype(np.int64),
+        image_index=image_index.astype(np.int64),
+        uv=uv,
+        colors=colors,
+    )
+    return tracks, inlier_mask
+
+
+def make_scene(
+    num_cameras: int = 5,
+    num_points: int = 500,
+    noise_px: float = 0.0,
+    outlier_fraction: float = 0.0,
+    seed: int = 0,
+    width: int = 800,
+    height: int = 600,
+    visibility: float = 1.0,
+) -> SyntheticScene:
+    """A scene with known poses and points; tracks are projections + N(0, noise_px^2) pixel noise.
+
+    `outlier_fraction` of all observations are replaced by uniformly random pixels (so a pair of
+    images shares a fraction 1 - (1 - f)^2 of wrong matches). `visibility` < 1 drops each observation
+    with probability 1 - visibility, keeping at least two per track.
+    """
+    if num_cameras < 2:
+        raise ValueError(f"make_scene needs at least 2 cameras, got {num_cameras}")
+    if not 0.0 <= outlier_fraction < 1.0:
+        raise ValueError(f"outlier_fraction must be in [0, 1), got {outlier_fraction}")
+    if not 0.0 < visibility <= 1.0:
+        raise ValueError(f"visibility must be in (0, 1], got {visibility}")
+    rng = np.random.default_rng(seed)
+    focal = 0.75 * width
+    K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    poses = _camera_poses(num_cameras, rng)
+    points = _points_inside_all_images(K, poses, width, height, num_points, rng)
+    colors = rng.integers(0, 256, (num_points, 3), dtype=np.uint8)
+
+    visible = _visible_mask(num_points, num_cameras, visibility, rng)
+    tracks, inlier_mask = observe(K, poses, points, colors, visible, noise_px, outlier_fraction,
+                                  (width, height), rng)
+    return SyntheticScene(K=K, width=width, height=height, poses=poses, points=points, colors=colors,
+                          tracks=tracks, inlier_mask=inlier_mask)

@@ -1,0 +1,183 @@
+"""Incremental SfM end to end on synthetic scenes with known cameras (real data: tests of the API)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from estimation.alignment import align_similarity, aligned_pose_errors
+from estimation.config import ReconstructionConfig
+from estimation.errors import DegenerateConfigurationError, InputError
+from estimation.pipeline import SparseModel, run_incremental
+from estimation.synthetic import make_scene, observe, rotation_about_axis
+from estimation.types import CameraPose, Tracks
+
+CONFIG = ReconstructionConfig()
+
+
+def reconstruct(tracks: Tracks, scene, config=CONFIG, progress=None) -> SparseModel:
+    return run_incremental(tracks, scene.K, (scene.width, scene.height), config, progress)
+
+
+def pose_errors(model: SparseModel, scene):
+    registered = sorted(model.poses)
+    return aligned_pose_errors([model.poses[m] for m in registered], [scene.poses[m] for m in registered])
+
+
+@pytest.fixture(scope="module")
+def noisy_scene():
+    return make_scene(num_points=500, noise_px=0.5, outlier_fraction=0.3, seed=0)
+
+
+@pytest.fixture(scope="module")
+def noisy_model(noisy_scene):
+    stages = []
+    model = reconstruct(noisy_scene.tracks, noisy_scene, progress=lambda name, f: stages.append((name, f)))
+    return model, stages
+
+
+def test_noise_free_scene_is_recovered_to_1e_6_after_similarity_alignment():
+    scene = make_scene(num_points=300, seed=7)
+    model = reconstruct(scene.tracks, scene)
+    assert sorted(model.poses) == [0, 1, 2, 3, 4]
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.max() < 1e-6
+    assert errors.center.max() < 1e-6 * scene.scene_size
+    similarity = align_similarity(np.array([model.poses[m].center for m in range(5)]),
+                                  np.array([p.center for p in scene.poses]))
+    aligned_points = similarity.apply_points(model.points)
+    point_errors = np.linalg.norm(aligned_points - scene.points[model.point_track_ids], axis=1)
+    assert len(model.points) == 300
+    assert point_errors.max() < 1e-6 * scene.scene_size
+    assert model.stats.reprojection_after_ba.rms_px < 1e-6
+
+
+def test_noise_and_30_percent_outliers_give_poses_within_half_a_degree_and_one_percent(noisy_model,
+                                                                                       noisy_scene):
+    model, _ = noisy_model
+    assert sorted(model.poses) == [0, 1, 2, 3, 4]
+    assert model.unregistered == {}
+    errors = pose_errors(model, noisy_scene)
+    assert errors.rotation_deg.max() < 0.5
+    assert errors.center.max() < 0.01 * noisy_scene.scene_size
+    # Outlier observations are left out: almost every kept observation is a true projection.
+    kept_pairs = set(zip(model.point_track_ids[model.obs_point].tolist(), model.obs_camera.tolist(),
+                         strict=True))
+    tracks = noisy_scene.tracks
+    outlier_pairs = set(zip(tracks.track_index[~noisy_scene.inlier_mask].tolist(),
+                            tracks.image_index[~noisy_scene.inlier_mask].tolist(), strict=True))
+    assert len(kept_pairs & outlier_pairs) < 0.01 * len(kept_pairs)
+
+
+def test_reprojection_statistics_are_recorded_before_and_after_bundle_adjustment(noisy_model):
+    stats = noisy_model[0].stats
+    before, after = stats.reprojection_before_ba, stats.reprojection_after_ba
+    assert after.rms_px < 1.0
+    assert after.rms_px <= before.rms_px + 1e-9
+    assert after.median_px <= after.mean_px <= after.rms_px
+    assert set(stats.pair_inliers) == {f"{a}.png|{b}.png" for a in range(1, 6) for b in range(a + 1, 6)}
+    assert all(100 < n < 300 for n in stats.pair_inliers.values())   # ~49 % of 500 tracks are clean pairs
+    assert {"pair geometry", "initial pair", "registration", "bundle adjustment"} <= set(stats.stage_seconds)
+    assert stats.initial_pair_median_angle_deg >= CONFIG.min_initial_pair_median_angle_deg
+
+
+def test_model_arrays_are_consistent(noisy_model, noisy_scene):
+    model, _ = noisy_model
+    num_points = len(model.points)
+    assert model.point_colors.shape == (num_points, 3) and model.point_colors.dtype == np.uint8
+    np.testing.assert_array_equal(model.point_colors, noisy_scene.colors[model.point_track_ids])
+    visibility = model.visibility
+    assert visibility.shape == (num_points, 5)
+    assert visibility.sum() == len(model.obs_point)
+    assert visibility.sum(axis=1).min() >= 2
+    assert model.point_errors.max() <= CONFIG.filter.max_reprojection_px
+    diagnostics = model.initial_pair_diagnostics
+    assert (noisy_scene.tracks.image_names[diagnostics.i], noisy_scene.tracks.image_names[diagnostics.j]) == (
+        model.stats.initial_pair)
+    assert diagnostics.uv_i.shape == diagnostics.uv_j.shape == (len(diagnostics.inlier_mask), 2)
+    assert diagnostics.points_linear.shape == diagnostics.points_nonlinear.shape
+    assert len(diagnostics.points_linear) <= diagnostics.inlier_mask.sum()
+
+
+def test_progress_reports_named_stages_in_order(noisy_model):
+    model, stages = noisy_model
+    names = [name for name, _ in stages]
+    fractions = [f for _, f in stages]
+    assert fractions == sorted(fractions) and fractions[0] >= 0.0 and fractions[-1] == 1.0
+    assert names.index("initial pair") < names.index("bundle adjustment")
+    initial = set(model.stats.initial_pair)
+    expected = [f"register {name}" for name in model.image_names if name not in initial]
+    assert sorted(n for n in names if n.startswith("register ")) == sorted(expected)
+
+
+def test_partial_visibility_with_multi_view_tracks_still_registers_every_image():
+    scene = make_scene(num_cameras=7, num_points=800, noise_px=0.5, outlier_fraction=0.1, visibility=0.5,
+                       seed=3)
+    model = reconstruct(scene.tracks, scene)
+    assert sorted(model.poses) == list(range(7))
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.max() < 0.5
+    assert errors.center.max() < 0.01 * scene.scene_size
+    assert model.visibility.sum(axis=1).max() > 2        # tracks longer than a pair are kept whole
+
+
+def rotated_copy(pose: CameraPose, angle_deg: float) -> CameraPose:
+    """The same camera centre, turned about its own y axis."""
+    turn = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(angle_deg))
+    return CameraPose.from_center(turn @ pose.R, pose.center)
+
+
+def test_initial_pair_is_chosen_by_parallax_not_by_match_count():
+    base = make_scene(num_points=400, seed=4)
+    poses = [base.poses[0], rotated_copy(base.poses[0], 3.0), *base.poses[2:]]
+    rng = np.random.default_rng(0)
+    visible = np.ones((400, 5), bool)
+    visible[:, 2:] = rng.random((400, 3)) < 0.7     # images 1 and 2 share the most tracks
+    tracks, _ = observe(base.K, poses, base.points, base.colors, visible, 0.5, 0.0, (800, 600), rng)
+    model = reconstruct(tracks, base)
+    assert max(model.stats.pair_inliers, key=model.stats.pair_inliers.get) == "1.png|2.png"
+    assert model.stats.initial_pair != ("1.png", "2.png")
+    assert sorted(model.poses) == [0, 1, 2, 3, 4]      # the rotated camera still registers by PnP
+    errors = aligned_pose_errors([model.poses[m] for m in range(5)], poses)
+    assert errors.rotation_deg.max() < 0.5
+
+
+def test_pure_rotation_is_a_degenerate_configuration():
+    base = make_scene(num_points=300, seed=5)
+    poses = [rotated_copy(base.poses[2], angle) for angle in (-4.0, 0.0, 4.0)]
+    rng = np.random.default_rng(1)
+    visible = np.ones((300, 3), bool)
+    tracks, _ = observe(base.K, poses, base.points, base.colors, visible, 0.5, 0.0, (800, 600), rng)
+    with pytest.raises(DegenerateConfigurationError, match="parallax"):
+        reconstruct(tracks, base)
+
+
+def test_too_few_matches_for_an_initial_pair_is_a_degenerate_configuration():
+    scene = make_scene(num_points=20, seed=6)
+    with pytest.raises(DegenerateConfigurationError, match="too few matches"):
+        reconstruct(scene.tracks, scene)
+    scene = make_scene(num_points=100, seed=6)
+    with pytest.raises(DegenerateConfigurationError, match="has 100 RANSAC inliers, need 200"):
+        reconstruct(scene.tracks, scene, ReconstructionConfig(min_initial_pair_inliers=200))
+
+
+def test_an_image_that_cannot_be_registered_is_reported_and_the_rest_succeeds():
+    scene = make_scene(num_points=400, noise_px=0.5, seed=8)
+    garbage = scene.tracks.image_index == 4
+    uv = scene.tracks.uv.copy()
+    uv[garbage] = np.random.default_rng(2).uniform([0, 0], [800, 600], (garbage.sum(), 2))
+    model = reconstruct(dataclasses.replace(scene.tracks, uv=uv), scene)
+    assert sorted(model.poses) == [0, 1, 2, 3]
+    assert list(model.unregistered) == [4]
+    assert "PnP" in model.unregistered[4] or "correspondences" in model.unregistered[4]
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.max() < 0.5
+    assert not np.isin(model.obs_camera, [4]).any()
+
+
+def test_fewer_than_two_images_is_an_input_error():
+    scene = make_scene(num_points=20)
+    one_image = Tracks(image_names=["1.png"], track_index=np.zeros(0, int), image_index=np.zeros(0, int),
+                       uv=np.zeros((0, 2)), colors=np.zeros((0, 3), np.uint8))
+    with pytest.raises(InputError, match="at least 2 images"):
+        reconstruct(one_image, scene)

@@ -1,0 +1,84 @@
+"""The synthetic ground truth itself: geometry, noise, outliers, visibility, and similarity alignment."""
+
+import numpy as np
+import pytest
+
+from estimation.alignment import Similarity, align_similarity, aligned_pose_errors, rotation_angle_deg
+from estimation.synthetic import make_scene, project, rotation_about_axis
+
+
+def test_every_point_is_in_front_of_every_camera_and_inside_every_image():
+    scene = make_scene(num_cameras=8, num_points=300, seed=3)
+    for pose in scene.poses:
+        depth = (scene.points @ pose.R.T + pose.t)[:, 2]
+        uv = project(scene.K, pose, scene.points)
+        assert depth.min() > 0
+        assert (uv >= 0).all() and (uv[:, 0] < scene.width).all() and (uv[:, 1] < scene.height).all()
+
+
+def test_poses_are_proper_rotations():
+    for pose in make_scene(num_cameras=40, seed=1).poses:
+        np.testing.assert_allclose(pose.R @ pose.R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(pose.R) == pytest.approx(1.0)
+
+
+def test_noise_free_tracks_are_exact_projections():
+    scene = make_scene(num_points=50)
+    t = scene.tracks
+    for o in range(len(t.track_index)):
+        expected = project(scene.K, scene.poses[t.image_index[o]], scene.points[t.track_index[o]][None])[0]
+        np.testing.assert_allclose(t.uv[o], expected, atol=1e-9)
+
+
+def test_noise_has_the_requested_standard_deviation():
+    clean, noisy = make_scene(num_points=2000, seed=4), make_scene(num_points=2000, noise_px=0.5, seed=4)
+    assert np.std(noisy.tracks.uv - clean.tracks.uv) == pytest.approx(0.5, rel=0.05)
+
+
+def test_outliers_replace_the_requested_fraction_of_observations_by_far_away_pixels():
+    clean = make_scene(num_points=1000, seed=5)
+    dirty = make_scene(num_points=1000, outlier_fraction=0.3, seed=5)
+    assert (~dirty.inlier_mask).mean() == pytest.approx(0.3, abs=1e-3)
+    moved = np.linalg.norm(dirty.tracks.uv - clean.tracks.uv, axis=1)
+    assert np.all(moved[dirty.inlier_mask] == 0)
+    assert np.median(moved[~dirty.inlier_mask]) > 50
+
+
+def test_partial_visibility_keeps_at_least_two_observations_per_track():
+    scene = make_scene(num_cameras=6, num_points=1000, visibility=0.3, seed=6)
+    counts = np.bincount(scene.tracks.track_index, minlength=1000)
+    assert counts.min() >= 2
+    assert counts.mean() < 6 * 0.5
+    pairs = np.stack([scene.tracks.track_index, scene.tracks.image_index], axis=1)
+    assert len(np.unique(pairs, axis=0)) == len(pairs), "a track appears at most once per image"
+
+
+def test_same_seed_gives_the_same_scene():
+    a = make_scene(noise_px=1.0, outlier_fraction=0.2, seed=9)
+    b = make_scene(noise_px=1.0, outlier_fraction=0.2, seed=9)
+    np.testing.assert_array_equal(a.tracks.uv, b.tracks.uv)
+
+
+def test_align_similarity_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(20, 3))
+    R = rotation_about_axis(np.array([1.0, 2.0, 3.0]), 0.7)
+    target = 2.5 * source @ R.T + np.array([1.0, -2.0, 0.5])
+    similarity = align_similarity(source, target)
+    assert similarity.scale == pytest.approx(2.5)
+    np.testing.assert_allclose(similarity.R, R, atol=1e-12)
+    np.testing.assert_allclose(similarity.apply_points(source), target, atol=1e-12)
+
+
+def test_aligned_pose_errors_vanish_for_a_similarity_transformed_reconstruction():
+    scene = make_scene()
+    R = rotation_about_axis(np.array([0.3, -1.0, 0.2]), 2.0)
+    moved = [Similarity(0.3, R, np.array([5.0, 1.0, 2.0])).apply_pose(p) for p in scene.poses]
+    errors = aligned_pose_errors(moved, scene.poses)
+    assert errors.rotation_deg.max() < 1e-9
+    assert errors.center.max() < 1e-9
+
+
+def test_rotation_angle_is_accurate_for_tiny_angles():
+    assert rotation_angle_deg(np.eye(3), rotation_about_axis(np.array([0, 0, 1.0]), 1e-9)) == pytest.approx(
+        np.degrees(1e-9), rel=1e-6)
