@@ -1,8 +1,196 @@
-"""`sfmnerf nerf ...` (being written)."""
+"""`sfmnerf nerf train | render | eval`: neural radiance fields from the command line.
+
+The neural package (and with it torch) is imported inside each command, so `sfmnerf --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
 
 import click
+
+USER_ERRORS: tuple[type[Exception], ...] = (ValueError, FileNotFoundError)  # DatasetError/CheckpointError too
 
 
 @click.group()
 def nerf() -> None:
     """Neural radiance fields: train, render, eval."""
+
+
+@nerf.command("train")
+@click.argument("data", type=click.Path(exists=True, path_type=Path))
+@click.option("--out", "run_dir", required=True, type=click.Path(path_type=Path), help="Run folder to write.")
+@click.option("--model", type=click.Choice(["vanilla", "fast"]), default=None, help="Default: fast.")
+@click.option("--steps", type=int, default=None, help="Optimisation steps (default: the model's).")
+@click.option("--minutes", type=float, default=None, help="Train for this long instead of a step count.")
+@click.option("--batch-rays", type=int, default=None, help="Rays per step (default: the model's).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default=None, help="Default: auto.")
+@click.option("--seed", type=int, default=None, help="Random seed (default 0).")
+@click.option("--lr", type=float, default=None, help="Initial learning rate (default: the model's).")
+@click.option("--checkpoint-every", type=int, default=None, help="Steps between checkpoints (default 500).")
+@click.option("--val-every", type=int, default=None, help="Steps between validation renders (default 500).")
+@click.option(
+    "--chunk-rays", type=int, default=None, help="Rays rendered at once; lower it on out-of-memory."
+)
+@click.option("--precrop-steps", type=int, default=None, help="First steps drawing rays from image centres.")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its latest checkpoint.")
+def train_command(data: Path, run_dir: Path, resume: bool, **options: Any) -> None:
+    """Train a radiance field on DATA (Blender folder, tiny-NeRF .npz or `sfmnerf reconstruct` output)."""
+    from tqdm import tqdm
+
+    from neural import TrainConfig, train
+
+    given = {name: value for name, value in options.items() if value is not None}
+    try:
+        config = TrainConfig(**given) if (given or not resume) else None
+    except USER_ERRORS as error:
+        raise click.ClickException(str(error)) from None
+    bar = tqdm(total=100, desc="train", bar_format="{l_bar}{bar}| {elapsed}<{remaining} {postfix}")
+
+    def on_progress(stage: str, fraction: float) -> None:
+        bar.update(round(100 * fraction) - bar.n)
+
+    def on_metrics(record: dict[str, Any]) -> None:
+        if "loss" in record:
+            bar.set_postfix(step=record["step"], loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}")
+        else:
+            bar.write(f"step {record['step']}: validation PSNR {record['val_psnr']:.2f} dB")
+
+    try:
+        result = train(
+            data, run_dir, config, resume=resume, progress=on_progress, metrics_callback=on_metrics
+        )
+    except USER_ERRORS as error:
+        raise click.ClickException(str(error)) from None
+    finally:
+        bar.close()
+    best = "n/a" if result.best_val_psnr is None else f"{result.best_val_psnr:.2f} dB"
+    click.echo(
+        f"trained {result.step} steps in {result.seconds:.0f} s (stopped by {result.stopped_by}); "
+        f"last batch PSNR {result.final_psnr:.2f} dB, best validation PSNR {best}; "
+        f"checkpoint {result.latest_checkpoint}"
+    )
+
+
+def frames_from_transforms(path: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The JSON object and its frames, each with file_path and a rigid 4x4 transform_matrix."""
+    from neural.data import check_rigid_pose, read_json, require
+
+    meta = read_json(path)
+    frames = require(meta, "frames", path)
+    if not isinstance(frames, list) or not frames:
+        raise ValueError(f"{path}: 'frames' is empty")
+    checked = []
+    for index, frame in enumerate(frames):
+        where = f"{path} frames[{index}]"
+        checked.append(
+            {
+                "file_path": str(require(frame, "file_path", where)),
+                "c2w": check_rigid_pose(require(frame, "transform_matrix", where), where),
+            }
+        )
+    return meta, checked
+
+
+def focal_for_width(meta: dict[str, Any], width: int, path: Path) -> float | None:
+    """fx at the requested width: from camera_angle_x, or fl_x scaled from the file's own width w."""
+    if "camera_angle_x" in meta:
+        return 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))
+    if "fl_x" in meta:
+        if "w" not in meta:
+            raise ValueError(f"{path}: 'fl_x' needs 'w' (the width it is given for) to be scaled")
+        return float(meta["fl_x"]) * width / float(meta["w"])
+    return None
+
+
+@nerf.command("render")
+@click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option(
+    "--poses", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="transforms JSON."
+)
+@click.option("--orbit", type=int, default=None, help="Render an orbit of this many frames instead.")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--width", type=int, default=None, help="Default: the training images' width.")
+@click.option("--height", type=int, default=None, help="Default: keeps the training aspect ratio.")
+@click.option("--depth", is_flag=True, help="Also write <name>_depth.png (near bright, far dark).")
+@click.option("--checkpoint", default="latest", show_default=True, help="latest, best or a step number.")
+@click.option("--format", "video_format", type=click.Choice(["gif", "mp4"]), default="gif", show_default=True)
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
+def render_command(
+    run_dir: Path,
+    poses: Path | None,
+    orbit: int | None,
+    out_dir: Path,
+    width: int | None,
+    height: int | None,
+    depth: bool,
+    checkpoint: str,
+    video_format: str,
+    device: str,
+) -> None:
+    """Render the views of a transforms JSON (one PNG per frame, named after file_path), or an orbit."""
+    if (poses is None) == (orbit is None):
+        raise click.UsageError("give exactly one of --poses TRANSFORMS_JSON or --orbit N")
+    from PIL import Image
+    from tqdm import tqdm
+
+    from neural.inference import depth_to_uint8, load_run, render_frame, render_orbit, to_uint8, view_camera
+
+    try:
+        if orbit is not None:
+            bar = tqdm(total=orbit, desc="orbit", unit="frame")
+            video = render_orbit(
+                run_dir, orbit, out_dir, width, height, video_format=video_format, checkpoint=checkpoint,
+                progress=lambda stage, fraction: bar.update(round(fraction * orbit) - bar.n),
+            )  # fmt: skip
+            bar.close()
+            click.echo(f"wrote {orbit} frames and {video}")
+            return
+        run = load_run(run_dir, checkpoint, device=device)
+        meta, frames = frames_from_transforms(poses)
+        width = width or int(meta.get("w", run.camera.width))
+        height = height or int(meta.get("h", round(width * run.camera.height / run.camera.width)))
+        camera = view_camera(run, width, height, focal_for_width(meta, width, poses), None)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for frame in tqdm(frames, desc="render", unit="frame"):
+            stem = Path(frame["file_path"]).stem
+            rendered = render_frame(run, frame["c2w"], camera)
+            Image.fromarray(to_uint8(rendered.rgb)).save(out_dir / f"{stem}.png")
+            if depth:
+                Image.fromarray(depth_to_uint8(rendered.depth, run.scene)).save(out_dir / f"{stem}_depth.png")
+    except USER_ERRORS as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(f"wrote {len(frames)} frames ({width}x{height}) to {out_dir}")
+
+
+@nerf.command("eval")
+@click.argument("run_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option(
+    "--data", required=True, type=click.Path(exists=True, path_type=Path), help="Dataset to test on."
+)
+@click.option("--split", default="val", show_default=True, help="train, val or test.")
+@click.option("--checkpoint", default="latest", show_default=True, help="latest, best or a step number.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Where to write the metrics; default RUN/eval_<split>.json.")  # fmt: skip
+@click.option("--save-renders", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also save the rendered images here.")  # fmt: skip
+def eval_command(
+    run_dir: Path, data: Path, split: str, checkpoint: str, json_path: Path | None, save_renders: Path | None
+) -> None:
+    """PSNR and SSIM of the run's renders of DATA's split, per image and mean; printed and saved as JSON."""
+    from neural import evaluate
+
+    try:
+        result = evaluate(run_dir, data, split, checkpoint=checkpoint, out_dir=save_renders)
+    except USER_ERRORS as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(f"{'image':<24} {'PSNR (dB)':>10} {'SSIM':>8}")
+    for metrics in result.per_image:
+        click.echo(f"{metrics.name:<24} {metrics.psnr:>10.2f} {metrics.ssim:>8.4f}")
+    click.echo(f"{'mean':<24} {result.mean_psnr:>10.2f} {result.mean_ssim:>8.4f}")
+    json_path = json_path or run_dir / f"eval_{split}.json"
+    json_path.write_text(json.dumps(result.to_dict(), indent=2))
+    click.echo(f"step {result.step}; wrote {json_path}")

@@ -1,0 +1,222 @@
+"""Service benchmark: job-status latency under load, and API overhead against the CLI on Unity Hall.
+
+1. `sfmnerf serve` runs in its own process (embedded defaults, a temporary data folder, loopback port).
+   While a Unity Hall reconstruction runs, 50 concurrent clients poll GET /v1/jobs/{id}: requests per second
+   and latency percentiles over that window.
+   Then the server's CPU time per request with one client on an idle service (the per-request cost).
+2. Upload -> finished Unity Hall through the API (POST, then polling every 50 ms) against
+   `sfmnerf reconstruct` on the same input (a fresh process each time, as the API's job is), median of N runs,
+   API and CLI runs interleaved.
+
+    python benchmarks/bench_service.py [--runs 3] [--clients 50]
+
+The load generator shares the machine with the server and the job: numbers are for this machine and load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+UNITY_HALL = ROOT.parent / "shared" / "data" / "unity_hall"
+POLL_SECONDS = 0.05
+START_TIMEOUT_SECONDS = 60.0
+JOB_TIMEOUT_SECONDS = 600.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def upload_files() -> list:
+    files = [("images", (p.name, p.read_bytes(), "image/png")) for p in sorted(UNITY_HALL.glob("*.png"))]
+    files += [
+        ("matches", (p.name, p.read_bytes(), "text/plain")) for p in sorted(UNITY_HALL.glob("matching*.txt"))
+    ]
+    files.append(
+        ("calibration", ("calibration.txt", (UNITY_HALL / "calibration.txt").read_bytes(), "text/plain"))
+    )
+    return files
+
+
+def start_server(data_dir: Path, port: int) -> subprocess.Popen:
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "from service.cli import main; main()",
+            "serve",
+            "--port",
+            str(port),
+            "--data-dir",
+            str(data_dir),
+            "--log-level",
+            "warning",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + START_TIMEOUT_SECONDS
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
+                return process
+        except httpx.HTTPError:
+            time.sleep(0.2)
+    process.kill()
+    raise RuntimeError("the server did not start")
+
+
+def wait_finished(client: httpx.Client, job_id: str) -> dict:
+    deadline = time.monotonic() + JOB_TIMEOUT_SECONDS
+    while time.monotonic() < deadline:
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            return job
+        time.sleep(POLL_SECONDS)
+    raise RuntimeError(f"job {job_id} did not finish")
+
+
+async def poll_under_load(base_url: str, job_id: str, clients: int) -> tuple[list[float], float, int]:
+    """Each client GETs the job in a loop until it has finished; (latencies s, window s, errors)."""
+    latencies: list[float] = []
+    errors = 0
+    done = asyncio.Event()
+    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+    async with httpx.AsyncClient(base_url=base_url, limits=limits, timeout=30) as client:
+
+        async def one_client() -> None:
+            nonlocal errors
+            while not done.is_set():
+                start = time.perf_counter()
+                try:
+                    response = await client.get(f"/v1/jobs/{job_id}")
+                    latencies.append(time.perf_counter() - start)
+                    if response.status_code != 200:
+                        errors += 1
+                    elif response.json()["state"] in ("succeeded", "failed", "cancelled"):
+                        done.set()
+                except httpx.HTTPError:
+                    errors += 1
+
+        began = time.perf_counter()
+        await asyncio.gather(*(one_client() for _ in range(clients)))
+        return latencies, time.perf_counter() - began, errors
+
+
+def server_cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def sequential_cost(client: httpx.Client, pid: int, path: str, requests: int) -> tuple[float, float]:
+    """(server CPU ms, wall ms) per request, one client, nothing else running in the service."""
+    for _ in range(20):
+        client.get(path)
+    cpu, start = server_cpu_seconds(pid), time.perf_counter()
+    for _ in range(requests):
+        client.get(path)
+    wall = time.perf_counter() - start
+    return 1000 * (server_cpu_seconds(pid) - cpu) / requests, 1000 * wall / requests
+
+
+def api_run(client: httpx.Client, files: list) -> float:
+    start = time.perf_counter()
+    job_id = client.post("/v1/reconstructions", files=files).json()["id"]
+    job = wait_finished(client, job_id)
+    assert job["state"] == "succeeded", job
+    return time.perf_counter() - start
+
+
+def cli_run(out_dir: Path) -> float:
+    start = time.perf_counter()
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from service.cli import main; main()",
+            "reconstruct",
+            str(UNITY_HALL),
+            "--out",
+            str(out_dir),
+        ],
+        cwd=ROOT,
+        check=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--runs", type=int, default=3, help="API and CLI runs for the overhead ratio.")
+    parser.add_argument("--clients", type=int, default=50, help="Concurrent clients polling the job.")
+    parser.add_argument("--sequential", type=int, default=1000, help="Requests for the per-request cost.")
+    args = parser.parse_args()
+    files = upload_files()
+    with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
+        port = free_port()
+        server = start_server(Path(tmp) / "data", port)
+        base_url = f"http://127.0.0.1:{port}"
+        try:
+            with httpx.Client(base_url=base_url, timeout=60) as client:
+                job_id = client.post("/v1/reconstructions", files=files).json()["id"]
+                latencies, window, errors = asyncio.run(poll_under_load(base_url, job_id, args.clients))
+                assert wait_finished(client, job_id)["state"] == "succeeded"
+                cpu_ms, wall_ms = sequential_cost(client, server.pid, f"/v1/jobs/{job_id}", args.sequential)
+                api_times, cli_times = [], []
+                for run in range(args.runs):  # interleaved, so both see the same machine load
+                    api_times.append(api_run(client, files))
+                    cli_times.append(cli_run(Path(tmp) / f"cli{run}"))
+        finally:
+            server.terminate()
+            server.wait(timeout=30)
+
+    ms = np.array(latencies) * 1000
+    print(
+        f"GET /v1/jobs/{{id}} with {args.clients} concurrent clients while a Unity Hall reconstruction runs"
+    )
+    print("| requests | window s | RPS | p50 ms | p99 ms | max ms | errors |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print(
+        f"| {len(ms)} | {window:.1f} | {len(ms) / window:.0f} | {np.percentile(ms, 50):.1f} | "
+        f"{np.percentile(ms, 99):.1f} | {ms.max():.1f} | {errors} |"
+    )
+    print()
+    print(f"One client, {args.sequential} sequential GET /v1/jobs/{{id}} on an idle service")
+    print("| server CPU ms / request | wall ms / request | implied ceiling per core, RPS |")
+    print("|---:|---:|---:|")
+    print(f"| {cpu_ms:.2f} | {wall_ms:.2f} | {1000 / cpu_ms:.0f} |")
+    print()
+    api_median, cli_median = statistics.median(api_times), statistics.median(cli_times)
+    print(f"Unity Hall upload -> finished, median of {args.runs} runs")
+    print("| path | median s | runs s |")
+    print("|---|---:|---|")
+    api_runs = ", ".join(f"{t:.2f}" for t in api_times)
+    print(f"| API (POST + job process + polling) | {api_median:.2f} | {api_runs} |")
+    print(
+        f"| CLI (`sfmnerf reconstruct`, fresh process) | {cli_median:.2f} | "
+        f"{', '.join(f'{t:.2f}' for t in cli_times)} |"
+    )
+    print(f"| overhead ratio API / CLI | {api_median / cli_median:.2f} | |")
+
+
+if __name__ == "__main__":
+    main()

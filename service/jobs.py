@@ -1,0 +1,251 @@
+"""The job functions and the code that runs one job attempt, shared by local job processes and Celery.
+
+`execute(store, job_id, attempt, settings)` runs the job whose attempt the caller claimed: it reports
+progress and log lines into the job store, heartbeats, stops when cancelled, and writes the final state.
+The heavy libraries (`estimation`, `neural`) are imported inside the job functions.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from service import webhooks
+from service.db import Job, JobKind, JobState, JobStore
+from service.settings import ServiceSettings
+
+PROGRESS_WRITE_INTERVAL_SECONDS = 0.5
+"""Progress of one stage is written at most this often (a NeRF step loop calls back every step)."""
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+def job_dir(settings: ServiceSettings, job_id: str) -> Path:
+    return settings.jobs_dir / job_id
+
+
+def input_dir(settings: ServiceSettings, job_id: str) -> Path:
+    return job_dir(settings, job_id) / "input"
+
+
+def output_dir(settings: ServiceSettings, job_id: str) -> Path:
+    """Reconstruction output folder, NeRF run folder or video folder of a job."""
+    return job_dir(settings, job_id) / "output"
+
+
+class JobCancelled(Exception):
+    """Raised inside a job when the store says it was cancelled or taken over."""
+
+
+@dataclass
+class JobContext:
+    """What a job function gets: its job, folders, and callbacks into the job store."""
+
+    store: JobStore
+    job: Job
+    attempt: int
+    settings: ServiceSettings
+    stop_reason: str | None = None
+    _last_stage: str | None = None
+    _last_write: float = 0.0
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def input_dir(self) -> Path:
+        return input_dir(self.settings, self.job.id)
+
+    @property
+    def output_dir(self) -> Path:
+        return output_dir(self.settings, self.job.id)
+
+    def log(self, line: str) -> None:
+        self.store.append_log(self.job.id, [line])
+
+    def progress(self, stage: str, fraction: float) -> None:
+        """ProgressCallback: stage name and overall fraction; writes are throttled, stage changes logged."""
+        now = time.monotonic()
+        with self._lock:
+            stage_changed = stage != self._last_stage
+            if not stage_changed and now - self._last_write < PROGRESS_WRITE_INTERVAL_SECONDS:
+                return
+            self._last_stage, self._last_write = stage, now
+        if stage_changed:
+            self.log(f"stage: {stage} ({fraction:.0%})")
+        if not self.store.report_progress(self.job.id, self.attempt, stage, fraction):
+            self.stop_reason = self.stop_reason or "the job was cancelled or taken over"
+
+    def should_stop(self) -> bool:
+        return self.stop_reason is not None
+
+
+class _StoreLogHandler(logging.Handler):
+    """Copies the job's Python log records (estimation, neural) into its log lines."""
+
+    def __init__(self, context: JobContext) -> None:
+        super().__init__(logging.INFO)
+        self.context = context
+        self.setFormatter(logging.Formatter(LOG_FORMAT))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.context.log(self.format(record))
+        except Exception:  # logging must never break the job
+            self.handleError(record)
+
+
+def _heartbeat_loop(context: JobContext, stop: threading.Event) -> None:
+    while not stop.wait(context.settings.heartbeat_seconds):
+        owned, cancel = context.store.heartbeat(context.job.id, context.attempt)
+        if cancel:
+            context.stop_reason = "cancelled"
+        elif not owned:
+            context.stop_reason = "the job was cancelled or taken over"
+
+
+# ---- the job functions --------------------------------------------------------------------------------
+
+
+def run_reconstruction(context: JobContext) -> dict[str, Any]:
+    """estimation.reconstruct on the uploaded folder; the report stays in output/report.json."""
+    from estimation import ReconstructionConfig, reconstruct
+
+    config = ReconstructionConfig.model_validate(context.job.params.get("config", {}))
+    shutil.rmtree(context.output_dir, ignore_errors=True)  # a re-run starts from scratch
+    result = reconstruct(context.input_dir, context.output_dir, config, progress=context.progress)
+    model = result.model
+    return {
+        "registered_images": len(model.poses),
+        "unregistered_images": len(model.unregistered),
+        "points": int(len(model.points)),
+    }
+
+
+def nerf_dataset_path(settings: ServiceSettings, job: Job) -> Path:
+    """Where a NeRF job's training data lives: its upload, or its source reconstruction's output."""
+    if job.source_job_id:
+        return output_dir(settings, job.source_job_id)
+    return job_dir(settings, job.id) / job.params["dataset"]
+
+
+def run_nerf(context: JobContext) -> dict[str, Any]:
+    """neural.train into output/ (the run folder); resumes from the latest checkpoint after a restart."""
+    from neural import TrainConfig, list_checkpoints, train
+
+    run_dir = context.output_dir
+    resume = bool(context.job.resume and run_dir.is_dir() and list_checkpoints(run_dir))
+    if resume:
+        context.log(f"resuming from the checkpoint at step {max(c.step for c in list_checkpoints(run_dir))}")
+        config = None
+    else:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        config = TrainConfig.model_validate(context.job.params.get("train_config", {}))
+
+    def on_metrics(metrics: dict) -> None:
+        context.log(
+            "metrics: "
+            + " ".join(f"{k}={v:.5g}" if isinstance(v, float) else f"{k}={v}" for k, v in metrics.items())
+        )
+
+    result = train(
+        nerf_dataset_path(context.settings, context.job),
+        run_dir,
+        config,
+        resume=resume,
+        progress=context.progress,
+        metrics_callback=on_metrics,
+        should_stop=context.should_stop,
+    )
+    return _summary(result)
+
+
+def run_video(context: JobContext) -> dict[str, Any]:
+    """neural.render_orbit of the source NeRF job's latest checkpoint into output/."""
+    from neural import render_orbit
+
+    params = context.job.params
+    shutil.rmtree(context.output_dir, ignore_errors=True)
+    context.progress("rendering orbit", 0.0)
+    path = render_orbit(
+        output_dir(context.settings, context.job.source_job_id),
+        params["num_frames"],
+        context.output_dir,
+        params["width"],
+        params["height"],
+    )
+    return {
+        "file": str(Path(path).resolve().relative_to(job_dir(context.settings, context.job.id).resolve()))
+    }
+
+
+def _summary(result: Any) -> dict[str, Any]:
+    """The scalar fields of a result dataclass (server paths left out: the API serves the files)."""
+    fields = {name: getattr(result, name) for name in getattr(result, "__dataclass_fields__", {})}
+    return {
+        k: finite_or_none(v) for k, v in fields.items() if isinstance(v, (int, float, str, bool)) or v is None
+    }
+
+
+def finite_or_none(value: Any) -> Any:
+    """NaN and infinities become None: JSON has no place for them."""
+    return None if isinstance(value, float) and not math.isfinite(value) else value
+
+
+JOB_FUNCTIONS: dict[str, Callable[[JobContext], dict[str, Any]]] = {
+    JobKind.reconstruction: run_reconstruction,
+    JobKind.nerf: run_nerf,
+    JobKind.video: run_video,
+}
+
+
+def _expected_error_types() -> tuple[type[Exception], ...]:
+    """Errors that mean bad input or options: their message is the job's error, without a type name."""
+    from estimation.errors import InputError
+    from neural.errors import CheckpointError, DatasetError
+
+    return InputError, DatasetError, CheckpointError
+
+
+def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSettings) -> JobState | None:
+    """Runs one claimed attempt of a job to its end and records the outcome; returns the final state."""
+    job = store.get(job_id)
+    if job is None or job.attempt != attempt or job.state != JobState.running:
+        return None
+    context = JobContext(store=store, job=job, attempt=attempt, settings=settings)
+    handler = _StoreLogHandler(context)
+    root = logging.getLogger()
+    root.addHandler(handler)
+    previous_level = root.level
+    root.setLevel(min(previous_level, logging.INFO) if previous_level else logging.INFO)
+    stop_heartbeat = threading.Event()
+    heartbeat = threading.Thread(target=_heartbeat_loop, args=(context, stop_heartbeat), daemon=True)
+    heartbeat.start()
+    context.log(f"attempt {attempt} of {job.kind} job started by {job.worker or 'a worker'}")
+    state, error, result = JobState.failed, None, None
+    try:
+        result = JOB_FUNCTIONS[job.kind](context)
+        state = JobState.cancelled if context.should_stop() else JobState.succeeded
+    except _expected_error_types() as exc:
+        error = str(exc)
+    except Exception as exc:  # any other failure ends the job with its reason, never a stuck job
+        error = f"{type(exc).__name__}: {exc}"
+        context.log(traceback.format_exc())
+    finally:
+        stop_heartbeat.set()
+        root.removeHandler(handler)
+        root.setLevel(previous_level)
+    if state == JobState.cancelled:
+        error = "cancelled"
+    context.log(f"finished: {state}" + (f" ({error})" if error and state == JobState.failed else ""))
+    if store.finish(
+        job_id, attempt, state, error=error if state != JobState.succeeded else None, result=result
+    ):
+        webhooks.notify(store, job_id, settings, background=False)
+        return state
+    return None

@@ -1,0 +1,352 @@
+"""/v1/nerf: train a radiance field, follow its metrics, download checkpoints, render views and videos."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import shutil
+import threading
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile, status
+from fastapi.responses import FileResponse
+
+from service.db import JobKind, JobState, new_job_id
+from service.deps import ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
+from service.jobs import finite_or_none, job_dir, output_dir
+from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
+from service.routes.jobs import NOT_FOUND, accepted
+from service.routes.reconstructions import REJECTED
+from service.settings import ServiceSettings
+from service.uploads import UploadRejected, extract_zip, find_dataset_root, invalid, save_stream
+
+router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
+NO_CHECKPOINT = {409: {"model": ErrorOut, "description": "The job has no checkpoint yet."}}
+PNG = {200: {"content": {"image/png": {}}, "description": "The rendered view."}}
+DATASET_DIR = "input/dataset"
+_render_lock = threading.Lock()
+"""One render at a time in the API process: a render holds a model and a full image of rays in memory."""
+
+
+def _dataset_errors() -> tuple[type[Exception], ...]:
+    from neural.errors import CheckpointError, DatasetError
+
+    return DatasetError, CheckpointError
+
+
+def _train_config(options: str | None, overrides: dict[str, Any]) -> dict[str, Any]:
+    """The TrainConfig fields as JSON, validated by neural.TrainConfig; 422 naming the field otherwise."""
+    from pydantic import ValidationError
+
+    from neural import TrainConfig
+
+    try:
+        extra = json.loads(options) if options else {}
+    except json.JSONDecodeError as error:
+        raise invalid(f"options: not valid JSON ({error})") from None
+    if not isinstance(extra, dict):
+        raise invalid("options: expected a JSON object of training settings")
+    try:
+        config = TrainConfig.model_validate(
+            {**extra, **{k: v for k, v in overrides.items() if v is not None}}
+        )
+    except ValidationError as error:
+        problems = "; ".join(
+            f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in error.errors()
+        )
+        raise invalid(f"training options: {problems}") from None
+    return config.model_dump(mode="json")
+
+
+def _save_dataset(upload: UploadFile, job_id: str, settings: ServiceSettings) -> str:
+    """Stores an uploaded .npz or Blender zip in the job folder; returns its path relative to that folder."""
+    folder = job_dir(settings, job_id)
+    name = (upload.filename or "").lower()
+    if name.endswith(".npz"):
+        save_stream(upload.file, folder / "input" / "dataset.npz")
+        return "input/dataset.npz"
+    archive = folder / "input" / "upload.zip"
+    save_stream(upload.file, archive)
+    extract_zip(archive, folder / DATASET_DIR, settings)
+    archive.unlink()
+    root = find_dataset_root(folder / DATASET_DIR)
+    return str(root.relative_to(folder))
+
+
+def _check_dataset(path: Path, field: str) -> None:
+    from neural import load_dataset
+
+    try:
+        load_dataset(path)
+    except _dataset_errors() as error:
+        raise invalid(f"{field}: {error}") from None
+
+
+@router.post(
+    "",
+    response_model=JobOut,
+    status_code=202,
+    responses={**REJECTED, **NOT_FOUND},
+    summary="Train a NeRF on an uploaded dataset (Blender zip or .npz) or a reconstruction",
+)
+def create_nerf(
+    response: Response,
+    store: StoreDep,
+    executor: ExecutorDep,
+    settings: SettingsDep,
+    dataset: Annotated[
+        UploadFile | None,
+        File(
+            description="A zip of a Blender-format dataset (transforms_train.json + images) "
+            "or a tiny-NeRF .npz."
+        ),
+    ] = None,
+    reconstruction_id: Annotated[
+        str | None,
+        Form(max_length=64, description="Train on this finished reconstruction instead of an upload."),
+    ] = None,
+    model: Annotated[Literal["vanilla", "fast"], Form()] = "fast",
+    steps: Annotated[int | None, Form(ge=1, le=10_000_000, examples=[2000])] = None,
+    minutes: Annotated[float | None, Form(gt=0, le=100_000, examples=[10.0])] = None,
+    batch_rays: Annotated[int | None, Form(ge=1, le=1_000_000, examples=[1024])] = None,
+    device: Annotated[Literal["auto", "cpu", "cuda"] | None, Form()] = None,
+    options: Annotated[
+        str | None,
+        Form(
+            max_length=20_000,
+            description="More TrainConfig fields as a JSON object.",
+            examples=['{"checkpoint_every": 500}'],
+        ),
+    ] = None,
+    webhook_url: Annotated[str | None, Form(pattern=r"^https?://\S+$", max_length=2000)] = None,
+) -> JobOut:
+    if (dataset is None) == (reconstruction_id is None):
+        raise HTTPException(422, "dataset: give either an uploaded dataset or reconstruction_id, exactly one")
+    try:
+        config = _train_config(
+            options,
+            {"model": model, "steps": steps, "minutes": minutes, "batch_rays": batch_rays, "device": device},
+        )
+    except UploadRejected as rejected:
+        raise HTTPException(rejected.status_code, rejected.detail) from None
+    job_id = new_job_id()
+    params: dict[str, Any] = {"train_config": config}
+    source_job_id = None
+    if reconstruction_id is not None:
+        source = find_job(store, reconstruction_id, JobKind.reconstruction)
+        if source.state != JobState.succeeded:
+            raise HTTPException(
+                status.HTTP_409_CONFLICT,
+                f"reconstruction {reconstruction_id} is {source.state}; a NeRF trains on a succeeded one",
+            )
+        source_job_id = reconstruction_id
+        try:
+            _check_dataset(output_dir(settings, reconstruction_id), "reconstruction_id")
+        except UploadRejected as rejected:
+            raise HTTPException(rejected.status_code, rejected.detail) from None
+    else:
+        try:
+            params["dataset"] = _save_dataset(dataset, job_id, settings)
+            _check_dataset(job_dir(settings, job_id) / params["dataset"], "dataset")
+        except UploadRejected as rejected:
+            shutil.rmtree(job_dir(settings, job_id), ignore_errors=True)
+            raise HTTPException(rejected.status_code, rejected.detail) from None
+    job = store.create(
+        JobKind.nerf, params, job_id=job_id, source_job_id=source_job_id, webhook_url=webhook_url
+    )
+    executor.submit(job_id)
+    return accepted(response, JobOut.from_job(job))
+
+
+def _read_metrics(path: Path) -> list[MetricPoint]:
+    """metrics.jsonl so far; a line being written (no newline yet) is skipped."""
+    if not path.is_file():
+        return []
+    points = []
+    for line in path.read_text().splitlines():
+        try:
+            record = {key: finite_or_none(value) for key, value in json.loads(line).items()}
+            points.append(MetricPoint.model_validate(record))
+        except ValueError:
+            continue
+    return points
+
+
+def _checkpoints(run_dir: Path) -> list[Any]:
+    from neural import list_checkpoints
+
+    if not run_dir.is_dir():
+        return []
+    try:
+        return sorted(list_checkpoints(run_dir), key=lambda c: c.step)
+    except _dataset_errors():
+        return []
+
+
+@router.get(
+    "/{job_id}",
+    response_model=NerfOut,
+    responses=NOT_FOUND,
+    summary="A NeRF job with its metrics so far (step, loss, PSNR)",
+)
+def get_nerf(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> NerfOut:
+    job = find_job(store, job_id, JobKind.nerf)
+    run_dir = output_dir(settings, job_id)
+    config_path = run_dir / "config.json"
+    try:
+        config = (
+            json.loads(config_path.read_text()) if config_path.is_file() else job.params.get("train_config")
+        )
+    except ValueError:
+        config = job.params.get("train_config")
+    checkpoints = _checkpoints(run_dir)
+    base = f"/v1/nerf/{job_id}"
+    return NerfOut(
+        job=JobOut.from_job(job),
+        config=config,
+        metrics=_read_metrics(run_dir / "metrics.jsonl"),
+        latest_step=checkpoints[-1].step if checkpoints else None,
+        links={"checkpoints": f"{base}/checkpoints", "render": f"{base}/render", "video": f"{base}/video"},
+    )
+
+
+@router.get(
+    "/{job_id}/checkpoints",
+    response_model=list[CheckpointOut],
+    responses=NOT_FOUND,
+    summary="The checkpoints kept so far",
+)
+def get_checkpoints(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> list[CheckpointOut]:
+    find_job(store, job_id, JobKind.nerf)
+    return [
+        CheckpointOut(
+            step=c.step,
+            is_latest=c.is_latest,
+            is_best=c.is_best,
+            val_psnr=finite_or_none(c.val_psnr),
+            size_bytes=Path(c.path).stat().st_size,
+            url=f"/v1/nerf/{job_id}/checkpoints/{c.step}",
+        )
+        for c in _checkpoints(output_dir(settings, job_id))
+        if Path(c.path).is_file()
+    ]
+
+
+@router.get(
+    "/{job_id}/checkpoints/{step}",
+    response_class=FileResponse,
+    responses=NOT_FOUND,
+    summary="Download one checkpoint (a PyTorch file)",
+)
+def download_checkpoint(job_id: JobIdPath, step: int, store: StoreDep, settings: SettingsDep) -> FileResponse:
+    find_job(store, job_id, JobKind.nerf)
+    for checkpoint in _checkpoints(output_dir(settings, job_id)):
+        if checkpoint.step == step and Path(checkpoint.path).is_file():
+            return FileResponse(
+                checkpoint.path, media_type="application/octet-stream", filename=Path(checkpoint.path).name
+            )
+    raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} has no checkpoint at step {step}")
+
+
+def _require_checkpoint(job_id: str, settings: ServiceSettings) -> Path:
+    run_dir = output_dir(settings, job_id)
+    if not _checkpoints(run_dir):
+        raise HTTPException(status.HTTP_409_CONFLICT, f"NeRF job {job_id} has no checkpoint yet")
+    return run_dir
+
+
+@router.post(
+    "/{job_id}/render",
+    response_class=Response,
+    responses={**PNG, **NOT_FOUND, **NO_CHECKPOINT},
+    summary="Render a view from the latest (or a chosen) checkpoint; works while training",
+)
+def render(job_id: JobIdPath, request: RenderRequest, store: StoreDep, settings: SettingsDep) -> Response:
+    from PIL import Image
+
+    from neural import render_view
+
+    find_job(store, job_id, JobKind.nerf)
+    if request.width * request.height > settings.max_render_pixels:
+        raise HTTPException(
+            422,
+            f"width x height = {request.width * request.height} pixels, more than the limit "
+            f"SFMNERF_MAX_RENDER_PIXELS={settings.max_render_pixels}",
+        )
+    run_dir = _require_checkpoint(job_id, settings)
+    try:
+        with _render_lock:
+            pixels = render_view(
+                run_dir,
+                request.camera_to_world(),
+                request.width,
+                request.height,
+                fx=request.fx,
+                fov_x=math.radians(request.fov_x_deg) if request.fov_x_deg is not None else None,
+                checkpoint=str(request.checkpoint),
+            )
+    except _dataset_errors() as error:
+        raise HTTPException(422, f"checkpoint: {error}") from None
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="PNG")
+    return Response(buffer.getvalue(), media_type="image/png")
+
+
+@router.post(
+    "/{job_id}/video",
+    response_model=JobOut,
+    status_code=202,
+    responses={**NOT_FOUND, **NO_CHECKPOINT},
+    summary="Queue an orbit video of the latest checkpoint",
+)
+def queue_video(
+    job_id: JobIdPath,
+    request: VideoRequest,
+    response: Response,
+    store: StoreDep,
+    executor: ExecutorDep,
+    settings: SettingsDep,
+) -> JobOut:
+    find_job(store, job_id, JobKind.nerf)
+    if request.width * request.height > settings.max_render_pixels:
+        raise HTTPException(
+            422,
+            f"width x height = {request.width * request.height} pixels, more than the limit "
+            f"SFMNERF_MAX_RENDER_PIXELS={settings.max_render_pixels}",
+        )
+    _require_checkpoint(job_id, settings)
+    job = store.create(JobKind.video, request.model_dump(), source_job_id=job_id)
+    executor.submit(job.id)
+    return accepted(response, JobOut.from_job(job))
+
+
+@router.get(
+    "/{job_id}/video",
+    response_class=FileResponse,
+    responses={
+        **NOT_FOUND,
+        409: {"model": ErrorOut, "description": "The video is not ready."},
+        200: {"content": {"image/gif": {}, "video/mp4": {}}},
+    },
+    summary="The latest finished orbit video",
+)
+def get_video(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> FileResponse:
+    find_job(store, job_id, JobKind.nerf)
+    videos = store.jobs_with_source(job_id, JobKind.video)
+    if not videos:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"no video was queued for NeRF job {job_id}")
+    for video in videos:  # newest first
+        if video.state == JobState.succeeded and video.result and "file" in video.result:
+            path = job_dir(settings, video.id) / video.result["file"]
+            if path.is_file():
+                media = {".gif": "image/gif", ".mp4": "video/mp4"}.get(
+                    path.suffix, "application/octet-stream"
+                )
+                return FileResponse(path, media_type=media, filename=path.name)
+    raise HTTPException(
+        status.HTTP_409_CONFLICT,
+        f"the latest video job {videos[0].id} is {videos[0].state}"
+        + (f": {videos[0].error}" if videos[0].error else ""),
+    )

@@ -1,0 +1,111 @@
+"""Service settings, read from environment variables prefixed with SFMNERF_ (pydantic-settings).
+
+Every field is documented in the README's settings table; the defaults give the embedded setup
+(`sfmnerf serve`: a SQLite file and local worker processes, nothing else to install or start).
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+WORKER_SETTINGS_ENV = "SFMNERF_WORKER_SETTINGS_JSON"
+"""Environment variable through which the local executor hands its settings to a job process."""
+
+
+class ServiceSettings(BaseSettings):
+    """Configuration of the REST service, its job store and its executors."""
+
+    model_config = SettingsConfigDict(env_prefix="SFMNERF_", extra="ignore")
+
+    data_dir: Path = Field(Path("data"), description="Folder holding every job's uploads and outputs.")
+    database_url: str | None = Field(
+        None,
+        description="SQLAlchemy URL of the job store; default: a SQLite file `sfmnerf.sqlite` in data_dir. "
+        "PostgreSQL: postgresql+psycopg://user:password@host/db.",
+    )
+    executor: Literal["local", "celery"] = Field(
+        "local", description="local: job processes supervised by the API; celery: Celery workers via broker."
+    )
+    broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker URL (executor=celery).")
+    concurrency: int = Field(1, ge=1, description="Jobs run at the same time by the local executor.")
+    job_threads: int | None = Field(
+        None,
+        ge=1,
+        description="CPU threads of one local job process (torch/OpenMP); default: cores / concurrency.",
+    )
+    max_upload_bytes: int = Field(512 * 2**20, ge=1, description="Largest accepted request body, bytes.")
+    max_images: int = Field(500, ge=2, description="Most images in one reconstruction upload.")
+    max_image_pixels: int = Field(40_000_000, ge=1, description="Most pixels (width x height) of one image.")
+    max_zip_entries: int = Field(5000, ge=1, description="Most files in an uploaded dataset zip.")
+    max_zip_uncompressed_bytes: int = Field(
+        2 * 2**30, ge=1, description="Largest total uncompressed size of an uploaded dataset zip, bytes."
+    )
+    max_zip_ratio: float = Field(
+        200.0, gt=1, description="Largest compression ratio of one zip entry (zip-bomb guard)."
+    )
+    max_render_pixels: int = Field(
+        2_000_000, ge=1, description="Most pixels (width x height) of one render or video frame."
+    )
+    api_token: SecretStr | None = Field(
+        None, description="When set, every route but the health checks needs `Authorization: Bearer TOKEN`."
+    )
+    cancel_grace_seconds: float = Field(
+        2.0, ge=0, description="Seconds between SIGTERM and SIGKILL when a job process is cancelled."
+    )
+    heartbeat_seconds: float = Field(5.0, gt=0, description="How often a running job writes a heartbeat.")
+    heartbeat_timeout_seconds: float = Field(
+        120.0, gt=0, description="A celery job silent for this long is marked failed (its worker died)."
+    )
+    webhook_attempts: int = Field(5, ge=1, description="Attempts to deliver a job's webhook.")
+    webhook_backoff_seconds: float = Field(
+        1.0, ge=0, description="First delay between webhook attempts; doubles after each failure."
+    )
+
+    @field_validator("api_token", "database_url", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, value: object) -> object:
+        # compose files pass unset variables as "": that means "not configured", not "the empty token".
+        return None if value == "" else value
+
+    @field_validator("data_dir")
+    @classmethod
+    def _absolute(cls, value: Path) -> Path:
+        # Job processes and Celery workers may run from another working directory.
+        return value.expanduser().resolve()
+
+    @cached_property
+    def resolved_database_url(self) -> str:
+        """The configured database URL, or the default SQLite file inside the data folder."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{self.data_dir / 'sfmnerf.sqlite'}"
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.data_dir / "jobs"
+
+    def limits(self) -> dict[str, int | float]:
+        """The input limits clients should know about (shown by GET /v1/info)."""
+        return {
+            "max_upload_bytes": self.max_upload_bytes,
+            "max_images": self.max_images,
+            "max_image_pixels": self.max_image_pixels,
+            "max_zip_entries": self.max_zip_entries,
+            "max_zip_uncompressed_bytes": self.max_zip_uncompressed_bytes,
+            "max_render_pixels": self.max_render_pixels,
+        }
+
+    def threads_per_job(self) -> int:
+        """CPU threads each local job process may use, so concurrent jobs do not oversubscribe the cores."""
+        import os
+
+        return self.job_threads or max(1, (os.cpu_count() or 1) // self.concurrency)
+
+    def to_worker_json(self) -> str:
+        """Serialized settings for a child job process (the API token stays with the API)."""
+        return self.model_dump_json(exclude={"api_token"})

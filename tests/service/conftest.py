@@ -1,0 +1,72 @@
+"""Fixtures of the service tests: an app on a temporary data folder, Unity Hall uploads, job polling."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from service.db import TERMINAL_STATES
+from service.settings import ServiceSettings
+
+JOB_TIMEOUT_SECONDS = 180.0
+
+
+def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:
+    """Settings for a test: a private data folder, quick heartbeats and webhook retries."""
+    values: dict[str, object] = {
+        "data_dir": data_dir,
+        "heartbeat_seconds": 0.5,
+        "webhook_backoff_seconds": 0.05,
+        "webhook_attempts": 3,
+        "cancel_grace_seconds": 1.0,
+    }
+    values.update(overrides)
+    return ServiceSettings(**values)
+
+
+@pytest.fixture
+def settings(tmp_path: Path) -> ServiceSettings:
+    return make_settings(tmp_path / "data")
+
+
+@pytest.fixture
+def client(settings: ServiceSettings) -> Iterator[TestClient]:
+    with TestClient(create_app(settings)) as test_client:
+        yield test_client
+
+
+def unity_hall_files(folder: Path, with_calibration: bool = True) -> list[tuple[str, tuple[str, bytes, str]]]:
+    """The multipart `files` of a Unity Hall reconstruction upload."""
+    files = [("images", (p.name, p.read_bytes(), "image/png")) for p in sorted(folder.glob("*.png"))]
+    files += [
+        ("matches", (p.name, p.read_bytes(), "text/plain")) for p in sorted(folder.glob("matching*.txt"))
+    ]
+    if with_calibration:
+        files.append(
+            ("calibration", ("calibration.txt", (folder / "calibration.txt").read_bytes(), "text/plain"))
+        )
+    return files
+
+
+def wait_for_job(
+    client: TestClient,
+    job_id: str,
+    states: frozenset[str] | set[str] = TERMINAL_STATES,
+    timeout: float = JOB_TIMEOUT_SECONDS,
+    until=None,
+) -> dict:
+    """Polls GET /v1/jobs/{id} until the job is in one of `states` (or `until(job)` holds)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if until(job) if until else job["state"] in states:
+            return job
+        if time.monotonic() > deadline:
+            logs = client.get(f"/v1/jobs/{job_id}/logs").json()
+            raise AssertionError(f"job {job_id} still {job['state']} after {timeout} s: {job}\n{logs}")
+        time.sleep(0.2)

@@ -1,0 +1,163 @@
+"""The Celery executor against a real redis-server and a real Celery worker, both started here (loopback)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import redis
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from tests.service.conftest import make_settings, unity_hall_files, wait_for_job
+from tests.service.test_job_machinery import CANCEL_DEADLINE_SECONDS, process_alive
+
+REDIS_SERVER = shutil.which("redis-server") or "/usr/bin/redis-server"
+START_SECONDS = 60.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def broker_url(tmp_path_factory):
+    if not Path(REDIS_SERVER).exists():
+        pytest.fail("redis-server is not installed (apt-get install redis-server; scripts/test.sh does it)")
+    port = free_port()
+    folder = tmp_path_factory.mktemp("redis")
+    server = subprocess.Popen(
+        [
+            REDIS_SERVER,
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--dir",
+            str(folder),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    client = redis.Redis(host="127.0.0.1", port=port)
+    deadline = time.monotonic() + START_SECONDS
+    while True:
+        try:
+            client.ping()
+            break
+        except redis.ConnectionError:
+            assert server.poll() is None and time.monotonic() < deadline, "redis-server did not start"
+            time.sleep(0.1)
+    yield f"redis://127.0.0.1:{port}/0"
+    server.terminate()
+    server.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def celery_setup(tmp_path_factory, broker_url):
+    """A Celery worker process (prefork, one job at a time) and an API, sharing database and data folder."""
+    data_dir = tmp_path_factory.mktemp("celery") / "data"
+    settings = make_settings(data_dir, executor="celery", broker_url=broker_url)
+    env = {
+        **os.environ,
+        "SFMNERF_EXECUTOR": "celery",
+        "SFMNERF_BROKER_URL": broker_url,
+        "SFMNERF_DATA_DIR": str(data_dir),
+        "SFMNERF_HEARTBEAT_SECONDS": "0.5",
+    }
+    with TestClient(create_app(settings)) as client:  # creates the database before the worker opens it
+        worker = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "celery",
+                "-A",
+                "service.celery_app",
+                "worker",
+                "--pool",
+                "prefork",
+                "--concurrency",
+                "1",
+                "--loglevel",
+                "warning",
+                "--without-gossip",
+                "--without-mingle",
+                "-n",
+                f"test-{os.getpid()}@127.0.0.1",
+            ],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            cwd=Path(__file__).resolve().parents[2],
+        )
+        try:
+            yield client, worker
+        finally:
+            worker.send_signal(signal.SIGTERM)
+            try:
+                worker.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                worker.kill()
+                worker.wait()
+
+
+@pytest.fixture
+def unity(shared_data):
+    return unity_hall_files(shared_data / "unity_hall")
+
+
+def celery_pid(job: dict) -> int:
+    assert job["worker"] and job["worker"].startswith("celery "), job
+    return int(job["worker"].rsplit(" ", 1)[-1])
+
+
+def started_in_worker(job: dict) -> bool:
+    return job["state"] == "running" and job["stage"] not in (None, "starting")
+
+
+def test_a_reconstruction_runs_on_a_celery_worker(celery_setup, unity):
+    client, _ = celery_setup
+    assert client.get("/readyz").json()["queue"] == "ok"
+    job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
+    job = wait_for_job(client, job_id)
+    assert job["state"] == "succeeded", client.get(f"/v1/jobs/{job_id}/logs").json()
+    assert job["worker"].startswith("celery ")
+    body = client.get(f"/v1/reconstructions/{job_id}").json()
+    assert len(body["cameras"]) == job["result"]["registered_images"] >= 3
+    assert client.get(f"/v1/reconstructions/{job_id}/points.ply").status_code == 200
+
+
+def test_cancel_kills_the_celery_job_and_the_worker_goes_on(celery_setup, unity):
+    client, worker = celery_setup
+    job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
+    pid = celery_pid(wait_for_job(client, job_id, until=started_in_worker))
+    assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
+    job = wait_for_job(client, job_id, timeout=CANCEL_DEADLINE_SECONDS)
+    assert job["state"] == "cancelled"
+    deadline = time.monotonic() + CANCEL_DEADLINE_SECONDS
+    while process_alive(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not process_alive(pid) and worker.poll() is None
+
+
+def test_a_killed_celery_job_process_ends_failed_with_the_reason(celery_setup, unity):
+    client, worker = celery_setup
+    job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
+    pid = celery_pid(wait_for_job(client, job_id, until=started_in_worker))
+    os.kill(pid, signal.SIGKILL)
+    job = wait_for_job(client, job_id, timeout=30)
+    assert job["state"] == "failed" and "WorkerLostError" in job["error"], job
+    assert worker.poll() is None

@@ -1,0 +1,221 @@
+"""A real NeRF job on a tiny dataset: render while it trains, survive a service restart (resuming from its
+checkpoint), then checkpoints, renders of a given pose and an orbit video through the API."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from fastapi.testclient import TestClient
+from PIL import Image
+
+from service.app import create_app
+from tests.service.conftest import make_settings, wait_for_job
+
+TINY_SIDE = 20
+TRAIN_OPTIONS = {
+    "checkpoint_every": 10,
+    "val_every": 10,
+    "log_every": 5,
+    "seed": 0,
+    "model_options": {
+        "depth": 2,
+        "width": 32,
+        "colour_width": 16,
+        "coarse_samples": 16,
+        "fine_samples": 16,
+        "position_bands": 4,
+        "direction_bands": 2,
+    },
+}
+
+
+@pytest.fixture(scope="module")
+def tiny_npz(shared_data) -> bytes:
+    """10 Lego views (8 train, 2 val) at 20x20 in tiny-NeRF .npz format."""
+    source = np.load(shared_data / "lego_tiny.npz")
+    step = source["images"].shape[1] // TINY_SIDE
+    picked = np.r_[np.flatnonzero(source["split"] == 0)[:8], np.flatnonzero(source["split"] == 1)[:2]]
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        images=source["images"][picked][:, ::step, ::step],
+        poses=source["poses"][picked],
+        focal=float(source["focal"]) / step,
+        split=np.r_[np.zeros(8, int), np.ones(2, int)],
+    )
+    return buffer.getvalue()
+
+
+def has_checkpoint(client: TestClient, job_id: str):
+    def check(job: dict) -> bool:
+        assert job["state"] in ("queued", "running"), job
+        return bool(client.get(f"/v1/nerf/{job_id}/checkpoints").json())
+
+    return check
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, tiny_npz):
+    """A NeRF job started, rendered while running, interrupted by a restart, resumed and finished."""
+    settings = make_settings(tmp_path_factory.mktemp("nerf") / "data", job_threads=1)
+    record: dict = {}
+    with TestClient(create_app(settings)) as client:
+        response = client.post(
+            "/v1/nerf",
+            files={"dataset": ("tiny.npz", tiny_npz, "application/octet-stream")},
+            data={
+                "model": "vanilla",
+                "steps": "400",
+                "batch_rays": "64",
+                "device": "cpu",
+                "options": json.dumps(TRAIN_OPTIONS),
+            },
+        )
+        assert response.status_code == 202, response.text
+        job_id = response.json()["id"]
+        record["no_checkpoint_render"] = client.post(
+            f"/v1/nerf/{job_id}/render", json={"c2w": np.eye(4).tolist(), "width": 8, "height": 8}
+        )
+        wait_for_job(client, job_id, until=has_checkpoint(client, job_id))
+        record["running_render"] = client.post(
+            f"/v1/nerf/{job_id}/render", json={"c2w": np.eye(4).tolist(), "width": 12, "height": 10}
+        )
+        record["running_state"] = client.get(f"/v1/jobs/{job_id}").json()["state"]
+        record["step_before_restart"] = max(
+            c["step"] for c in client.get(f"/v1/nerf/{job_id}/checkpoints").json()
+        )
+    # The service stopped with the job in flight; a new one picks it up.
+    client = TestClient(create_app(settings))
+    with client:
+        job = wait_for_job(client, job_id)
+        yield client, job, record, settings
+
+
+def test_render_before_the_first_checkpoint_answers_409(trained):
+    _, _, record, _ = trained
+    response = record["no_checkpoint_render"]
+    assert response.status_code == 409 and "no checkpoint yet" in response.json()["detail"]
+
+
+def test_a_running_job_renders_from_its_latest_checkpoint(trained):
+    _, _, record, _ = trained
+    assert record["running_state"] == "running"
+    response = record["running_render"]
+    assert response.status_code == 200 and response.headers["content-type"] == "image/png"
+    assert Image.open(io.BytesIO(response.content)).size == (12, 10)
+
+
+def test_a_restart_resumes_the_job_from_its_last_checkpoint(trained):
+    client, job, record, settings = trained
+    assert job["state"] == "succeeded" and job["attempt"] == 2, job
+    lines = client.get(f"/v1/jobs/{job['id']}/logs").json()["lines"]
+    assert any("resumes from its last checkpoint" in line for line in lines)
+    resumed = [line for line in lines if line.startswith("resuming from the checkpoint at step")]
+    assert resumed and int(resumed[0].split()[-1]) >= record["step_before_restart"]
+    steps = [
+        m["step"] for m in client.get(f"/v1/nerf/{job['id']}").json()["metrics"] if m.get("loss") is not None
+    ]
+    assert steps[-1] == 400 and steps[0] == 5
+    assert job["result"]["step"] == 400
+
+
+def test_metrics_and_checkpoints_are_listed(trained):
+    client, job, _, _ = trained
+    body = client.get(f"/v1/nerf/{job['id']}").json()
+    assert body["config"] and body["latest_step"] == 400
+    training = [m for m in body["metrics"] if m.get("loss") is not None]
+    assert all(m["psnr"] is not None for m in training)
+    checkpoints = client.get(f"/v1/nerf/{job['id']}/checkpoints").json()
+    assert [c["step"] for c in checkpoints if c["is_latest"]] == [400]
+    assert all(c["size_bytes"] > 0 for c in checkpoints)
+
+
+def test_a_checkpoint_downloads_as_a_loadable_file(trained, tmp_path):
+    client, job, _, _ = trained
+    response = client.get(f"/v1/nerf/{job['id']}/checkpoints/400")
+    assert response.status_code == 200
+    path = tmp_path / "ckpt.pt"
+    path.write_bytes(response.content)
+    payload = torch.load(path, map_location="cpu", weights_only=False)
+    assert payload["step"] == 400 and payload["model_name"] == "vanilla"
+    assert client.get(f"/v1/nerf/{job['id']}/checkpoints/7").status_code == 404
+
+
+@pytest.mark.parametrize(
+    "camera",
+    [
+        {"c2w": [[1, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0.5], [0, 0, 0, 1]]},
+        {"eye": [0.0, -4.0, 1.0], "look_at": [0.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0], "fov_x_deg": 40.0},
+        {"eye": [4.0, 0.0, 0.0], "look_at": [0.0, 0.0, 0.0], "fx": 30.0, "checkpoint": "best"},
+    ],
+    ids=["c2w", "look-at-fov", "look-at-fx-best"],
+)
+def test_a_render_of_a_given_pose_is_a_png_of_the_requested_size(trained, camera):
+    client, job, _, _ = trained
+    response = client.post(f"/v1/nerf/{job['id']}/render", json={**camera, "width": 24, "height": 16})
+    assert response.status_code == 200, response.text
+    image = Image.open(io.BytesIO(response.content))
+    assert image.format == "PNG" and image.size == (24, 16)
+    assert np.asarray(image).std() > 0  # an image, not a blank
+
+
+def test_render_limits_and_unknown_checkpoints_are_4xx(trained):
+    client, job, _, settings = trained
+    side = int(settings.max_render_pixels**0.5) + 1
+    big = client.post(
+        f"/v1/nerf/{job['id']}/render", json={"c2w": np.eye(4).tolist(), "width": side, "height": side}
+    )
+    assert big.status_code == 422 and "SFMNERF_MAX_RENDER_PIXELS" in big.json()["detail"]
+    missing = client.post(
+        f"/v1/nerf/{job['id']}/render",
+        json={"c2w": np.eye(4).tolist(), "width": 8, "height": 8, "checkpoint": 3},
+    )
+    assert missing.status_code == 422 and "checkpoint" in missing.json()["detail"]
+
+
+def test_an_orbit_video_is_queued_and_fetched(trained):
+    client, job, _, _ = trained
+    assert client.get(f"/v1/nerf/{job['id']}/video").status_code == 404
+    response = client.post(f"/v1/nerf/{job['id']}/video", json={"num_frames": 3, "width": 16, "height": 16})
+    assert response.status_code == 202 and response.headers["Location"].startswith("/v1/jobs/")
+    video_job = wait_for_job(client, response.json()["id"])
+    assert video_job["state"] == "succeeded", client.get(f"/v1/jobs/{video_job['id']}/logs").json()
+    video = client.get(f"/v1/nerf/{job['id']}/video")
+    assert video.status_code == 200 and video.headers["content-type"] == "image/gif"
+    gif = Image.open(io.BytesIO(video.content))
+    assert gif.size == (16, 16) and gif.n_frames == 3
+
+
+def blender_zip(root: Path, train_views: int = 3, val_views: int = 1) -> bytes:
+    """A few views of the Lego Blender dataset, zipped under a top-level folder as people zip them."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        for split, count in (("train", train_views), ("val", val_views)):
+            meta = json.loads((root / f"transforms_{split}.json").read_text())
+            meta["frames"] = meta["frames"][:count]
+            zf.writestr(f"lego/transforms_{split}.json", json.dumps(meta))
+            for frame in meta["frames"]:
+                name = f"{frame['file_path'].removeprefix('./')}.png"
+                zf.write(root / name, f"lego/{name}")
+    return buffer.getvalue()
+
+
+def test_a_blender_zip_upload_becomes_a_nerf_job(client, settings, shared_data):
+    archive = blender_zip(shared_data / "lego_200")
+    response = client.post(
+        "/v1/nerf",
+        files={"dataset": ("lego.zip", archive, "application/zip")},
+        data={"model": "fast", "steps": "5"},
+    )
+    assert response.status_code == 202, response.text
+    job_id = response.json()["id"]
+    assert (settings.jobs_dir / job_id / "input" / "dataset" / "lego" / "transforms_train.json").is_file()
+    assert not (settings.jobs_dir / job_id / "input" / "upload.zip").exists()
+    assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
+    assert wait_for_job(client, job_id, timeout=10)["state"] == "cancelled"
