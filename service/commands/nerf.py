@@ -7,10 +7,14 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
+
+if TYPE_CHECKING:
+    from neural.inference import Camera
 
 USER_ERRORS: tuple[type[Exception], ...] = (ValueError, FileNotFoundError)  # DatasetError/CheckpointError too
 
@@ -95,15 +99,27 @@ def frames_from_transforms(path: Path) -> tuple[dict[str, Any], list[dict[str, A
     return meta, checked
 
 
-def focal_for_width(meta: dict[str, Any], width: int, path: Path) -> float | None:
-    """fx at the requested width: from camera_angle_x, or fl_x scaled from the file's own width w."""
-    if "camera_angle_x" in meta:
-        return 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))
+def camera_for_transforms(default: Camera, meta: dict[str, Any], path: Path | str) -> Camera:
+    """The intrinsics a transforms JSON asks for, at the default camera's (requested) size.
+
+    fx: fl_x scaled from the file's width w, else 0.5 W / tan(camera_angle_x / 2), else the default's;
+    fy: fl_y scaled from h, else fx; cx, cy: scaled from w, h when given, else the image centre.
+    """
+    width, height = default.width, default.height
+    sx = width / float(meta["w"]) if "w" in meta else None
+    sy = height / float(meta["h"]) if "h" in meta else None
+    if "fl_x" in meta and sx is None:
+        raise ValueError(f"{path}: 'fl_x' needs 'w' (the width it is given for) to be scaled")
     if "fl_x" in meta:
-        if "w" not in meta:
-            raise ValueError(f"{path}: 'fl_x' needs 'w' (the width it is given for) to be scaled")
-        return float(meta["fl_x"]) * width / float(meta["w"])
-    return None
+        fx = float(meta["fl_x"]) * sx
+    elif "camera_angle_x" in meta:
+        fx = 0.5 * width / math.tan(0.5 * float(meta["camera_angle_x"]))
+    else:
+        fx = default.fx
+    fy = float(meta["fl_y"]) * sy if "fl_y" in meta and sy is not None else fx
+    cx = float(meta["cx"]) * sx if "cx" in meta and sx is not None else width / 2.0
+    cy = float(meta["cy"]) * sy if "cy" in meta and sy is not None else height / 2.0
+    return replace(default, fx=fx, fy=fy, cx=cx, cy=cy)
 
 
 @nerf.command("render")
@@ -153,7 +169,7 @@ def render_command(
         meta, frames = frames_from_transforms(poses)
         width = width or int(meta.get("w", run.camera.width))
         height = height or int(meta.get("h", round(width * run.camera.height / run.camera.width)))
-        camera = view_camera(run, width, height, focal_for_width(meta, width, poses), None)
+        camera = camera_for_transforms(view_camera(run, width, height, None, None), meta, poses)
         out_dir.mkdir(parents=True, exist_ok=True)
         for frame in tqdm(frames, desc="render", unit="frame"):
             stem = Path(frame["file_path"]).stem

@@ -1,0 +1,70 @@
+"""Typed training configuration shared by the CLI, the REST service and the tests."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+#: Settings a model may choose itself (its class attribute `train_defaults`) when the user leaves them unset.
+MODEL_DEFAULTABLE = ("steps", "batch_rays", "lr", "lr_decay", "lr_decay_steps", "precrop_steps")
+#: Fallbacks when neither the user nor the model sets them.
+GENERIC_DEFAULTS: dict[str, Any] = {
+    "steps": 2000,
+    "batch_rays": 4096,
+    "lr": 5e-4,
+    "lr_decay": 0.1,
+    "lr_decay_steps": 250_000,
+    "precrop_steps": 0,
+}
+
+
+class TrainConfig(BaseModel):
+    """How to train a radiance field. Fields left at None take the model's defaults (see `resolved`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    model: Literal["vanilla", "fast"] = Field("fast", description="Which radiance model to train.")
+    model_options: dict[str, Any] = Field(
+        default_factory=dict, description="Overrides of the model's own config (build_model keywords)."
+    )
+    steps: int | None = Field(None, ge=1, description="Stop after this many optimisation steps.")
+    minutes: float | None = Field(None, gt=0, description="Stop after this much training wall-clock time.")
+    batch_rays: int | None = Field(None, ge=1, description="Random rays per optimisation step.")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="auto: cuda when available.")
+    seed: int = Field(0, description="Seeds ray selection, sample jitter and the model's initial weights.")
+    lr: float | None = Field(
+        None, gt=0, description="Adam learning rate at step 0 (models may set per group)."
+    )
+    lr_decay: float | None = Field(None, gt=0, le=1, description="lr(step) = lr * lr_decay^(step / steps).")
+    lr_decay_steps: int | None = Field(None, ge=1, description="The steps over which lr falls by lr_decay.")
+    precrop_steps: int | None = Field(
+        None, ge=0, description="Sample rays from the central crop of each image for this many first steps."
+    )
+    precrop_fraction: float = Field(0.5, gt=0, le=1, description="Side of the central crop / image side.")
+    checkpoint_every: int = Field(500, ge=1, description="Save a checkpoint every this many steps.")
+    val_every: int = Field(500, ge=1, description="Render a validation view (PNG, PSNR) this often.")
+    val_max_side: int = Field(
+        400, ge=8, description="Validation renders are downscaled by a whole factor to at most this side."
+    )
+    log_every: int = Field(10, ge=1, description="Write a metrics.jsonl line every this many steps.")
+    chunk_rays: int = Field(
+        8192, ge=1, description="Rays rendered at once outside training; lower it if you run out of memory."
+    )
+    white_background: bool = Field(True, description="Composite RGBA data and renders on white (else black).")
+
+    @model_validator(mode="after")
+    def _steps_or_minutes(self) -> TrainConfig:
+        if self.steps is not None and self.minutes is not None:
+            raise ValueError("give steps or minutes, not both")
+        return self
+
+    def resolved(self, model_defaults: dict[str, Any]) -> TrainConfig:
+        """A copy with every None setting filled from the model's defaults, then the generic ones."""
+        filled = {}
+        for name in MODEL_DEFAULTABLE:
+            if getattr(self, name) is None:
+                if name == "steps" and self.minutes is not None:
+                    continue
+                filled[name] = model_defaults.get(name, GENERIC_DEFAULTS[name])
+        return self.model_copy(update=filled)

@@ -1,0 +1,287 @@
+"""Rendering trained runs: whole images in memory-bounded chunks, novel views, orbits.
+
+A run's poses live in its scene frame; callers pass poses in the dataset's original frame (for Blender and
+tiny-NeRF data the two coincide; a reconstruction's frame is re-centred and scaled, see
+neural.scene.SceneNormalization) and this module converts them, once.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from neural.checkpoints import load_checkpoint, load_model_state, resolve_checkpoint
+from neural.config import TrainConfig
+from neural.errors import CheckpointError
+from neural.models import RadianceModel, build_model
+from neural.rays import generate_rays
+from neural.scene import SceneInfo, SceneNormalization
+from neural.video import write_video
+
+RUN_CONFIG_FILE = "config.json"
+#: Orbit cameras sit this many degrees above the plane normal to the mean training "up".
+DEFAULT_ORBIT_ELEVATION_DEG = 30.0
+
+
+class RenderedImage(NamedTuple):
+    """rgb (H,W,3) in [0,1], depth (H,W) (distance along the ray, scene units), opacity (H,W)."""
+
+    rgb: Tensor
+    depth: Tensor
+    opacity: Tensor
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics in pixels for an image of width x height."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def downscaled(self, factor: int) -> Camera:
+        """The camera of factor x factor pixel blocks (the image cropped to whole blocks)."""
+        f = float(factor)
+        return Camera(
+            self.width // factor, self.height // factor, self.fx / f, self.fy / f, self.cx / f, self.cy / f
+        )
+
+
+@dataclass
+class LoadedRun:
+    """A trained model on its device with what is needed to render it."""
+
+    model: RadianceModel
+    config: TrainConfig
+    scene: SceneInfo
+    normalization: SceneNormalization
+    camera: Camera
+    orbit: dict[str, Any]
+    step: int
+    device: torch.device
+    background: Tensor
+
+
+def resolve_device(name: str) -> torch.device:
+    """ "auto" -> cuda when available, else cpu; "cuda" without a GPU is an error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' requested but no CUDA GPU is available (use --device cpu or auto)")
+    return torch.device(name)
+
+
+def background_colour(white: bool, device: torch.device) -> Tensor:
+    return torch.full((3,), 1.0 if white else 0.0, device=device)
+
+
+@torch.no_grad()
+def render_rays_chunked(
+    model: RadianceModel,
+    origins: Tensor,
+    directions: Tensor,
+    scene: SceneInfo,
+    background: Tensor,
+    chunk_rays: int,
+) -> RenderedImage:
+    """Render rays chunk_rays at a time (bounds memory: lower chunk_rays if you run out); flat outputs."""
+    model.eval()
+    rgb, depth, opacity = [], [], []
+    for start in range(0, origins.shape[0], chunk_rays):
+        out = model.render_rays(
+            origins[start : start + chunk_rays],
+            directions[start : start + chunk_rays],
+            scene.near,
+            scene.far,
+            background,
+            train=False,
+            generator=None,
+        )
+        rgb.append(out.rgb)
+        depth.append(out.depth)
+        opacity.append(out.opacity)
+    return RenderedImage(torch.cat(rgb).clamp(0, 1), torch.cat(depth), torch.cat(opacity))
+
+
+def render_image(
+    model: RadianceModel,
+    c2w_scene: Tensor,
+    camera: Camera,
+    scene: SceneInfo,
+    background: Tensor,
+    chunk_rays: int,
+) -> RenderedImage:
+    """The (H,W) image of a camera with pose c2w_scene (OpenGL, the model's scene frame)."""
+    rays = generate_rays(c2w_scene, camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+    flat = render_rays_chunked(model, rays.origins, rays.directions, scene, background, chunk_rays)
+    shape = (camera.height, camera.width)
+    return RenderedImage(flat.rgb.reshape(*shape, 3), flat.depth.reshape(shape), flat.opacity.reshape(shape))
+
+
+def to_uint8(rgb: Tensor | np.ndarray) -> np.ndarray:
+    array = rgb.detach().cpu().numpy() if isinstance(rgb, Tensor) else np.asarray(rgb)
+    return (np.clip(array, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def depth_to_uint8(depth: Tensor, scene: SceneInfo) -> np.ndarray:
+    """Depth mapped linearly from [near, far] to [255, 0] (near is bright), as a grey (H,W,3) image."""
+    scaled = 1.0 - (depth - scene.near) / (scene.far - scene.near)
+    grey = to_uint8(scaled.clamp(0, 1))
+    return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def read_run_config(run_dir: Path) -> dict[str, Any]:
+    path = Path(run_dir) / RUN_CONFIG_FILE
+    if not path.is_file():
+        raise CheckpointError(f"{run_dir}: not a training run (no {RUN_CONFIG_FILE})")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise CheckpointError(f"{path}: corrupt run config ({error})") from None
+
+
+def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "auto") -> LoadedRun:
+    """The run's model restored from `checkpoint` ("latest", "best", a step or a .pt path)."""
+    run_dir = Path(run_dir)
+    info = read_run_config(run_dir)
+    path = resolve_checkpoint(run_dir, checkpoint)
+    target = resolve_device(device)
+    payload = load_checkpoint(path, map_location=target)
+    config = TrainConfig.model_validate(info["train"])
+    if payload.get("model_name") != config.model:
+        raise CheckpointError(
+            f"{path}: checkpoint holds model {payload.get('model_name')!r} but {run_dir / RUN_CONFIG_FILE} "
+            f"says {config.model!r}"
+        )
+    scene = SceneInfo.from_dict(info["scene"])
+    model = build_model(config.model, scene, **payload["model_config"]).to(target)
+    load_model_state(model, payload["model_state"], path)
+    model.eval()
+    return LoadedRun(
+        model=model,
+        config=config,
+        scene=scene,
+        normalization=SceneNormalization.from_dict(info["normalization"]),
+        camera=Camera(**info["camera"]),
+        orbit=info["orbit"],
+        step=int(payload["step"]),
+        device=target,
+        background=background_colour(config.white_background, target),
+    )
+
+
+def view_camera(run: LoadedRun, width: int, height: int, fx: float | None, fov_x: float | None) -> Camera:
+    """Intrinsics for a requested view: fx given, else from the horizontal field of view, else the training
+    camera's, scaled to the requested width; fy = fx (square pixels), principal point at the centre."""
+    if fx is None and fov_x is not None:
+        fx = 0.5 * width / math.tan(0.5 * fov_x)
+    if fx is None:
+        fx = run.camera.fx * width / run.camera.width
+    return Camera(width, height, fx, fx, width / 2.0, height / 2.0)
+
+
+def render_frame(run: LoadedRun, c2w_original: np.ndarray, camera: Camera) -> RenderedImage:
+    """Render a view whose camera-to-world pose (OpenGL) is given in the dataset's original frame."""
+    c2w_scene = run.normalization.pose_to_scene(np.asarray(c2w_original, dtype=np.float64))
+    pose = torch.as_tensor(c2w_scene, dtype=torch.float32, device=run.device)
+    return render_image(run.model, pose, camera, run.scene, run.background, run.config.chunk_rays)
+
+
+def render_view(
+    run_dir: Path | str,
+    c2w: np.ndarray,
+    width: int,
+    height: int,
+    fx: float | None = None,
+    fov_x: float | None = None,
+    checkpoint: str = "latest",
+) -> np.ndarray:
+    """(H,W,3) uint8 render of the camera c2w (4,4, OpenGL camera-to-world, the data's original frame)."""
+    run = load_run(run_dir, checkpoint)
+    return to_uint8(render_frame(run, c2w, view_camera(run, width, height, fx, fov_x)).rgb)
+
+
+def orbit_parameters(poses_scene: np.ndarray) -> dict[str, Any]:
+    """Centre (the point nearest all optical axes), radius, up of the training cameras, for orbits."""
+    centres = poses_scene[:, :3, 3]
+    forwards = -poses_scene[:, :3, 2]
+    # least squares point closest to every optical axis: sum (I - f f^T) (x - c) = 0
+    projectors = np.eye(3)[None] - forwards[:, :, None] * forwards[:, None, :]
+    lhs, rhs = projectors.sum(0), np.einsum("nij,nj->i", projectors, centres)
+    target = np.linalg.lstsq(lhs, rhs, rcond=None)[0] if np.linalg.matrix_rank(lhs) == 3 else centres.mean(0)
+    up = poses_scene[:, :3, 1].mean(axis=0)
+    up = up / max(np.linalg.norm(up), 1e-12)
+    radius = float(np.linalg.norm(centres - target, axis=1).mean())
+    return {"target": target.tolist(), "up": up.tolist(), "radius": radius}
+
+
+def look_at(position: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """OpenGL camera-to-world at position looking at target: z = (position - target)/|.|, x = up x z."""
+    z_axis = position - target
+    z_axis = z_axis / np.linalg.norm(z_axis)
+    x_axis = np.cross(up, z_axis)
+    x_axis = x_axis / np.linalg.norm(x_axis)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = x_axis, np.cross(z_axis, x_axis), z_axis, position
+    return c2w
+
+
+def orbit_poses(orbit: dict[str, Any], num_frames: int, elevation_deg: float) -> np.ndarray:
+    """num_frames cameras on a circle around orbit["target"], about orbit["up"], in the scene frame."""
+    target, up = np.asarray(orbit["target"]), np.asarray(orbit["up"])
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    first = np.cross(up, helper)
+    first /= np.linalg.norm(first)
+    second = np.cross(up, first)
+    elevation = math.radians(elevation_deg)
+    poses = []
+    for angle in np.linspace(0.0, 2 * math.pi, num_frames, endpoint=False):
+        horizontal = math.cos(angle) * first + math.sin(angle) * second
+        direction = math.cos(elevation) * horizontal + math.sin(elevation) * up
+        poses.append(look_at(target + orbit["radius"] * direction, target, up))
+    return np.stack(poses)
+
+
+def render_orbit(
+    run_dir: Path | str,
+    num_frames: int,
+    out_dir: Path | str,
+    width: int | None = None,
+    height: int | None = None,
+    elevation_deg: float = DEFAULT_ORBIT_ELEVATION_DEG,
+    video_format: str = "gif",
+    checkpoint: str = "latest",
+    progress: Any = None,
+) -> Path:
+    """Render an orbit around the scene: out_dir/orbit_000.png ... and out_dir/orbit.<gif|mp4>; its path."""
+    if num_frames < 1:
+        raise ValueError(f"an orbit needs at least one frame, got {num_frames}")
+    run = load_run(run_dir, checkpoint)
+    width = width or run.camera.width
+    height = height or run.camera.height
+    camera = view_camera(run, width, height, None, None)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = []
+    from PIL import Image
+
+    for index, c2w_scene in enumerate(orbit_poses(run.orbit, num_frames, elevation_deg)):
+        pose = torch.as_tensor(c2w_scene, dtype=torch.float32, device=run.device)
+        frame = to_uint8(
+            render_image(run.model, pose, camera, run.scene, run.background, run.config.chunk_rays).rgb
+        )
+        Image.fromarray(frame).save(out_dir / f"orbit_{index:03d}.png")
+        frames.append(frame)
+        if progress is not None:
+            progress("render", (index + 1) / num_frames)
+    return write_video(frames, out_dir / f"orbit.{video_format}")

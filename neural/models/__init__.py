@@ -1,0 +1,45 @@
+"""Radiance models by name: "vanilla" (the NeRF paper's MLP) and "fast" (a learned grid for CPUs)."""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any, Literal
+
+from pydantic import BaseModel
+
+from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
+
+ModelName = Literal["vanilla", "fast"]
+#: name -> (module, model class, config class); modules are imported on demand, so the package works
+#: (and imports quickly) whichever models are present.
+MODEL_REGISTRY: dict[str, tuple[str, str, str]] = {
+    "vanilla": ("neural.models.vanilla", "VanillaModel", "VanillaModelConfig"),
+    "fast": ("neural.models.fast", "FastModel", "FastModelConfig"),
+}
+MODEL_NAMES: tuple[str, ...] = tuple(MODEL_REGISTRY)
+
+
+def model_classes(name: str) -> tuple[type[RadianceModel], type[BaseModel]]:
+    """The model class and its config class for a model name."""
+    if name not in MODEL_REGISTRY:
+        raise ValueError(f"unknown model {name!r}; choose one of {', '.join(MODEL_NAMES)}")
+    module_name, model_name, config_name = MODEL_REGISTRY[name]
+    module = importlib.import_module(module_name)
+    return getattr(module, model_name), getattr(module, config_name)
+
+
+def build_model(name: ModelName, scene: SceneInfo, **overrides: Any) -> RadianceModel:
+    """The model `name` for `scene`, its config fields overridden by `overrides` (unknown ones are errors)."""
+    model_type, config_type = model_classes(name)
+    return model_type(scene, config_type(**overrides))
+
+
+__all__ = [
+    "MODEL_NAMES",
+    "ModelName",
+    "RadianceModel",
+    "RayBundleOutput",
+    "SceneInfo",
+    "build_model",
+    "model_classes",
+]

@@ -1,0 +1,211 @@
+"""Each loader reads its format into one Dataset; bad input fails with an error naming the file or field."""
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from estimation.export import transforms_dict, write_ply
+from estimation.synthetic import make_scene, project
+from estimation.types import CameraPose
+from neural.data import load_dataset
+from neural.errors import DatasetError
+from neural.rays import pixel_rays
+
+LEGO_FOCAL_200 = 0.5 * 200 / math.tan(0.5 * 0.6911112070083618)
+
+
+def test_blender_folder_loads_all_splits_composited_on_white(shared_data):
+    dataset = load_dataset(shared_data / "lego_200")
+    assert dataset.images.shape == (90, 200, 200, 3) and dataset.images.dtype == np.float32
+    assert len(dataset.split("train")) == 80 and len(dataset.split("val")) == 10
+    assert dataset.fx == pytest.approx(LEGO_FOCAL_200) and dataset.fy == dataset.fx
+    assert (dataset.cx, dataset.cy) == (100.0, 100.0)
+    assert (dataset.near, dataset.far) == (2.0, 6.0)
+    assert dataset.image_names[80] == "./val/r_4"
+    np.testing.assert_allclose(dataset.images[:, 0, 0], 1.0)  # corners are background
+    expected_pose = json.loads((shared_data / "lego_200/transforms_train.json").read_text())["frames"][0]
+    np.testing.assert_allclose(dataset.poses[0], expected_pose["transform_matrix"], atol=1e-6)
+
+
+def test_blender_black_background_differs_only_where_transparent(shared_data):
+    white = load_dataset(shared_data / "lego_200").images[0]
+    black = load_dataset(shared_data / "lego_200", white_background=False).images[0]
+    alpha = Image.open(shared_data / "lego_200/train/r_0.png").getchannel("A")
+    transparency = 1.0 - np.asarray(alpha, np.float32) / 255.0
+    np.testing.assert_allclose(white - black, np.repeat(transparency[..., None], 3, -1), atol=1e-6)
+
+
+def test_tiny_npz_uses_its_split_and_focal(shared_data):
+    dataset = load_dataset(shared_data / "lego_tiny.npz")
+    assert dataset.images.shape == (90, 100, 100, 3)
+    assert list(dataset.split("val")) == list(range(80, 90))
+    assert dataset.fx == pytest.approx(138.888879, rel=1e-6)
+    with pytest.raises(DatasetError, match="split 'test' is empty or missing"):
+        dataset.split("test")
+
+
+def test_npz_without_split_holds_out_every_tenth_image(tmp_path, shared_data):
+    source = np.load(shared_data / "lego_tiny.npz")
+    np.savez(
+        tmp_path / "nosplit.npz",
+        images=source["images"][:20],
+        poses=source["poses"][:20],
+        focal=source["focal"],
+    )
+    dataset = load_dataset(tmp_path / "nosplit.npz")
+    assert list(dataset.split("val")) == [9, 19]
+    assert len(dataset.split("train")) == 18
+
+
+def write_reconstruction(folder: Path, binary_ply: bool = True, offset=(10.0, -5.0, 3.0), scale=7.0):
+    """A folder laid out like `sfmnerf reconstruct` output, written with the SfM exporter's own writers."""
+    scene = make_scene(num_cameras=5, num_points=300, seed=1, width=80, height=60)
+    # move the scene away from the origin and scale it, so normalization has work to do
+    offset = np.asarray(offset)
+    points = scene.points * scale + offset
+    poses = [CameraPose.from_center(pose.R, pose.center * scale + offset) for pose in scene.poses]
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for index, pose in enumerate(poses):
+        name = f"images/{index + 1}.png"
+        Image.fromarray(np.full((60, 80, 3), 40 * index, np.uint8)).save(folder / name)
+        frames.append((name, pose))
+    (folder / "transforms.json").write_text(
+        json.dumps(transforms_dict(scene.K, 80, 60, frames, "points.ply"))
+    )
+    write_ply(folder / "points.ply", points, scene.colors, binary=binary_ply)
+    return scene, poses, points
+
+
+@pytest.mark.parametrize("binary_ply", [True, False])
+def test_reconstruction_folder_is_normalized_and_rays_hit_the_sparse_points(tmp_path, binary_ply):
+    scene, poses, points = write_reconstruction(tmp_path, binary_ply)
+    dataset = load_dataset(tmp_path)
+    assert dataset.images.shape == (5, 60, 80, 3)
+    assert len(dataset.split("train")) == 5 and len(dataset.split("val")) == 5  # too few to hold out
+    normalized = dataset.normalization.points_to_scene(points)
+    inside = np.all(
+        (normalized >= dataset.scene.scene_box_min) & (normalized <= dataset.scene.scene_box_max), 1
+    )
+    assert inside.mean() > 0.95 and np.abs(normalized).max() < 1.5
+    # the ray through a point's pixel (OpenCV pixel convention of the SfM code) passes through that point
+    for index, pose in enumerate(poses):
+        uv = project(scene.K, pose, points)
+        c2w = torch.as_tensor(dataset.poses[index], dtype=torch.float64)
+        u, v = torch.as_tensor(uv[:, 0]), torch.as_tensor(uv[:, 1])
+        rays = pixel_rays(c2w, u, v, dataset.fx, dataset.fy, dataset.cx, dataset.cy)
+        origins, directions = rays.origins.numpy(), rays.directions.numpy()
+        to_point = normalized - origins
+        distance_along = np.sum(to_point * directions, axis=1)
+        miss = np.linalg.norm(to_point - distance_along[:, None] * directions, axis=1)
+        assert miss.max() < 1e-3 * np.abs(normalized).max()
+        assert np.all(distance_along > dataset.near) and np.all(distance_along < dataset.far)
+    # poses map back to the original frame
+    np.testing.assert_allclose(dataset.normalization.pose_to_original(dataset.poses)[:, :3, 3],
+                               [pose.center for pose in poses], atol=1e-4)  # fmt: skip
+
+
+def test_reconstruction_reads_colmap_points_when_there_is_no_ply(tmp_path):
+    _, _, points = write_reconstruction(tmp_path)
+    (tmp_path / "points.ply").unlink()
+    (tmp_path / "sparse").mkdir()
+    lines = ["# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]"]
+    lines += [f"{i + 1} {x} {y} {z} 1 2 3 0.5 1 0 2 0" for i, (x, y, z) in enumerate(points)]
+    (tmp_path / "sparse/points3D.txt").write_text("\n".join(lines) + "\n")
+    dataset = load_dataset(tmp_path)
+    assert np.abs(dataset.normalization.points_to_scene(points)).max() < 1.5
+
+
+# ---------------------------------------------------------------------------------------------- errors
+
+
+@pytest.fixture
+def small_blender(tmp_path, shared_data) -> Path:
+    """lego_200 reduced to two train and one val view, for corrupting."""
+    folder = tmp_path / "blender"
+    for split, keep in (("train", 2), ("val", 1)):
+        meta = json.loads((shared_data / f"lego_200/transforms_{split}.json").read_text())
+        meta["frames"] = meta["frames"][:keep]
+        (folder / split).mkdir(parents=True)
+        for frame in meta["frames"]:
+            shutil.copy(shared_data / "lego_200" / (frame["file_path"] + ".png"), folder / split)
+        (folder / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return folder
+
+
+def edit_json(path: Path, change) -> None:
+    meta = json.loads(path.read_text())
+    change(meta)
+    path.write_text(json.dumps(meta))
+
+
+def test_small_blender_fixture_is_valid(small_blender):
+    assert load_dataset(small_blender).images.shape == (3, 200, 200, 3)
+
+
+def test_missing_image_names_the_file(small_blender):
+    (small_blender / "train/r_0.png").unlink()
+    with pytest.raises(DatasetError, match=r"train/r_0\.png: image file not found"):
+        load_dataset(small_blender)
+
+
+def test_missing_key_names_the_frame_and_key(small_blender):
+    edit_json(small_blender / "transforms_val.json", lambda m: m["frames"][0].pop("transform_matrix"))
+    with pytest.raises(
+        DatasetError, match=r"transforms_val\.json frames\[0\]: missing key 'transform_matrix'"
+    ):
+        load_dataset(small_blender)
+    edit_json(small_blender / "transforms_train.json", lambda m: m.pop("camera_angle_x"))
+    with pytest.raises(DatasetError, match="camera_angle_x"):
+        load_dataset(small_blender)
+
+
+def test_non_rigid_pose_is_rejected(small_blender):
+    def scale_rotation(meta):
+        matrix = np.array(meta["frames"][1]["transform_matrix"])
+        matrix[:3, :3] *= 1.5
+        meta["frames"][1]["transform_matrix"] = matrix.tolist()
+
+    edit_json(small_blender / "transforms_train.json", scale_rotation)
+    with pytest.raises(DatasetError, match=r"frames\[1\] \(\./train/r_1\): transform_matrix is not a rigid"):
+        load_dataset(small_blender)
+
+
+def test_mixed_image_sizes_are_rejected(small_blender):
+    image = Image.open(small_blender / "val/r_4.png")
+    image.resize((100, 100)).save(small_blender / "val/r_4.png")
+    with pytest.raises(DatasetError, match=r"val/r_4: image size 100x100 differs from 200x200"):
+        load_dataset(small_blender)
+
+
+def test_empty_split_is_rejected(small_blender):
+    edit_json(small_blender / "transforms_val.json", lambda m: m.update(frames=[]))
+    with pytest.raises(DatasetError, match=r"transforms_val\.json: 'frames' is empty"):
+        load_dataset(small_blender)
+
+
+def test_npz_missing_array_and_unknown_paths(tmp_path):
+    np.savez(tmp_path / "bad.npz", images=np.zeros((2, 4, 4, 3)), poses=np.tile(np.eye(4), (2, 1, 1)))
+    with pytest.raises(DatasetError, match=r"bad\.npz: missing array 'focal'"):
+        load_dataset(tmp_path / "bad.npz")
+    with pytest.raises(DatasetError, match="no such file"):
+        load_dataset(tmp_path / "nothing")
+    with pytest.raises(DatasetError, match="not a dataset folder"):
+        load_dataset(tmp_path)
+
+
+def test_reconstruction_image_of_wrong_size_and_missing_points(tmp_path):
+    write_reconstruction(tmp_path)
+    Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(tmp_path / "images/3.png")
+    with pytest.raises(DatasetError, match=r"images/3\.png: image size 40x30 differs from w x h = 80x60"):
+        load_dataset(tmp_path)
+    Image.fromarray(np.zeros((60, 80, 3), np.uint8)).save(tmp_path / "images/3.png")
+    (tmp_path / "points.ply").unlink()
+    with pytest.raises(DatasetError, match=r"no points\.ply or sparse/points3D\.txt"):
+        load_dataset(tmp_path)

@@ -1,0 +1,188 @@
+"""Training: losses, logs, checkpoints kept, resume identical to an uninterrupted run, stop conditions."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from neural.checkpoints import list_checkpoints, load_checkpoint
+from neural.config import TrainConfig
+from neural.data import load_dataset
+from neural.errors import CheckpointError
+from neural.training import RayBatchSampler, learning_rate_factor, train
+from tests.neural.conftest import TINY_VANILLA
+
+
+def tiny_config(**changes) -> TrainConfig:
+    settings = dict(
+        model="vanilla", model_options=TINY_VANILLA, steps=4, batch_rays=32, log_every=1, checkpoint_every=2,
+        val_every=100, device="cpu", seed=3,
+    )  # fmt: skip
+    settings.update(changes)
+    return TrainConfig(**settings)
+
+
+def read_metrics(run_dir):
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    return [json.loads(line) for line in lines]
+
+
+def test_resume_gives_the_same_next_losses_as_an_uninterrupted_run(tiny_npz, tmp_path):
+    train(tiny_npz, tmp_path / "whole", tiny_config(steps=4))
+    train(tiny_npz, tmp_path / "split", tiny_config(steps=2))
+    resumed = train(tiny_npz, tmp_path / "split", TrainConfig(steps=4), resume=True)
+    assert resumed.step == 4
+    whole = {m["step"]: m["loss"] for m in read_metrics(tmp_path / "whole") if "loss" in m}
+    split = {m["step"]: m["loss"] for m in read_metrics(tmp_path / "split") if "loss" in m}
+    assert sorted(split) == [1, 2, 3, 4]
+    assert split == whole  # bit-identical, steps 3 and 4 included
+    assert len(set(whole.values())) == 4  # the losses do move (the test can fail)
+
+
+def test_run_folder_has_config_metrics_val_png_and_latest_and_best_checkpoints(tiny_npz, tmp_path):
+    run = tmp_path / "run"
+    result = train(tiny_npz, run, tiny_config(steps=6, val_every=2))
+    config = json.loads((run / "config.json").read_text())
+    assert config["train"]["model"] == "vanilla" and config["train"]["lr"] == 5e-4  # the model's default
+    records = read_metrics(run)
+    assert {"step", "loss", "psnr", "lr", "seconds"} <= set(records[0])
+    val = [r for r in records if "val_psnr" in r]
+    assert [r["step"] for r in val] == [2, 4, 6]
+    assert sorted(p.name for p in (run / "val").iterdir()) == [f"step_000000{s}.png" for s in (2, 4, 6)]
+    checkpoints = list_checkpoints(run)
+    best_step = max(val, key=lambda r: r["val_psnr"])["step"]
+    assert [c.step for c in checkpoints] == sorted({best_step, 6})
+    assert [c.step for c in checkpoints if c.is_latest] == [6] and [
+        c.step for c in checkpoints if c.is_best
+    ] == [best_step]
+    assert sorted(p.name for p in (run / "checkpoints").glob("*.pt")) == sorted(
+        c.path.name for c in checkpoints
+    )
+    payload = load_checkpoint(result.latest_checkpoint)
+    assert {"model_state", "optimizer_state", "rng", "train_config", "step"} <= set(payload)
+    assert payload["step"] == 6 and set(payload["rng"]) >= {"torch", "numpy", "python", "generator"}
+
+
+def test_learning_rate_decays_exponentially():
+    config = TrainConfig(lr=1e-3, lr_decay=0.1, lr_decay_steps=1000)
+    assert learning_rate_factor(0, config) == 1.0
+    assert learning_rate_factor(500, config) == pytest.approx(0.1**0.5)
+    assert learning_rate_factor(2000, config) == pytest.approx(0.01)
+
+
+def test_minutes_and_stop_callback_end_training(tiny_npz, tmp_path):
+    timed = train(tiny_npz, tmp_path / "timed", tiny_config(steps=None, minutes=1e-6))
+    assert timed.stopped_by == "minutes" and timed.step == 1
+    asked = []
+
+    def stop_on_third_question() -> bool:
+        asked.append(1)
+        return len(asked) >= 3
+
+    stopped = train(tiny_npz, tmp_path / "stopped", tiny_config(steps=50), should_stop=stop_on_third_question)
+    # asked before the first step and after each step: the third answer comes after step 2
+    assert stopped.stopped_by == "stop_requested" and stopped.step == 2
+    assert list_checkpoints(tmp_path / "stopped")[-1].step == 2
+
+
+def test_precrop_samples_only_the_central_pixels(tiny_npz):
+    dataset = load_dataset(tiny_npz)
+    sampler = RayBatchSampler(dataset, dataset.split("train"), torch.device("cpu"))
+    generator = torch.Generator().manual_seed(0)
+    centre = torch.as_tensor(dataset.images[dataset.split("train")][:, 5:15, 5:15].reshape(-1, 3))
+
+    def distance_to_centre_colours(colours):
+        return torch.cdist(colours, centre, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1).values
+
+    _, _, cropped = sampler.sample(4000, generator, crop_fraction=0.5)
+    assert distance_to_centre_colours(cropped).max() == 0  # every colour is a centre pixel's
+    _, _, anywhere = sampler.sample(4000, generator)
+    assert distance_to_centre_colours(anywhere).max() > 0.01
+
+
+def test_progress_and_metrics_callbacks_are_called(tiny_npz, tmp_path):
+    fractions, records = [], []
+    config = tiny_config(steps=2)
+    train(
+        tiny_npz,
+        tmp_path / "r",
+        config,
+        progress=lambda *event: fractions.append(event),
+        metrics_callback=records.append,
+    )
+    assert fractions == [("train", 0.5), ("train", 1.0)]
+    assert [r["step"] for r in records if "loss" in r] == [1, 2]
+
+
+def test_bad_runs_are_refused(tiny_npz, tmp_path, shared_data):
+    run = tmp_path / "run"
+    train(tiny_npz, run, tiny_config(steps=2))
+    with pytest.raises(CheckpointError, match="already holds a training run"):
+        train(tiny_npz, run, tiny_config(steps=2))
+    with pytest.raises(CheckpointError, match="cannot resume it as 'fast'"):
+        train(tiny_npz, run, TrainConfig(model="fast", steps=3), resume=True)
+    with pytest.raises(CheckpointError, match="not a training run"):
+        train(tiny_npz, tmp_path / "empty", TrainConfig(steps=3), resume=True)
+    with pytest.raises(CheckpointError, match="resume with the data it was trained on"):
+        train(shared_data / "lego_tiny.npz", run, TrainConfig(steps=3), resume=True)
+    latest = list_checkpoints(run)[-1].path
+    payload = torch.load(latest, weights_only=False)
+    payload["format_version"] = 999
+    torch.save(payload, latest)
+    with pytest.raises(CheckpointError, match="format version 999 is incompatible"):
+        train(tiny_npz, run, TrainConfig(steps=3), resume=True)
+    latest.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        train(tiny_npz, run, TrainConfig(steps=3), resume=True)
+
+
+def test_checkpoint_of_another_architecture_is_refused(tiny_npz, tmp_path):
+    from neural.inference import load_run
+
+    run = tmp_path / "run"
+    train(tiny_npz, run, tiny_config(steps=2))
+    config = json.loads((run / "config.json").read_text())
+    latest = list_checkpoints(run)[-1].path
+    payload = torch.load(latest, weights_only=False)
+    payload["model_name"] = "fast"
+    torch.save(payload, latest)
+    with pytest.raises(CheckpointError, match="holds model 'fast'"):
+        load_run(run)
+    payload["model_name"] = "vanilla"
+    payload["model_state"] = {k: v for k, v in payload["model_state"].items() if not k.startswith("fine.")}
+    torch.save(payload, latest)
+    with pytest.raises(CheckpointError, match="does not fit this model"):
+        load_run(run)
+    assert config["train"]["model"] == "vanilla"
+
+
+def test_resume_after_the_fast_model_resized_its_grids_matches_an_uninterrupted_run(tiny_npz, tmp_path):
+    grids = dict(initial_voxels=12**3, final_voxels=16**3, upsample_steps=[2], occupancy_warmup_steps=1,
+                 occupancy_update_every=1)  # fmt: skip
+    config = dict(model="fast", model_options=grids, batch_rays=64, log_every=1, val_every=100, device="cpu")
+    train(tiny_npz, tmp_path / "whole", TrainConfig(steps=5, checkpoint_every=100, **config))
+    train(tiny_npz, tmp_path / "split", TrainConfig(steps=3, checkpoint_every=100, **config))
+    train(tiny_npz, tmp_path / "split", TrainConfig(steps=5), resume=True)
+    whole = [m["loss"] for m in read_metrics(tmp_path / "whole") if "loss" in m]
+    split = [m["loss"] for m in read_metrics(tmp_path / "split") if "loss" in m]
+    assert split == whole and len(whole) == 5
+
+
+def test_validation_downscale_keeps_pixel_blocks_and_their_rays_aligned():
+    from neural.inference import Camera
+    from neural.rays import generate_rays, pixel_rays
+    from neural.training import downscale
+
+    image = np.arange(4 * 6 * 3, dtype=np.float64).reshape(4, 6, 3)
+    small = downscale(image, 2)
+    assert small.shape == (2, 3, 3)
+    np.testing.assert_allclose(small[1, 2], image[2:4, 4:6].mean(axis=(0, 1)))
+    camera = Camera(6, 4, fx=5.0, fy=5.0, cx=3.2, cy=1.9)
+    half = camera.downscaled(2)
+    c2w = torch.eye(4, dtype=torch.float64)
+    small_rays = generate_rays(c2w, half.width, half.height, half.fx, half.fy, half.cx, half.cy)
+    # small pixel (u, v) covers original pixels 2u..2u+1: its centre is the original point (2u + 1, 2v + 1)
+    u, v = torch.tensor([0.5, 4.5], dtype=torch.float64), torch.tensor([0.5, 2.5], dtype=torch.float64)
+    expected = pixel_rays(c2w, u, v, camera.fx, camera.fy, camera.cx, camera.cy)
+    torch.testing.assert_close(small_rays.directions[[0, 5]], expected.directions)
