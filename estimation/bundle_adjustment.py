@@ -15,7 +15,7 @@ exactly only below 2^53 (Symbol keys carry their character in the top byte).
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -30,6 +30,7 @@ _LINEAR_SOLVERS = {
     "multifrontal_qr": "MULTIFRONTAL_QR",
     "sequential_cholesky": "SEQUENTIAL_CHOLESKY",
     "sequential_qr": "SEQUENTIAL_QR",
+    "pcg_block_jacobi": "ITERATIVE",
 }
 _ORDERING_TYPES = {"colamd": "COLAMD", "metis": "METIS", "natural": "NATURAL"}
 
@@ -193,10 +194,18 @@ def _elimination_ordering(
     return ordering
 
 
+IterationHook = Callable[[int, float], None]
+"""Called after each Levenberg-Marquardt iteration with (iterations done, GTSAM's graph error after it)."""
+
+
 def _optimizer_params(
-    config: BundleAdjustmentConfig, ordering: gtsam.Ordering | None
+    config: BundleAdjustmentConfig, ordering: gtsam.Ordering | None, on_iteration: IterationHook | None
 ) -> gtsam.LevenbergMarquardtParams:
     params = gtsam.LevenbergMarquardtParams()
+    if on_iteration is not None:
+        params.iterationHook = lambda iteration, _error_before, error_after: on_iteration(
+            int(iteration), float(error_after)
+        )
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
     params.setAbsoluteErrorTol(config.absolute_error_tol)
@@ -204,6 +213,10 @@ def _optimizer_params(
     params.setlambdaFactor(config.lambda_factor)
     params.setDiagonalDamping(config.diagonal_damping)
     params.setLinearSolverType(_LINEAR_SOLVERS[config.linear_solver])
+    if config.linear_solver == "pcg_block_jacobi":
+        pcg = gtsam.PCGSolverParameters()
+        pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
+        params.setIterativeParams(pcg)
     if ordering is None:
         params.setOrderingType(_ORDERING_TYPES[config.ordering])
     else:
@@ -221,6 +234,7 @@ def bundle_adjust(
     config: BundleAdjustmentConfig,
     fixed_cameras: Sequence[int] = (0,),
     scale_reference: int | None = 1,
+    on_iteration: IterationHook | None = None,
 ) -> BundleAdjustmentResult:
     """Minimize the Huber-robust reprojection error over all observed cameras and points (GTSAM LM).
 
@@ -228,6 +242,8 @@ def bundle_adjust(
     `fixed_cameras` keep their pose (near-hard prior); with fewer than two of them, the distance between
     the centres of `fixed_cameras[0]` and `scale_reference` keeps its initial value (None: scale free).
     Cameras and points without observations (and not fixed) are returned unchanged.
+    `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
+    graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
     """
     start = time.perf_counter()
     K = np.asarray(K, float)
@@ -256,7 +272,7 @@ def bundle_adjust(
     for key, point in zip(point_keys.tolist(), points[observed_points], strict=True):
         initial.insert(key, point)
 
-    params = _optimizer_params(config, _elimination_ordering(config, camera_keys, point_keys))
+    params = _optimizer_params(config, _elimination_ordering(config, camera_keys, point_keys), on_iteration)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
     values = optimizer.optimize()
 

@@ -36,8 +36,14 @@ class BundleAdjustmentConfig(BaseModel):
         "complement, as Ceres' SCHUR solvers do); colamd/metis are GTSAM's fill-reducing heuristics.",
     )
     linear_solver: Literal[
-        "multifrontal_cholesky", "multifrontal_qr", "sequential_cholesky", "sequential_qr"
-    ] = Field("sequential_cholesky", description="GTSAM linear solver used inside each LM step.")
+        "multifrontal_cholesky", "multifrontal_qr", "sequential_cholesky", "sequential_qr", "pcg_block_jacobi"
+    ] = Field(
+        "multifrontal_cholesky",
+        description="GTSAM linear solver used inside each LM step. pcg_block_jacobi is GTSAM's conjugate "
+        "gradient with a block-Jacobi preconditioner: its inexact steps make it ~25 % faster on large "
+        "problems, but it stops ~1e-5..2e-4 above the optimal cost and cannot recover noise-free scenes "
+        "to 1e-6, hence not the default.",
+    )
     lambda_initial: float = Field(1e-5, gt=0, description="Initial Levenberg-Marquardt damping.")
     lambda_factor: float = Field(10.0, gt=1, description="Damping is multiplied/divided by this per step.")
     diagonal_damping: bool = Field(

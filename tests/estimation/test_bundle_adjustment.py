@@ -131,6 +131,27 @@ def test_every_ordering_and_linear_solver_reaches_the_same_optimum(ordering, lin
     np.testing.assert_allclose(other.points, reference.points, atol=1e-6)
 
 
+def test_block_jacobi_pcg_reaches_the_direct_solvers_cost_within_a_thousandth():
+    scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    direct = run(scene, poses, points)
+    iterative = run(scene, poses, points, BundleAdjustmentConfig(linear_solver="pcg_block_jacobi"))
+    assert iterative.final_cost < 0.01 * iterative.initial_cost
+    assert iterative.final_cost == pytest.approx(direct.final_cost, rel=1e-3)
+
+
+def test_iteration_hook_sees_every_iteration_with_a_falling_error():
+    scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    calls = []
+    result = run(scene, poses, points, on_iteration=lambda iteration, error: calls.append((iteration, error)))
+    assert [iteration for iteration, _ in calls] == list(range(1, result.iterations + 1))
+    errors = [error for _, error in calls]
+    assert errors == sorted(errors, reverse=True)
+    # GTSAM's graph error is the robust cost plus the gauge priors, which stay almost satisfied.
+    assert errors[-1] == pytest.approx(result.final_cost, rel=1e-6)
+
+
 def test_gauge_first_camera_stays_put_and_scale_reference_distance_is_kept():
     scene = make_scene(num_cameras=5, num_points=300, noise_px=1.0, seed=5)
     poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3), keep=())
