@@ -23,6 +23,8 @@ import numpy as np
 
 from estimation.config import BundleAdjustmentConfig
 from estimation.errors import InputError
+from estimation.triangulation import Observations
+from estimation.triangulation import reprojection_residuals as observation_residuals
 from estimation.types import CameraPose
 
 _LINEAR_SOLVERS = {
@@ -70,9 +72,11 @@ def reprojection_residuals(
     """r_o = pi(K (R_c X_p + t_c)) - uv_o for every observation, (O, 2) pixels."""
     rotations = np.stack([pose.R for pose in poses])
     translations = np.stack([pose.t for pose in poses])
-    x_cam = np.einsum("oij,oj->oi", rotations[camera_index], points[point_index]) + translations[camera_index]
-    x_img = x_cam @ K.T
-    return x_img[:, :2] / x_img[:, 2:3] - uv
+    observations = Observations(
+        R=rotations[camera_index], t=translations[camera_index], uv=uv,
+        point_index=point_index, num_points=len(points),
+    )
+    return observation_residuals(K, observations, points)
 
 
 def huber_cost(residuals: np.ndarray, huber_threshold_px: float, sigma_px: float = 1.0) -> float:
