@@ -1,0 +1,303 @@
+"""The fast model: explicit voxel grids (DVGO / Plenoxels style) that train in minutes on a CPU.
+
+Density: a dense grid of raw values, trilinearly interpolated, then sigma = exp(raw + shift) (an exponential,
+so that Adam's additive steps move density by factors: empty and opaque are a few steps apart).
+Colour: a dense grid of spherical-harmonic coefficients (degree 0 or 1) per RGB channel, interpolated and
+then c = sigmoid(sum_k coef_k Y_k(d)). No network: a sample costs two `grid_sample` calls.
+Speed comes from (1) an occupancy grid, recomputed from the density grid itself, that skips empty space,
+(2) a coarse-to-fine schedule that upsamples the grids and refits them to the occupied box, with the sample
+spacing tied to the voxel size, and (3) early ray termination and skipping the colour of samples with
+negligible weight. Everything is learned from RGB images alone; no masks, no assumed background.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from torch import Tensor
+
+from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
+from neural.occupancy import OccupancyGrid, PackedSamples
+from neural.rendering import composite_packed, packed_transmittance, packed_weights
+
+#: Real spherical-harmonic constants, degrees 0 and 1.
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+#: Upper clamp of log density: exp(15) per unit length is opaque within any voxel.
+MAX_LOG_DENSITY = 15.0
+
+
+class FastModelConfig(BaseModel):
+    """Grid sizes, schedule, sampling and learning rates of the fast model."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    initial_voxels: int = Field(32**3, gt=0, description="grid size (total voxels) at the start")
+    final_voxels: int = Field(128**3, gt=0, description="grid size after the last upsampling")
+    upsample_steps: list[int] = Field(
+        default_factory=lambda: [60, 200, 400],
+        description="steps at which the grids are upsampled (geometric voxel counts) and refitted to the "
+        "occupied box",
+    )
+    fit_box_to_occupancy: bool = Field(
+        True, description="shrink the grids to the occupied box when upsampling"
+    )
+    box_margin_voxels: float = Field(2.0, ge=0, description="margin around the occupied box, in voxels")
+    box_alpha_threshold: float = Field(
+        1e-2, gt=0, lt=1, description="opacity per sample step that counts a cell into the refitted box"
+    )
+    sh_degree: int = Field(0, ge=0, le=1, description="spherical-harmonic degree of the colour (0: diffuse)")
+    step_ratio: float = Field(0.5, gt=0, description="sample spacing along rays, in voxels")
+    initial_alpha: float = Field(1e-4, gt=0, lt=1, description="opacity of one sample step at initialization")
+    occupancy_warmup_steps: int = Field(40, ge=0, description="steps during which every cell counts occupied")
+    occupancy_update_every: int = Field(16, gt=0, description="steps between occupancy-grid updates")
+    occupancy_alpha_threshold: float = Field(
+        1e-3, gt=0, lt=1, description="a cell is empty when no sample step in it can reach this opacity"
+    )
+    transmittance_threshold: float = Field(
+        1e-4, ge=0, lt=1, description="samples behind this transmittance are dropped (early ray termination)"
+    )
+    color_weight_threshold: float = Field(
+        1e-4, ge=0, lt=1, description="samples below this compositing weight skip the colour lookup"
+    )
+    tv_density_weight: float = Field(0.0, ge=0, description="total-variation weight on the density grid")
+    tv_color_weight: float = Field(0.0, ge=0, description="total-variation weight on the colour grid")
+    color_lr_scale: float = Field(
+        1 / 3, gt=0, description="learning rate of the colour grid relative to the trainer's (density) lr"
+    )
+
+    @model_validator(mode="after")
+    def _check_schedule(self) -> FastModelConfig:
+        if self.upsample_steps != sorted(self.upsample_steps) or any(s <= 0 for s in self.upsample_steps):
+            raise ValueError(f"upsample_steps must be positive and increasing, got {self.upsample_steps}")
+        if self.final_voxels < self.initial_voxels:
+            raise ValueError("final_voxels must be at least initial_voxels")
+        return self
+
+
+def grid_shape_for(box_min: Tensor, box_max: Tensor, num_voxels: int) -> tuple[tuple[int, int, int], float]:
+    """Vertices per axis n_k = round(extent_k / s) + 1 for the voxel size s = (volume / num_voxels)^(1/3)."""
+    extent = (box_max - box_min).double()
+    voxel_size = float((extent.prod() / num_voxels) ** (1.0 / 3.0))
+    shape = tuple(max(2, round(float(e) / voxel_size) + 1) for e in extent)
+    return (shape[0], shape[1], shape[2]), voxel_size
+
+
+def sh_basis(directions: Tensor, degree: int) -> Tensor:
+    """Real SH basis Y_k(d) for unit directions (N,3): (N,1) for degree 0, (N,4) for degree 1."""
+    constant = torch.full_like(directions[:, :1], SH_C0)
+    if degree == 0:
+        return constant
+    x, y, z = directions.unbind(-1)
+    return torch.cat([constant, torch.stack([-SH_C1 * y, SH_C1 * z, -SH_C1 * x], dim=-1)], dim=-1)
+
+
+def total_variation(grid: Tensor) -> Tensor:
+    """Mean squared difference of neighbouring voxels along the three axes of a (1,C,X,Y,Z) grid."""
+    return (
+        (grid[:, :, 1:] - grid[:, :, :-1]).square().mean()
+        + (grid[:, :, :, 1:] - grid[:, :, :, :-1]).square().mean()
+        + (grid[:, :, :, :, 1:] - grid[:, :, :, :, :-1]).square().mean()
+    )
+
+
+class FastModel(RadianceModel):
+    """Density and SH-colour voxel grids over the scene box with occupancy-based empty-space skipping."""
+
+    model_name: ClassVar[str] = "fast"
+    # Grids take large Adam steps (DVGO uses 0.1); the raw density is a log-density, so 0.3 per step moves
+    # sigma by ~35%. steps: the default length when neither steps nor minutes is given.
+    train_defaults: ClassVar[dict[str, Any]] = {
+        "steps": 3000,
+        "batch_rays": 4096,
+        "lr": 0.3,
+        "lr_decay": 0.1,
+        "lr_decay_steps": 3000,
+        "precrop_steps": 0,
+    }
+
+    def __init__(self, scene: SceneInfo, config: FastModelConfig | None = None) -> None:
+        super().__init__(scene)
+        self.config = config or FastModelConfig()
+        box_min = torch.tensor(scene.scene_box_min, dtype=torch.float32)
+        box_max = torch.tensor(scene.scene_box_max, dtype=torch.float32)
+        shape, voxel_size = grid_shape_for(box_min, box_max, self.config.initial_voxels)
+        self.register_buffer("box_min", box_min)
+        self.register_buffer("box_max", box_max)
+        self.register_buffer("voxel_size", torch.tensor(voxel_size, dtype=torch.float32))
+        self.density = torch.nn.Parameter(torch.zeros((1, 1, *shape)))
+        self.color = torch.nn.Parameter(torch.zeros((1, 3 * self.num_sh, *shape)))
+        cells = (shape[0] - 1, shape[1] - 1, shape[2] - 1)
+        self.occupancy = OccupancyGrid(box_min, box_max, cells)
+        # sigma = exp(raw + shift): raw = 0 gives one sample step the opacity `initial_alpha`.
+        initial_sigma = -math.log(1.0 - self.config.initial_alpha) / (self.config.step_ratio * voxel_size)
+        self.density_shift = math.log(initial_sigma)
+
+    # ----------------------------------------------------------------------------------------- grids
+    @property
+    def num_sh(self) -> int:
+        return (self.config.sh_degree + 1) ** 2
+
+    @property
+    def step_size(self) -> float:
+        return self.config.step_ratio * float(self.voxel_size)
+
+    @property
+    def grid_shape(self) -> tuple[int, int, int]:
+        _, _, x, y, z = self.density.shape
+        return int(x), int(y), int(z)
+
+    def _grid_coordinates(self, positions: Tensor) -> Tensor:
+        """grid_sample coordinates (1,1,1,N,3) in [-1,1] of points (N,3), as (z,y,x) for (X,Y,Z) grids."""
+        normalized = (positions - self.box_min) / (self.box_max - self.box_min) * 2.0 - 1.0
+        return normalized.flip(-1).reshape(1, 1, 1, -1, 3)
+
+    def _sample_grid(self, grid: Tensor, positions: Tensor) -> Tensor:
+        """Trilinear interpolation of a (1,C,X,Y,Z) grid at world points (N,3); (N,C)."""
+        values = F.grid_sample(grid, self._grid_coordinates(positions), mode="bilinear", align_corners=True)
+        return values.reshape(grid.shape[1], -1).T
+
+    def activate_density(self, raw: Tensor) -> Tensor:
+        """sigma = exp(min(raw + shift, MAX_LOG_DENSITY)) >= 0."""
+        return torch.exp((raw + self.density_shift).clamp_max(MAX_LOG_DENSITY))
+
+    def density_at(self, positions: Tensor) -> Tensor:
+        """sigma(x) = exp(interp(raw)(x) + shift) at world points (N,3); (N,)."""
+        return self.activate_density(self._sample_grid(self.density, positions)[:, 0])
+
+    def color_at(self, positions: Tensor, directions: Tensor) -> Tensor:
+        """c(x, d) = sigmoid(sum_k coef_k(x) Y_k(d)) per channel; (N,3)."""
+        coefficients = self._sample_grid(self.color, positions).reshape(-1, 3, self.num_sh)
+        basis = sh_basis(directions, self.config.sh_degree)
+        return torch.sigmoid((coefficients * basis[:, None, :]).sum(-1))
+
+    # ------------------------------------------------------------------------------------- rendering
+    def render_rays(
+        self,
+        origins: Tensor,
+        directions: Tensor,
+        near: float,
+        far: float,
+        background: Tensor,
+        train: bool,
+        generator: torch.Generator | None = None,
+    ) -> RayBundleOutput:
+        """Packed volume rendering of the occupied samples of each ray (see module docstring)."""
+        num_rays = origins.shape[0]
+        jitter = torch.rand(num_rays, generator=generator, device=origins.device) if train else None
+        samples = self.occupancy.march(origins, directions, near, far, self.step_size, jitter)
+        samples = self._drop_occluded(samples, num_rays)
+        sigma = self.density_at(samples.positions)
+        weights, _ = packed_weights(sigma, samples.deltas, samples.ray_indices, num_rays)
+        # Colour only where it can matter; the rest keep a zero colour (their weight is below threshold).
+        visible = (weights.detach() > self.config.color_weight_threshold).nonzero(as_tuple=True)[0]
+        rgb = sigma.new_zeros((sigma.shape[0], 3)).index_copy(
+            0, visible, self.color_at(samples.positions[visible], directions[samples.ray_indices[visible]])
+        )
+        colour, depth, opacity = composite_packed(
+            weights, rgb, samples.t, samples.ray_indices, num_rays, background
+        )
+        extra_loss = self._regularizer() if train else None
+        return RayBundleOutput(rgb=colour, depth=depth, opacity=opacity, extra_loss=extra_loss)
+
+    def _drop_occluded(self, samples: PackedSamples, num_rays: int) -> PackedSamples:
+        """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold."""
+        if self.config.transmittance_threshold <= 0 or samples.t.numel() == 0:
+            return samples
+        with torch.no_grad():
+            optical_depth = self.density_at(samples.positions) * samples.deltas
+            transmittance = packed_transmittance(optical_depth, samples.ray_indices, num_rays)
+            keep = (transmittance > self.config.transmittance_threshold).nonzero(as_tuple=True)[0]
+        return PackedSamples(*(field[keep] for field in samples))
+
+    def _regularizer(self) -> Tensor | None:
+        terms = []
+        if self.config.tv_density_weight > 0:
+            terms.append(self.config.tv_density_weight * total_variation(self.density))
+        if self.config.tv_color_weight > 0:
+            terms.append(self.config.tv_color_weight * total_variation(self.color))
+        return torch.stack(terms).sum() if terms else None
+
+    # -------------------------------------------------------------------------------------- training
+    def on_train_step(self, step: int) -> bool:
+        """Upsample/refit the grids when scheduled (then True: parameters replaced); update the occupancy."""
+        replaced = False
+        if step in self.config.upsample_steps:
+            self._upsample(self.config.upsample_steps.index(step) + 1)
+            replaced = True
+        if step >= self.config.occupancy_warmup_steps and (
+            replaced or step % self.config.occupancy_update_every == 0
+        ):
+            self.update_occupancy()
+        return replaced
+
+    @torch.no_grad()
+    def update_occupancy(self) -> None:
+        """A cell is occupied iff 1 - exp(-max sigma over its 8 vertices * step) exceeds the threshold.
+
+        sigma is monotonic in the interpolated raw density, so the max over a cell's vertices bounds every
+        sample inside it: no skipped sample can be denser than the threshold.
+        """
+        self.occupancy.set_occupied(self._cell_alpha() > self.config.occupancy_alpha_threshold)
+
+    def _cell_alpha(self) -> Tensor:
+        """Upper bound of one sample step's opacity in each cell: from the max sigma of its 8 vertices."""
+        cell_max = F.max_pool3d(self.activate_density(self.density), kernel_size=2, stride=1)[0, 0]
+        return -torch.expm1(-cell_max * self.step_size)
+
+    def _dense_box(self) -> tuple[Tensor, Tensor] | None:
+        """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""
+        if self.occupancy.occupied_fraction() == 1.0:
+            return None  # still warming up: nothing learned about where the scene is
+        dense = OccupancyGrid(self.box_min, self.box_max, self.occupancy.resolution).to(self.box_min.device)
+        dense.set_occupied(self.occupancy.occupied & (self._cell_alpha() > self.config.box_alpha_threshold))
+        return dense.occupied_box()
+
+    @torch.no_grad()
+    def _upsample(self, stage: int) -> None:
+        """Resample the grids at the voxel count of `stage` over the (refitted) box; occupancy follows."""
+        num_stages = len(self.config.upsample_steps)
+        ratio = self.config.final_voxels / self.config.initial_voxels
+        num_voxels = round(self.config.initial_voxels * ratio ** (stage / num_stages))
+        box_min, box_max = self.box_min.clone(), self.box_max.clone()
+        fitted = self._dense_box() if self.config.fit_box_to_occupancy else None
+        if fitted is not None:
+            margin = self.config.box_margin_voxels * float(self.voxel_size)
+            box_min = torch.maximum(fitted[0] - margin, self.box_min)
+            box_max = torch.minimum(fitted[1] + margin, self.box_max)
+        shape, voxel_size = grid_shape_for(box_min, box_max, num_voxels)
+        axes = [
+            torch.linspace(float(low), float(high), n)
+            for low, high, n in zip(box_min, box_max, shape, strict=True)
+        ]
+        vertices = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        vertices = vertices.to(self.density.device)
+        density = self._sample_grid(self.density, vertices).T.reshape(1, 1, *shape)
+        color = self._sample_grid(self.color, vertices).T.reshape(1, -1, *shape)
+        self.box_min, self.box_max = box_min, box_max
+        self.voxel_size = torch.tensor(voxel_size, dtype=torch.float32, device=self.density.device)
+        self.density = torch.nn.Parameter(density.contiguous())
+        self.color = torch.nn.Parameter(color.contiguous())
+        self.occupancy.reset(box_min, box_max, (shape[0] - 1, shape[1] - 1, shape[2] - 1))
+
+    def _load_from_state_dict(
+        self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any
+    ) -> None:
+        """Take the grid shapes of the checkpoint first: upsampling changes them during training."""
+        for name in ("density", "color"):
+            stored = state_dict.get(prefix + name)
+            current = getattr(self, name)
+            if stored is not None and stored.shape != current.shape:
+                setattr(self, name, torch.nn.Parameter(current.new_empty(stored.shape)))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def param_groups(self, lr: float) -> list[dict[str, Any]]:
+        """The density grid at `lr`, the colour grid at lr * color_lr_scale."""
+        return [
+            {"params": [self.density], "lr": lr, "name": "density"},
+            {"params": [self.color], "lr": lr * self.config.color_lr_scale, "name": "color"},
+        ]

@@ -1,0 +1,272 @@
+"""The fast grid model, its occupancy grid and packed volume rendering."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from neural.models import build_model
+from neural.models.fast import FastModel, FastModelConfig
+from neural.occupancy import OccupancyGrid, ray_box_intersection
+from neural.rays import generate_rays
+from neural.rendering import volume_render, volume_render_packed
+from neural.scene import SceneInfo
+
+# ------------------------------------------------------------------------------------ a tiny analytic scene
+# Three coloured boxes (min, max, rgb) on a white background, seen from a ring of cameras.
+BOXES = [
+    ((-0.6, -0.5, -0.5), (-0.1, 0.5, 0.2), (0.9, 0.1, 0.1)),
+    ((0.1, -0.3, -0.5), (0.6, 0.3, 0.5), (0.1, 0.8, 0.2)),
+    ((-0.3, -0.6, 0.25), (0.3, -0.1, 0.6), (0.1, 0.2, 0.9)),
+]
+SCENE = SceneInfo(near=1.5, far=5.0, scene_box_min=(-1.0, -1.0, -1.0), scene_box_max=(1.0, 1.0, 1.0))
+WHITE = torch.ones(3)
+
+
+def look_at_pose(position: torch.Tensor) -> torch.Tensor:
+    """Camera-to-world (OpenGL axes: looks down -z) at `position`, looking at the origin, +z world up."""
+    back = position / position.norm()
+    right = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), back)
+    right = right / right.norm()
+    up = torch.linalg.cross(back, right)
+    pose = torch.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, up, back, position
+    return pose
+
+
+def render_boxes(origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+    """Ground truth: the colour of the first box each ray hits, else white; (R,3)."""
+    nearest = torch.full((origins.shape[0],), math.inf)
+    colour = WHITE.expand(origins.shape[0], 3).clone()
+    for low, high, rgb in BOXES:
+        hits = ray_box_intersection(origins, directions, torch.tensor(low), torch.tensor(high))
+        hit = (hits.t_exit > hits.t_enter) & (hits.t_enter > 0) & (hits.t_enter < nearest)
+        nearest = torch.where(hit, hits.t_enter, nearest)
+        colour[hit] = torch.tensor(rgb)
+    return colour
+
+
+def ring_views(num_views: int, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rays (origins, directions) and true colours of `num_views` cameras on a ring, size x size pixels."""
+    focal = 0.5 * size / math.tan(math.radians(25.0))
+    origins, directions = [], []
+    for k in range(num_views):
+        angle = 2 * math.pi * k / num_views
+        position = 3.0 * torch.tensor([math.cos(angle), math.sin(angle), 0.6 if k % 2 else -0.3])
+        rays = generate_rays(look_at_pose(position), size, size, focal)
+        origins.append(rays.origins)
+        directions.append(rays.directions)
+    origins, directions = torch.cat(origins), torch.cat(directions)
+    return origins, directions, render_boxes(origins, directions)
+
+
+def psnr(rendered: torch.Tensor, truth: torch.Tensor) -> float:
+    return float(-10 * torch.log10(torch.mean((rendered - truth) ** 2)))
+
+
+def small_config(**overrides) -> FastModelConfig:
+    settings = dict(
+        initial_voxels=16**3,
+        final_voxels=48**3,
+        upsample_steps=[30, 60],
+        occupancy_warmup_steps=20,
+        occupancy_update_every=8,
+    )
+    return FastModelConfig(**{**settings, **overrides})
+
+
+def fit(model: FastModel, origins, directions, colours, steps: int, batch: int = 1024, lr: float = 0.3):
+    generator = torch.Generator().manual_seed(0)
+    optimizer = torch.optim.Adam(model.param_groups(lr))
+    for step in range(steps):
+        if model.on_train_step(step):
+            optimizer = torch.optim.Adam(model.param_groups(lr))
+        index = torch.randint(0, origins.shape[0], (batch,), generator=generator)
+        out = model.render_rays(
+            origins[index], directions[index], SCENE.near, SCENE.far, WHITE, True, generator
+        )
+        loss = torch.mean((out.rgb - colours[index]) ** 2)
+        if out.extra_loss is not None:
+            loss = loss + out.extra_loss
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+
+def render_all(model: FastModel, origins, directions) -> torch.Tensor:
+    with torch.no_grad():
+        return model.render_rays(origins, directions, SCENE.near, SCENE.far, WHITE, train=False).rgb
+
+
+# ----------------------------------------------------------------------------------------------- the model
+def test_fast_model_overfits_a_tiny_box_scene_above_30_db_from_rgb_alone():
+    torch.manual_seed(0)
+    origins, directions, colours = ring_views(num_views=6, size=32)
+    model = build_model("fast", SCENE, **small_config().model_dump())
+    fit(model, origins, directions, colours, steps=150)
+
+    assert psnr(render_all(model, origins, directions), colours) > 30.0
+    # The occupancy grid was learned: most of the box is empty space, the boxes' visible faces are not.
+    assert model.occupancy.occupied_fraction() < 0.5
+    face_centres = torch.tensor([[-0.35, -0.5, -0.15], [0.6, 0.0, 0.0], [0.0, -0.35, 0.6]])
+    assert model.occupancy.query(face_centres).all()
+
+
+def test_render_rays_returns_one_colour_depth_and_opacity_per_ray_and_a_white_empty_scene():
+    model = FastModel(SCENE, small_config())
+    origins, directions, _ = ring_views(num_views=1, size=8)
+    out = model.render_rays(origins, directions, SCENE.near, SCENE.far, WHITE, train=False)
+    assert out.rgb.shape == (64, 3) and out.depth.shape == (64,) and out.opacity.shape == (64,)
+    # At initialization every sample is nearly transparent: the background shows through.
+    assert torch.allclose(out.rgb, WHITE.expand(64, 3), atol=0.05)
+
+
+def test_upsampling_replaces_the_grids_and_fits_them_to_the_occupied_box():
+    model = FastModel(SCENE, small_config(upsample_steps=[5]))
+    with torch.no_grad():
+        model.density.fill_(-30.0)  # empty everywhere ...
+        model.density[..., 2:5, 3:6, 4:8] = 10.0  # ... but a dense block near one corner
+    model.update_occupancy()
+    old_box = (model.box_min.clone(), model.box_max.clone())
+    assert model.on_train_step(5) is True
+    assert model.grid_shape != (17, 17, 17)
+    assert (model.box_min > old_box[0]).any() and (model.box_max < old_box[1]).any()
+    assert model.on_train_step(6) is False
+
+
+def test_a_checkpoint_of_an_upsampled_model_loads_into_a_fresh_model():
+    model = FastModel(SCENE, small_config(upsample_steps=[1]))
+    model.on_train_step(1)
+    with torch.no_grad():
+        model.density.normal_()
+    fresh = FastModel(SCENE, small_config(upsample_steps=[1]))
+    fresh.load_state_dict(model.state_dict())
+    assert fresh.grid_shape == model.grid_shape
+    assert torch.equal(fresh.density, model.density)
+    assert torch.equal(fresh.box_min, model.box_min)
+    assert torch.equal(fresh.occupancy.occupied, model.occupancy.occupied)
+
+
+def test_total_variation_regularizer_is_returned_as_extra_loss_when_weighted():
+    origins, directions, _ = ring_views(num_views=1, size=4)
+    plain = FastModel(SCENE, small_config())
+    assert plain.render_rays(origins, directions, 1.5, 5.0, WHITE, train=True).extra_loss is None
+    model = FastModel(SCENE, small_config(tv_density_weight=0.5))
+    with torch.no_grad():
+        model.density[..., ::2, :, :] = 1.0  # alternating planes: squared differences of 1 along x
+    extra = model.render_rays(origins, directions, 1.5, 5.0, WHITE, train=True).extra_loss
+    assert extra is not None and float(extra.detach()) == pytest.approx(0.5 * 1.0)
+
+
+def test_param_groups_give_the_colour_grid_its_own_learning_rate():
+    model = FastModel(SCENE, small_config(color_lr_scale=0.5))
+    groups = {group["name"]: group for group in model.param_groups(0.2)}
+    assert groups["density"]["lr"] == 0.2 and groups["color"]["lr"] == 0.1
+
+
+def test_config_rejects_unknown_options_and_a_decreasing_schedule():
+    with pytest.raises(ValueError, match="upsample_steps"):
+        FastModelConfig(upsample_steps=[10, 5])
+    with pytest.raises(ValueError):
+        FastModelConfig(voxel_count=10)
+
+
+# ------------------------------------------------------------------------------------------- occupancy grid
+def test_ray_box_intersection_of_an_axis_ray_and_a_miss():
+    origins = torch.tensor([[-5.0, 0.0, 0.0], [-5.0, 3.0, 0.0]])
+    directions = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    hits = ray_box_intersection(origins, directions, -torch.ones(3), torch.ones(3))
+    assert hits.t_enter[0] == pytest.approx(4.0) and hits.t_exit[0] == pytest.approx(6.0)
+    assert hits.t_exit[1] <= hits.t_enter[1]
+
+
+def test_march_through_a_full_grid_samples_evenly_between_box_entry_and_exit():
+    grid = OccupancyGrid(-torch.ones(3), torch.ones(3), (8, 8, 8))
+    origins = torch.tensor([[-5.0, 0.1, 0.2]])
+    directions = torch.tensor([[1.0, 0.0, 0.0]])
+    samples = grid.march(origins, directions, near=0.0, far=100.0, step_size=0.1)
+    assert samples.t.numel() == 20
+    assert torch.allclose(samples.t, 4.05 + 0.1 * torch.arange(20), atol=1e-5)
+    assert torch.allclose(samples.deltas, torch.full((20,), 0.1))
+    assert torch.allclose(samples.positions[:, 0], samples.t - 5.0, atol=1e-5)
+
+
+def test_march_respects_near_and_far():
+    grid = OccupancyGrid(-torch.ones(3), torch.ones(3), (8, 8, 8))
+    samples = grid.march(torch.tensor([[-5.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]]), 4.5, 5.5, 0.1)
+    assert samples.t.min() >= 4.5 and samples.t.max() <= 5.5
+
+
+def test_march_keeps_exactly_the_samples_in_occupied_cells():
+    torch.manual_seed(1)
+    grid = OccupancyGrid(-torch.ones(3), torch.ones(3), (24, 24, 24))
+    occupied = torch.zeros(24, 24, 24, dtype=torch.bool)
+    occupied[5:9, 10:20, 3:7] = True
+    occupied[18, 2, 20] = True
+    grid.set_occupied(occupied)
+    origins = torch.randn(500, 3) * 0.3 + torch.tensor([0.0, 0.0, 4.0])
+    directions = -origins + torch.randn(500, 3) * 0.3
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    jitter = torch.rand(500)
+    samples = grid.march(origins, directions, 0.0, 10.0, 0.02, jitter)
+
+    # Brute force: every step of every ray, tested cell by cell.
+    hits = ray_box_intersection(origins, directions, grid.box_min, grid.box_max)
+    t = hits.t_enter.clamp_min(0.0)[:, None] + (torch.arange(600)[None, :] + jitter[:, None]) * 0.02
+    inside = t < hits.t_exit[:, None]
+    ray, step = inside.nonzero(as_tuple=True)
+    points = origins[ray] + directions[ray] * t[ray, step][:, None]
+    keep = grid.query(points)
+    assert samples.t.numel() == int(keep.sum()) > 0
+    assert torch.equal(samples.ray_indices, ray[keep])
+    assert torch.allclose(samples.t, t[ray, step][keep])
+
+
+def test_occupancy_warm_up_keeps_every_cell_then_learns_empty_space_from_density():
+    model = FastModel(SCENE, small_config(occupancy_warmup_steps=10, upsample_steps=[1000]))
+    with torch.no_grad():
+        model.density.fill_(-30.0)
+        model.density[..., 8, 8, 8] = 20.0  # one dense vertex at the centre
+    model.on_train_step(0)
+    assert model.occupancy.occupied_fraction() == 1.0
+    model.on_train_step(16)  # past warm-up, on the update cadence
+    occupied = model.occupancy.occupied
+    assert int(occupied.sum()) == 8  # the 8 cells sharing the dense vertex
+    assert model.occupancy.query(torch.zeros(1, 3)).all()
+    assert not model.occupancy.query(torch.tensor([[0.7, 0.7, 0.7], [5.0, 0.0, 0.0]])).any()
+
+
+# -------------------------------------------------------------------------------------- packed rendering
+def test_packed_volume_rendering_equals_dense_volume_rendering():
+    torch.manual_seed(2)
+    sigma = torch.rand(4, 6) * 3
+    rgb = torch.rand(4, 6, 3)
+    t = torch.sort(torch.rand(4, 6) * 4 + 2, dim=-1).values
+    deltas = torch.rand(4, 6) * 0.3 + 0.01
+    # Dense: the deltas the packed call gets are those of consecutive t, the last one given explicitly.
+    t_dense = torch.cumsum(torch.cat([t[:, :1], deltas[:, :-1]], dim=1), dim=1)
+    dense = volume_render(sigma, rgb, t_dense, WHITE, far_delta=1.0)
+    deltas_packed = deltas.clone()
+    deltas_packed[:, -1] = 1.0
+    ray_indices = torch.arange(4).repeat_interleave(6)
+    packed = volume_render_packed(
+        sigma.reshape(-1), rgb.reshape(-1, 3), t_dense.reshape(-1), deltas_packed.reshape(-1), ray_indices, 4,
+        WHITE,
+    )  # fmt: skip
+    assert torch.allclose(packed.rgb, dense.rgb, atol=1e-5)
+    assert torch.allclose(packed.opacity, dense.opacity, atol=1e-5)
+    assert torch.allclose(packed.depth, dense.depth, atol=1e-4)
+
+
+def test_packed_rendering_of_rays_without_samples_gives_the_background_and_a_slab_its_closed_form():
+    sigma = torch.full((10,), 2.0)
+    deltas = torch.full((10,), 0.1)
+    t = 1.0 + 0.1 * torch.arange(10)
+    rgb = torch.zeros(10, 3)
+    ray_indices = torch.full((10,), 1)  # ray 0 and ray 2 have no samples
+    out = volume_render_packed(sigma, rgb, t, deltas, ray_indices, 3, WHITE)
+    assert torch.allclose(out.rgb[0], WHITE) and torch.allclose(out.rgb[2], WHITE)
+    assert out.opacity[1] == pytest.approx(1 - math.exp(-2.0 * 1.0), abs=1e-6)
+    assert torch.allclose(out.rgb[1], WHITE * math.exp(-2.0), atol=1e-6)
