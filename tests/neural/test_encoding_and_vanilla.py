@@ -104,3 +104,23 @@ def test_every_relu_density_starts_alive_whatever_the_seed():
         for network in (model.coarse, model.fine):
             raw_density, _ = network(points, directions)
             assert (raw_density > 0).all(), f"seed {seed}: some densities start dead"
+
+
+def test_the_paper_sized_vanilla_model_learns_a_box_scene_from_its_first_steps():
+    # Full paper widths and 64 + 128 samples; few rays so that it stays a quick test on a CPU.
+    from tests.neural import box_scene
+
+    torch.manual_seed(0)
+    origins, directions, colours = box_scene.ring_views(num_views=4, size=12)
+    model = build_model("vanilla", box_scene.SCENE)
+
+    def psnr_now() -> float:
+        with torch.no_grad():
+            out = model.render_rays(origins, directions, 1.5, 5.0, box_scene.WHITE, train=False)
+        return box_scene.psnr(out.rgb, colours)
+
+    before = psnr_now()
+    box_scene.fit(model, origins, directions, colours, steps=15, batch=16, lr=5e-4)
+    # Measured: 6.6 -> 11.7 dB (seed 0), 6.3 -> 11.1 dB (seed 1). A collapsed density renders only the
+    # background and gets no gradient, so it cannot gain.
+    assert psnr_now() > before + 3.0
