@@ -190,7 +190,7 @@ def unity_hall_problem(data_dir: Path) -> Problem:
     tracks = extract_tracks(images, config).tracks
     bundle_adjustment_module.bundle_adjust = recording
     try:
-        model = run_incremental(tracks, K, (images.width, images.height), config)
+        model = run_incremental(tracks, K, config)
     finally:
         bundle_adjustment_module.bundle_adjust = original
     registered = len(model.poses)

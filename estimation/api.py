@@ -216,7 +216,7 @@ def reconstruct(
     with _timed(seconds, "features"):
         features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end))
 
-    model = run_incremental(features.tracks, K, (images.width, images.height), config,
+    model = run_incremental(features.tracks, K, config,
                             progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END))
     seconds.update({name: float(value) for name, value in model.stats.stage_seconds.items()})
 

@@ -419,12 +419,12 @@ def _to_sparse_model(model: _Model, unregistered: dict[int, str], stats: Reconst
     )
 
 
-def run_incremental(tracks: Tracks, K: np.ndarray, image_size: tuple[int, int], config: ReconstructionConfig,
+def run_incremental(tracks: Tracks, K: np.ndarray, config: ReconstructionConfig,
                     progress: ProgressCallback | None = None) -> SparseModel:
     """Incremental SfM: initial pair by inliers and parallax, then PnP registration by most 2D-3D matches.
 
-    `image_size` (width, height) is part of the shared signature; the geometry works in the pixel
-    coordinates of `tracks` and `K` as given. Raises DegenerateConfigurationError if no pair can start.
+    The geometry works in the pixel coordinates of `tracks` and `K` as given.
+    Raises DegenerateConfigurationError if no pair can start.
     """
     num_images = len(tracks.image_names)
     if num_images < 2:

@@ -16,7 +16,7 @@ CONFIG = ReconstructionConfig()
 
 
 def reconstruct(tracks: Tracks, scene, config=CONFIG, progress=None) -> SparseModel:
-    return run_incremental(tracks, scene.K, (scene.width, scene.height), config, progress)
+    return run_incremental(tracks, scene.K, config, progress)
 
 
 def pose_errors(model: SparseModel, scene):
