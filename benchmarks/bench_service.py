@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -30,56 +29,14 @@ import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # run as a script from anywhere: the tests' server helpers
+
+from tests.service.conftest import unity_hall_files  # noqa: E402
+from tests.service.servers import free_port, start_server  # noqa: E402
+
 UNITY_HALL = ROOT.parent / "shared" / "data" / "unity_hall"
 POLL_SECONDS = 0.05
-START_TIMEOUT_SECONDS = 60.0
 JOB_TIMEOUT_SECONDS = 600.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def upload_files() -> list:
-    files = [("images", (p.name, p.read_bytes(), "image/png")) for p in sorted(UNITY_HALL.glob("*.png"))]
-    files += [
-        ("matches", (p.name, p.read_bytes(), "text/plain")) for p in sorted(UNITY_HALL.glob("matching*.txt"))
-    ]
-    files.append(
-        ("calibration", ("calibration.txt", (UNITY_HALL / "calibration.txt").read_bytes(), "text/plain"))
-    )
-    return files
-
-
-def start_server(data_dir: Path, port: int) -> subprocess.Popen:
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "from service.cli import main; main()",
-            "serve",
-            "--port",
-            str(port),
-            "--data-dir",
-            str(data_dir),
-            "--log-level",
-            "warning",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    deadline = time.monotonic() + START_TIMEOUT_SECONDS
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return process
-        except httpx.HTTPError:
-            time.sleep(0.2)
-    process.kill()
-    raise RuntimeError("the server did not start")
 
 
 def wait_finished(client: httpx.Client, job_id: str) -> dict:
@@ -170,7 +127,7 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=50, help="Concurrent clients polling the job.")
     parser.add_argument("--sequential", type=int, default=1000, help="Requests for the per-request cost.")
     args = parser.parse_args()
-    files = upload_files()
+    files = unity_hall_files(UNITY_HALL)
     with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
         port = free_port()
         server = start_server(Path(tmp) / "data", port)

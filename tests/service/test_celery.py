@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,16 +16,11 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from tests.service.conftest import make_settings, unity_hall_files, wait_for_job
+from tests.service.servers import free_port
 from tests.service.test_job_machinery import CANCEL_DEADLINE_SECONDS, process_alive
 
 REDIS_SERVER = shutil.which("redis-server") or "/usr/bin/redis-server"
 START_SECONDS = 60.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -7,9 +7,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -19,9 +16,9 @@ import pytest
 from service.db import JobKind, JobStore
 from service.executor import CeleryExecutor
 from tests.service.conftest import make_settings, unity_hall_files, wait_for_job
+from tests.service.servers import free_port, start_server
 
 CANCEL_DEADLINE_SECONDS = 5.0
-SERVER_START_SECONDS = 60.0
 
 
 def process_alive(pid: int) -> bool:
@@ -77,45 +74,6 @@ def test_a_job_whose_process_is_killed_ends_failed_with_the_reason_and_can_be_re
     retry = wait_for_job(client, response.json()["id"])
     assert retry["state"] == "succeeded" and retry["retry_of"] == job_id
     assert client.get(f"/v1/reconstructions/{retry['id']}").json()["cameras"]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(data_dir: Path, port: int) -> subprocess.Popen:
-    """`sfmnerf serve` in its own process, as a user runs it."""
-    process = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "from service.cli import main; main()",
-            "serve",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-            "--data-dir",
-            str(data_dir),
-            "--log-level",
-            "warning",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    deadline = time.monotonic() + SERVER_START_SECONDS
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return process
-        except httpx.HTTPError:
-            pass
-        assert process.poll() is None, "the server exited"
-        time.sleep(0.2)
-    process.kill()
-    raise AssertionError("the server did not become ready")
 
 
 def test_a_hard_restart_of_the_service_loses_no_job(tmp_path, unity):
