@@ -178,10 +178,34 @@ def image_path(root: Path, file_path: str) -> Path:
     return candidate.with_name(candidate.name + ".png")
 
 
-def synthetic_scene(near: float, far: float) -> SceneInfo:
+def synthetic_dataset(
+    images: np.ndarray,
+    poses: np.ndarray,
+    focal: float,
+    near: float,
+    far: float,
+    splits: dict[str, np.ndarray],
+    image_names: list[str],
+    source: Path,
+    white_background: bool = True,
+) -> Dataset:
+    """A NeRF-synthetic scene: one pinhole focal, principal point at the image centre, the fixed scene box."""
+    height, width = images.shape[1:3]
     half = SYNTHETIC_BOX_HALF_SIZE
-    return SceneInfo(
-        near=near, far=far, scene_box_min=(-half, -half, -half), scene_box_max=(half, half, half)
+    return Dataset(
+        images=images,
+        poses=poses.astype(np.float32),
+        fx=focal,
+        fy=focal,
+        cx=width / 2.0,
+        cy=height / 2.0,
+        scene=SceneInfo(
+            near=near, far=far, scene_box_min=(-half, -half, -half), scene_box_max=(half, half, half)
+        ),
+        splits=splits,
+        image_names=image_names,
+        source=source,
+        white_background=white_background,
     )
 
 
@@ -224,21 +248,9 @@ def load_blender(root: Path, white_background: bool = True) -> Dataset:
                 f"{json_path}: focal {split_focal:.4f} differs from the other splits' {focal:.4f}"
             )
         focal = split_focal
-    stacked = np.stack(images)
-    height, width = stacked.shape[1:3]
     assert focal is not None
-    return Dataset(
-        images=stacked,
-        poses=np.stack(poses).astype(np.float32),
-        fx=focal,
-        fy=focal,
-        cx=width / 2.0,
-        cy=height / 2.0,
-        scene=synthetic_scene(near, far),
-        splits=splits,
-        image_names=names,
-        source=root,
-        white_background=white_background,
+    return synthetic_dataset(
+        np.stack(images), np.stack(poses), focal, near, far, splits, names, root, white_background
     )
 
 
@@ -293,19 +305,8 @@ def load_npz(path: Path) -> Dataset:
     splits = {name: indices for name, indices in splits.items() if len(indices)}
     if "train" not in splits:
         raise DatasetError(f"{path}: 'split' has no training images (code 0)")
-    height, width = images.shape[1:3]
-    return Dataset(
-        images=np.clip(images, 0.0, 1.0),
-        poses=checked.astype(np.float32),
-        fx=focal,
-        fy=focal,
-        cx=width / 2.0,
-        cy=height / 2.0,
-        scene=synthetic_scene(near, far),
-        splits=splits,
-        image_names=[f"{path.stem}[{i}]" for i in range(count)],
-        source=path,
-    )
+    names = [f"{path.stem}[{i}]" for i in range(count)]
+    return synthetic_dataset(np.clip(images, 0.0, 1.0), checked, focal, near, far, splits, names, path)
 
 
 # ----------------------------------------------------------------------------------------------------------
