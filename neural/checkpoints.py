@@ -19,6 +19,7 @@ from neural.errors import CheckpointError
 #: Bumped whenever the checkpoint layout changes incompatibly.
 CHECKPOINT_FORMAT_VERSION = 1
 INDEX_FILE = "index.json"
+CHECKPOINT_READ_ATTEMPTS = 3  # reads racing a trainer that replaces its latest checkpoint
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,26 @@ def resolve_checkpoint(run_dir: Path, which: str = "latest") -> Path:
                 raise CheckpointError(f"{info.path}: listed in {INDEX_FILE} but missing")
             return info.path
     raise CheckpointError(f"{run_dir}: no checkpoint {which!r} (have steps {[i.step for i in infos]})")
+
+
+def load_named_checkpoint(
+    run_dir: Path, which: str = "latest", map_location: torch.device | str = "cpu"
+) -> tuple[Path, dict[str, Any]]:
+    """resolve_checkpoint then load_checkpoint, safe against a trainer that is writing the run right now.
+
+    The trainer saves the new latest, rewrites the index, then deletes the old file: a reader that resolved
+    the old name just before can find it gone. If the index changed meanwhile, resolve again.
+    """
+    for _ in range(CHECKPOINT_READ_ATTEMPTS - 1):
+        index = read_index(run_dir)
+        try:
+            path = resolve_checkpoint(run_dir, which)
+            return path, load_checkpoint(path, map_location=map_location)
+        except CheckpointError:
+            if read_index(run_dir) == index:
+                raise  # nothing moved under us: the error is real
+    path = resolve_checkpoint(run_dir, which)
+    return path, load_checkpoint(path, map_location=map_location)
 
 
 def load_checkpoint(path: Path, map_location: torch.device | str = "cpu") -> dict[str, Any]:

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neural.checkpoints import load_checkpoint, load_model_state, resolve_checkpoint
+from neural.checkpoints import load_model_state, load_named_checkpoint
 from neural.config import TrainConfig
 from neural.errors import CheckpointError
 from neural.models import RadianceModel, build_model
@@ -154,9 +154,8 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
     """The run's model restored from `checkpoint` ("latest", "best", a step or a .pt path)."""
     run_dir = Path(run_dir)
     info = read_run_config(run_dir)
-    path = resolve_checkpoint(run_dir, checkpoint)
     target = resolve_device(device)
-    payload = load_checkpoint(path, map_location=target)
+    path, payload = load_named_checkpoint(run_dir, checkpoint, map_location=target)
     config = TrainConfig.model_validate(info["train"])
     if payload.get("model_name") != config.model:
         raise CheckpointError(

@@ -186,3 +186,31 @@ def test_validation_downscale_keeps_pixel_blocks_and_their_rays_aligned():
     u, v = torch.tensor([0.5, 4.5], dtype=torch.float64), torch.tensor([0.5, 2.5], dtype=torch.float64)
     expected = pixel_rays(c2w, u, v, camera.fx, camera.fy, camera.cx, camera.cy)
     torch.testing.assert_close(small_rays.directions[[0, 5]], expected.directions)
+
+
+def test_a_reader_racing_the_trainer_gets_the_new_latest_checkpoint(tmp_path, monkeypatch):
+    from neural import checkpoints
+
+    checkpoints.save_checkpoint(tmp_path, {"weights": 1}, step=1, val_psnr=None)
+    real_load = checkpoints.load_checkpoint
+    raced = []
+
+    def load_while_the_trainer_saves(path, map_location="cpu"):
+        if not raced:  # between the reader's resolve and load, step 2 is saved and step 1 pruned
+            raced.append(path.name)
+            checkpoints.save_checkpoint(tmp_path, {"weights": 2}, step=2, val_psnr=None)
+        return real_load(path, map_location=map_location)
+
+    monkeypatch.setattr(checkpoints, "load_checkpoint", load_while_the_trainer_saves)
+    path, payload = checkpoints.load_named_checkpoint(tmp_path, "latest")
+    assert raced == ["step_0000001.pt"]
+    assert path.name == "step_0000002.pt" and payload["weights"] == 2
+
+
+def test_a_corrupt_checkpoint_is_still_an_error_when_nothing_moved(tmp_path):
+    from neural import checkpoints
+
+    saved = checkpoints.save_checkpoint(tmp_path, {"weights": 1}, step=1, val_psnr=None)
+    saved.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        checkpoints.load_named_checkpoint(tmp_path, "latest")
