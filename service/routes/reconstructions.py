@@ -39,7 +39,7 @@ REJECTED = {
 
 def _parse_k(text: str, source: str) -> Any:
     from estimation.errors import InputError
-    from estimation.images import parse_calibration
+    from estimation.io.images import parse_calibration
 
     try:
         return parse_calibration(text, source)
@@ -66,7 +66,7 @@ def _store_inputs(
 ) -> None:
     """Saves and checks everything the reconstruction reads; UploadRejected on the first problem."""
     from estimation.errors import InputError
-    from estimation.matchfile import parse_match_file
+    from estimation.io.matchfile import parse_match_file
 
     saved = save_images(((f.filename, f.file) for f in images), folder, settings)
     if len(saved) < 2:
