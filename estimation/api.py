@@ -133,7 +133,7 @@ def build_report(
             "before_ba": _error_summary(stats.reprojection_before_ba),
             "after_ba": _error_summary(stats.reprojection_after_ba),
         },
-        "ransac_inliers_per_pair": dict(stats.pair_inliers),
+        "shared_tracks_per_pair": dict(stats.pair_shared_tracks),
         "initial_pair": list(stats.initial_pair),
         "initial_pair_median_triangulation_angle_deg": float(stats.initial_pair_median_angle_deg),
         "registration_order": [images.names[i] for i in model.registration_order],

@@ -26,7 +26,7 @@ class BundleAdjustmentConfig(BaseModel):
     measurement_sigma_px: float = Field(1.0, gt=0, description="Std-dev of a pixel measurement.")
     relative_error_tol: float = Field(1e-6, gt=0, description="Stop when the cost changes less than this.")
     absolute_error_tol: float = Field(0.0, ge=0, description="Stop when the cost decreases less than this.")
-    local_window: int = Field(3, ge=2, description="Cameras optimised in the local BA after a registration.")
+    local_window: int = Field(6, ge=2, description="Cameras optimised in the local BA after a registration.")
     local_max_iterations: int = Field(
         10, ge=1, description="LM iterations of each local BA (the global BA at the end converges fully)."
     )
@@ -76,6 +76,67 @@ class SiftConfig(BaseModel):
     window: int = Field(10, ge=1, description="Otherwise match each image with its next `window` images.")
 
 
+class MapperConfig(BaseModel):
+    """The incremental mapper: initial pair, registration, triangulation, refinement, several models."""
+
+    min_initial_pair_inliers: int = Field(
+        30, ge=8, description="Fewest well-conditioned points of an initial pair."
+    )
+    min_initial_pair_median_angle_deg: float = Field(
+        2.0, gt=0, description="An initial pair's median triangulation angle must reach this (no rotation)."
+    )
+    preferred_initial_pair_angle_deg: float = Field(
+        8.0, gt=0, description="Of a batch's passing candidates, those reaching this median angle win."
+    )
+    initial_pair_candidates: int = Field(
+        10, ge=1, description="Candidate pairs (most shared tracks first) evaluated per batch; when none "
+        "of a batch works, the next batch is tried until the image graph has no pair left.",
+    )
+    min_pnp_correspondences: int = Field(
+        6, ge=6, description="Fewest 2D-3D matches to try registering an image."
+    )
+    min_pnp_inliers: int = Field(
+        12, ge=6, description="Fewest absolute-pose inliers to accept a registration."
+    )
+    min_pnp_inlier_ratio: float = Field(
+        0.25, gt=0, le=1, description="Fewest absolute-pose inliers as a fraction of the 2D-3D matches."
+    )
+    absolute_pose: Literal["p3p", "dlt"] = Field(
+        "p3p", description="p3p: P3P in LO-RANSAC (EPnP local optimization); dlt: the 6-point linear PnP."
+    )
+    max_registration_trials: int = Field(
+        3, ge=1, description="Failed registrations before an image is given up."
+    )
+    relaxed_registration_factor: float = Field(
+        0.5, gt=0, lt=1, description="When registration stalls, the inlier minimums are multiplied by this "
+        "and the PnP threshold divided by it, once per model.",
+    )
+    triangulation_hypotheses: int = Field(
+        8, ge=1, description="Two-view hypotheses per track in the RANSAC multi-view triangulation."
+    )
+    retriangulation_min_ratio: float = Field(
+        0.2, ge=0, le=1, description="Image pairs with fewer triangulated shared tracks than this fraction "
+        "are re-triangulated (COLMAP's re_min_ratio).",
+    )
+    global_ba_growth: float = Field(
+        1.25, gt=1, description="Global refinement whenever the registered images grew by this factor."
+    )
+    refinement_max_rounds: int = Field(
+        5, ge=1, description="Rounds of BA, complete/merge, filter, retriangulate."
+    )
+    refinement_min_change: float = Field(
+        5e-4, ge=0, description="Refinement stops when fewer than this fraction of observations changed."
+    )
+    final_relative_error_tol: float = Field(
+        1e-9, gt=0, description="Relative cost decrease at which the final global BA stops (converged)."
+    )
+    min_model_images: int = Field(3, ge=2, description="Smaller models are discarded (2 for a 2-image set).")
+    max_models: int = Field(10, ge=1, description="Most models started from the images left unregistered.")
+    export_all_models: bool = Field(
+        False, description="Write every model (OUT/models/<k>/), not only the largest one into OUT/."
+    )
+
+
 class ReconstructionConfig(BaseModel):
     """Everything `estimation.reconstruct` needs besides the images folder."""
 
@@ -87,13 +148,5 @@ class ReconstructionConfig(BaseModel):
     bundle_adjustment: BundleAdjustmentConfig = BundleAdjustmentConfig()
     filter: FilterConfig = FilterConfig()
     sift: SiftConfig = SiftConfig()
-    min_initial_pair_inliers: int = Field(30, ge=8, description="Fewest inliers for an initial pair.")
-    min_pnp_correspondences: int = Field(6, ge=6, description="Fewest 2D-3D matches to register an image.")
-    min_pnp_inliers: int = Field(12, ge=6, description="Fewest PnP RANSAC inliers to accept a registration.")
-    min_initial_pair_median_angle_deg: float = Field(
-        2.0, gt=0, description="Initial pair's median triangulation angle must reach this (rejects rotation)."
-    )
-    initial_pair_candidates: int = Field(
-        10, ge=1, description="Pairs with most F inliers whose parallax is checked for the initial pair."
-    )
+    mapper: MapperConfig = MapperConfig()
     write_figures: bool = Field(True, description="Write the PNG figures into OUT/figures.")

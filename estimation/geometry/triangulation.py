@@ -134,3 +134,74 @@ def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, po
         cosine = (rays[:-offset][same] * rays[offset:][same]).sum(axis=1)
         np.minimum.at(min_cosine, owner[:-offset][same], cosine)
     return np.degrees(np.arccos(np.clip(min_cosine, -1.0, 1.0)))
+
+
+def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
+    """||r_o|| in pixels, inf where the point is behind the observing camera or not finite, (O,)."""
+    x_cam_z = np.einsum("oj,oj->o", obs.R[:, 2], points[obs.point_index]) + obs.t[:, 2]
+    error = np.linalg.norm(reprojection_residuals(K, obs, points), axis=1)
+    return np.where((x_cam_z > 0) & np.isfinite(error), error, np.inf)
+
+
+class RobustTriangulation(NamedTuple):
+    """Points from each track's best two-view hypothesis, refined on the observations agreeing with it."""
+
+    points: np.ndarray        # (P, 3)
+    inlier_mask: np.ndarray   # (O,) bool: observation within max_error_px of its point (in front)
+    valid: np.ndarray         # (P,) bool: 2+ inliers seen at an angle of at least min_angle_deg
+
+
+def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, min_angle_deg: float,
+                       hypotheses_per_point: int, rng: np.random.Generator) -> RobustTriangulation:
+    """Per point, argmax over pairs (a, b) of its observations of #{o : ||r_o(DLT(a, b))|| < max_error_px}
+    (pairs under min_angle_deg or behind a camera score nothing), then non-linear on the consensus.
+
+    All points at once: `hypotheses_per_point` random observation pairs per point (every pair when a point
+    has two observations), scored against all of the point's observations in one vectorized pass.
+    """
+    order = np.argsort(obs.point_index, kind="stable")
+    counts = np.bincount(obs.point_index, minlength=obs.num_points)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    H = hypotheses_per_point
+    # Pair h of point p: observations a and b != a among the point's (sorted) observations.
+    count_ph = np.repeat(np.maximum(counts, 2), H)
+    a_offset = np.floor(rng.random(obs.num_points * H) * count_ph).astype(np.int64)
+    b_offset = (a_offset + 1 + np.floor(rng.random(obs.num_points * H) * (count_ph - 1)).astype(np.int64)
+                ) % count_ph
+    start_ph = np.repeat(starts, H)
+    usable = np.repeat(counts >= 2, H)
+    pair_obs = order[np.stack([start_ph + a_offset, start_ph + b_offset]) * usable]      # (2, P*H)
+    num_hypotheses = obs.num_points * H
+    hypothesis_obs = Observations(
+        R=obs.R[pair_obs.ravel()], t=obs.t[pair_obs.ravel()], uv=obs.uv[pair_obs.ravel()],
+        point_index=np.tile(np.arange(num_hypotheses), 2), num_points=num_hypotheses)
+    candidates = triangulate_linear(K, hypothesis_obs).points
+    centers = -np.einsum("oji,oj->oi", hypothesis_obs.R, hypothesis_obs.t)
+    pair_angle = triangulation_angle_deg(centers, hypothesis_obs.point_index, candidates)
+
+    # Score hypothesis (p, h) on every observation of p: observation o is repeated for each h.
+    scored_obs = np.repeat(np.arange(len(obs.uv)), H)
+    scored_hypothesis = obs.point_index[scored_obs] * H + np.tile(np.arange(H), len(obs.uv))
+    expanded = Observations(R=obs.R[scored_obs], t=obs.t[scored_obs], uv=obs.uv[scored_obs],
+                            point_index=scored_hypothesis, num_points=num_hypotheses)
+    agrees = observation_errors(K, expanded, candidates) < max_error_px
+    support = np.bincount(scored_hypothesis, weights=agrees, minlength=num_hypotheses)
+    support[~(usable & (pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
+    best = np.argmax(support.reshape(obs.num_points, H), axis=1)
+    best_hypothesis = np.arange(obs.num_points) * H + best
+    inliers = agrees.reshape(len(obs.uv), H)[np.arange(len(obs.uv)), best[obs.point_index]]
+    inliers &= support[best_hypothesis][obs.point_index] >= 2
+
+    subset = Observations(obs.R[inliers], obs.t[inliers], obs.uv[inliers], obs.point_index[inliers],
+                          obs.num_points)
+    points = candidates[best_hypothesis]
+    if inliers.any():
+        points = triangulate_nonlinear(K, subset, points).points
+    inliers = observation_errors(K, obs, points) < max_error_px
+    inlier_counts = np.bincount(obs.point_index[inliers], minlength=obs.num_points)
+    all_centers = -np.einsum("oji,oj->oi", obs.R, obs.t)
+    angles = np.zeros(obs.num_points)
+    if inliers.any():
+        angles = triangulation_angle_deg(all_centers[inliers], obs.point_index[inliers], points)
+    valid = (inlier_counts >= 2) & (angles >= min_angle_deg)
+    return RobustTriangulation(points=points, inlier_mask=inliers & valid[obs.point_index], valid=valid)

@@ -1,8 +1,14 @@
-"""Incremental Structure from Motion: an initial pair, then one image at a time, local and global BA.
+"""Incremental Structure from Motion (COLMAP's incremental mapper in this project's own steps).
 
-Orchestration only: the geometry lives in fundamental / essential / triangulation / pnp, the
-optimization in bundle_adjustment. The model under construction is indexed by track: track t has a
-3D point when `has_point[t]`, and flat observation o of `tracks` is part of the model when `obs_used[o]`.
+Per model: an initial pair from the image graph (`initial_pair`), then repeatedly the unregistered image
+with the best visibility pyramid score (`next_image`) registered by P3P in LO-RANSAC and refined
+(`geometry.absolute_pose`); after each registration its tracks are continued or triangulated, a local BA
+adjusts the image and its best-connected neighbours, and the touched points are completed, merged and
+filtered. Whenever the model grew by `global_ba_growth`, and at the end, global refinement runs in rounds
+(BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change;
+the last step is a converged global BA. When registration stalls the thresholds are relaxed once; when a
+model cannot grow, another is started from the images no model holds. Orchestration only: the state and
+its operations live in `scene.Scene`, the geometry in `geometry/` and `two_view/`.
 """
 
 from __future__ import annotations
@@ -16,26 +22,22 @@ from typing import NamedTuple
 import numpy as np
 from scipy import sparse
 
-from estimation.config import ReconstructionConfig
+from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
+from estimation.geometry.absolute_pose import absolute_pose_ransac
 from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
-from estimation.geometry.triangulation import (
-    Observations,
-    observations_for_pair,
-    reprojection_residuals,
-    triangulate_linear,
-    triangulate_nonlinear,
-    triangulation_angle_deg,
+from estimation.mapper.initial_pair import (
+    InitialPairCandidate,
+    choose_initial_pair,
+    co_visible_pairs,
+    pair_name,
 )
-from estimation.two_view.essential import choose_relative_pose, essential_from_fundamental
-from estimation.two_view.fundamental import MIN_CORRESPONDENCES as MIN_F_CORRESPONDENCES
-from estimation.two_view.fundamental import FundamentalResult, ransac_fundamental
+from estimation.mapper.next_image import visibility_pyramid_scores
+from estimation.mapper.scene import Scene
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
-ROBUST_TRIANGULATION_ROUNDS = 3
-"""Rounds of 'drop the worst observation of each point, re-triangulate' for new multi-view tracks."""
-FINAL_BA_ROUNDS = 2
-"""Global BA, filter, and BA again if the filter removed anything."""
+FINAL_BA_ROUNDS = 3
+"""Converged global BA, filter, and BA again while the filter removed anything."""
 
 
 class ReprojectionSummary(NamedTuple):
@@ -51,13 +53,19 @@ class ReprojectionSummary(NamedTuple):
 class ReconstructionStats:
     """Numbers for report.json."""
 
-    reprojection_before_ba: ReprojectionSummary
+    reprojection_before_ba: ReprojectionSummary  # before the final global refinement
     reprojection_after_ba: ReprojectionSummary
-    pair_inliers: dict[str, int]          # "a.png|b.png" -> RANSAC (F) inliers
+    pair_shared_tracks: dict[str, int]  # "a.png|b.png" -> shared tracks (verified matches)
     initial_pair: tuple[str, str]
     stage_seconds: dict[str, float]
     initial_pair_median_angle_deg: float
-    bundle_adjustment_iterations: int
+    bundle_adjustment_iterations: int  # of the final global BA
+    initial_pair_failures: dict[
+        str, str
+    ]  # candidate pairs tried before this model's pair, and why they failed
+    refinement_rounds: int
+    relaxed_thresholds: bool  # registration stalled and was retried with relaxed thresholds
+    final_cost_decrease: float  # relative robust-cost decrease of the last BA call (~0: converged)
 
 
 @dataclass
@@ -66,29 +74,29 @@ class InitialPairDiagnostics:
 
     i: int
     j: int
-    uv_i: np.ndarray               # (K, 2) all putative correspondences
-    uv_j: np.ndarray               # (K, 2)
-    inlier_mask: np.ndarray        # (K,) RANSAC (F) inliers
-    points_linear: np.ndarray      # (L, 3) DLT points of the inliers in front of both cameras
-    points_nonlinear: np.ndarray   # (L, 3) the same after non-linear triangulation
-    pose_i: CameraPose             # the two cameras in the initial pair's frame (i at the origin)
+    uv_i: np.ndarray  # (K, 2) all putative correspondences
+    uv_j: np.ndarray  # (K, 2)
+    inlier_mask: np.ndarray  # (K,) RANSAC (F) inliers
+    points_linear: np.ndarray  # (L, 3) DLT points of the inliers in front of both cameras
+    points_nonlinear: np.ndarray  # (L, 3) the same after non-linear triangulation
+    pose_i: CameraPose  # the two cameras in the initial pair's frame (i at the origin)
     pose_j: CameraPose
 
 
 @dataclass
 class SparseModel:
-    """Registered cameras and triangulated tracks with their observations."""
+    """Registered cameras and triangulated points with their observations (one model of the set)."""
 
     image_names: list[str]
-    poses: dict[int, CameraPose]           # registered image index -> world-to-camera pose
-    unregistered: dict[int, str]           # image index -> why it could not be registered
-    points: np.ndarray                     # (P, 3)
-    point_colors: np.ndarray               # (P, 3) uint8
-    point_track_ids: np.ndarray            # (P,) track of each point
-    obs_camera: np.ndarray                 # (O,) image index
-    obs_point: np.ndarray                  # (O,) index into points
-    obs_uv: np.ndarray                     # (O, 2) pixels
-    point_errors: np.ndarray               # (P,) mean reprojection error in pixels
+    poses: dict[int, CameraPose]  # registered image index -> world-to-camera pose
+    unregistered: dict[int, str]  # image index -> why it is not in this model
+    points: np.ndarray  # (P, 3)
+    point_colors: np.ndarray  # (P, 3) uint8
+    point_track_ids: np.ndarray  # (P,) track of each point
+    obs_camera: np.ndarray  # (O,) image index
+    obs_point: np.ndarray  # (O,) index into points
+    obs_uv: np.ndarray  # (O, 2) pixels
+    point_errors: np.ndarray  # (P,) mean reprojection error in pixels
     stats: ReconstructionStats
     initial_pair_diagnostics: InitialPairDiagnostics
     registration_order: list[int] = field(default_factory=list)
@@ -101,127 +109,15 @@ class SparseModel:
         return visible
 
 
-class PairGeometry(NamedTuple):
-    """Correspondences of one image pair through shared tracks, and their robust fundamental matrix."""
-
-    i: int
-    j: int
-    track_ids: np.ndarray
-    uv_i: np.ndarray
-    uv_j: np.ndarray
-    fundamental: FundamentalResult
-
-
-class InitialPairCandidate(NamedTuple):
-    """A pair triangulated in its own frame (camera i at the origin, baseline 1)."""
-
-    geometry: PairGeometry
-    pose_j: CameraPose
-    track_ids: np.ndarray          # (L,) inlier tracks in front of both cameras
-    points_linear: np.ndarray      # (L, 3)
-    points: np.ndarray             # (L, 3) non-linear
-    well_conditioned: np.ndarray   # (L,) bool: error and angle within the filter limits
-    median_angle_deg: float
-
-
-# ----------------------------------------------------------------------------------------------------
-# Pure helpers
-
-
-def pair_name(tracks: Tracks, i: int, j: int) -> str:
-    return f"{tracks.image_names[i]}|{tracks.image_names[j]}"
-
-
-def co_visible_pairs(tracks: Tracks) -> list[tuple[int, int, int]]:
-    """(i, j, shared tracks) for every image pair i < j sharing at least one track."""
-    visibility = sparse.csr_matrix(
-        (np.ones(len(tracks.track_index)), (tracks.track_index, tracks.image_index)),
-        shape=(tracks.num_tracks, len(tracks.image_names)),
-    )
-    shared = sparse.triu(visibility.T @ visibility, k=1).tocoo()
-    return [(int(i), int(j), int(n)) for i, j, n in zip(shared.row, shared.col, shared.data, strict=True)]
-
-
-def pose_arrays(poses: dict[int, CameraPose], num_images: int) -> tuple[np.ndarray, np.ndarray]:
-    """R (M, 3, 3) and t (M, 3) indexed by image; NaN for images without a pose."""
-    R, t = np.full((num_images, 3, 3), np.nan), np.full((num_images, 3), np.nan)
-    for m, pose in poses.items():
-        R[m], t[m] = pose.R, pose.t
-    return R, t
-
-
-def observations_of(tracks: Tracks, poses: dict[int, CameraPose], obs_ids: np.ndarray,
-                    point_index: np.ndarray, num_points: int) -> Observations:
-    """Flat Observations for the given track observations, with each observation's camera pose."""
-    R, t = pose_arrays(poses, len(tracks.image_names))
-    images = tracks.image_index[obs_ids]
-    return Observations(R=R[images], t=t[images], uv=tracks.uv[obs_ids], point_index=point_index,
-                        num_points=num_points)
-
-
-def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
-    """||r_o|| in pixels, inf where the point is behind the observing camera or not finite."""
-    x_cam_z = np.einsum("oj,oj->o", obs.R[:, 2], points[obs.point_index]) + obs.t[:, 2]
-    error = np.linalg.norm(reprojection_residuals(K, obs, points), axis=1)
-    return np.where((x_cam_z > 0) & np.isfinite(error), error, np.inf)
-
-
 def summarize(errors: np.ndarray) -> ReprojectionSummary:
     if len(errors) == 0:
         return ReprojectionSummary(float("nan"), float("nan"), float("nan"), 0)
-    return ReprojectionSummary(rms_px=float(np.sqrt(np.mean(errors**2))), mean_px=float(np.mean(errors)),
-                               median_px=float(np.median(errors)), num_observations=len(errors))
-
-
-def triangulate_robust(K: np.ndarray, obs: Observations, max_error_px: float
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Multi-view points; each round drops every point's worst observation above max_error_px (keeping 2+).
-
-    Returns (points (P, 3), kept (O,) bool: observations within max_error_px of their point).
-    """
-    kept = np.ones(len(obs.uv), bool)
-    points = np.zeros((obs.num_points, 3))
-    for _ in range(ROBUST_TRIANGULATION_ROUNDS):
-        subset = Observations(obs.R[kept], obs.t[kept], obs.uv[kept], obs.point_index[kept], obs.num_points)
-        points = triangulate_nonlinear(K, subset, triangulate_linear(K, subset).points).points
-        errors = observation_errors(K, obs, points)
-        masked = np.where(kept, errors, -1.0)
-        worst = np.full(obs.num_points, -1.0)
-        np.maximum.at(worst, obs.point_index, masked)
-        counts = np.bincount(obs.point_index[kept], minlength=obs.num_points)
-        is_worst = masked == worst[obs.point_index]
-        drop = kept & is_worst & (masked > max_error_px) & (counts[obs.point_index] > 2)
-        if not drop.any():
-            break
-        kept &= ~drop
-    errors = observation_errors(K, obs, points)
-    return points, kept & (errors <= max_error_px)
-
-
-def evaluate_initial_pair(K: np.ndarray, geometry: PairGeometry, config: ReconstructionConfig
-                          ) -> InitialPairCandidate:
-    """E = K^T F K, chirality, DLT + non-linear triangulation of the F inliers, and their parallax."""
-    inliers = geometry.fundamental.inlier_mask
-    uv_i, uv_j = geometry.uv_i[inliers], geometry.uv_j[inliers]
-    relative = choose_relative_pose(essential_from_fundamental(geometry.fundamental.F, K), K, uv_i, uv_j)
-    front = relative.in_front
-    pose_j = relative.pose
-    obs = observations_for_pair(np.eye(3), np.zeros(3), pose_j.R, pose_j.t, uv_i[front], uv_j[front])
-    points = triangulate_nonlinear(K, obs, relative.points[front]).points
-    errors = observation_errors(K, obs, points).reshape(2, -1).max(axis=0)
-    centers = np.concatenate([np.zeros((front.sum(), 3)), np.broadcast_to(pose_j.center, (front.sum(), 3))])
-    angles = triangulation_angle_deg(centers, obs.point_index, points)
-    well_conditioned = (errors <= config.filter.max_reprojection_px) & (
-        angles >= config.filter.min_triangulation_angle_deg)
-    return InitialPairCandidate(
-        geometry=geometry, pose_j=pose_j, track_ids=geometry.track_ids[inliers][front],
-        points_linear=relative.points[front], points=points, well_conditioned=well_conditioned,
-        median_angle_deg=float(np.median(angles)) if len(angles) else 0.0,
+    return ReprojectionSummary(
+        rms_px=float(np.sqrt(np.mean(errors**2))),
+        mean_px=float(np.mean(errors)),
+        median_px=float(np.median(errors)),
+        num_observations=len(errors),
     )
-
-
-# ----------------------------------------------------------------------------------------------------
-# Orchestration
 
 
 class _Timer:
@@ -237,260 +133,432 @@ class _Timer:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
 
 
-class _Model:
-    """Mutable reconstruction state, indexed by track and by flat observation."""
+@dataclass
+class _Thresholds:
+    """Registration thresholds of one model; `relax` loosens them once when registration stalls."""
 
-    def __init__(self, tracks: Tracks, K: np.ndarray) -> None:
-        self.tracks, self.K = tracks, K
-        self.poses: dict[int, CameraPose] = {}
-        self.order: list[int] = []
-        self.point_xyz = np.zeros((tracks.num_tracks, 3))
-        self.has_point = np.zeros(tracks.num_tracks, bool)
-        self.obs_used = np.zeros(len(tracks.track_index), bool)
+    min_inliers: float
+    min_inlier_ratio: float
+    pnp_threshold_px: float
+    relaxed: bool = False
 
-    def used_observations(self) -> np.ndarray:
-        return np.flatnonzero(self.obs_used)
+    def relax(self, factor: float) -> None:
+        self.min_inliers *= factor
+        self.min_inlier_ratio *= factor
+        self.pnp_threshold_px /= factor
+        self.relaxed = True
 
-    def errors_of(self, obs_ids: np.ndarray) -> np.ndarray:
-        obs = observations_of(self.tracks, self.poses, obs_ids, self.tracks.track_index[obs_ids],
-                              self.tracks.num_tracks)
-        return observation_errors(self.K, obs, self.point_xyz)
 
-    def filter(self, max_error_px: float, min_angle_deg: float) -> None:
-        """Drop observations above max_error_px (or behind the camera), then points with < 2
-        observations or a triangulation angle below min_angle_deg."""
-        used = self.used_observations()
-        self.obs_used[used[self.errors_of(used) > max_error_px]] = False
-        used = self.used_observations()
-        track = self.tracks.track_index[used]
-        counts = np.bincount(track, minlength=self.tracks.num_tracks)
-        R, t = pose_arrays(self.poses, len(self.tracks.image_names))
-        centers = -np.einsum("mji,mj->mi", R, t)[self.tracks.image_index[used]]
-        angles = triangulation_angle_deg(centers, track, self.point_xyz)
-        drop = self.has_point & ((counts < 2) | (angles < min_angle_deg))
-        self.has_point[drop] = False
-        self.obs_used[drop[self.tracks.track_index]] = False
+class _ModelBuilder:
+    """Grows one model from its initial pair (orchestration of the Scene's named operations)."""
 
-    def bundle_adjust(self, config: ReconstructionConfig, window: list[int] | None
-                      ) -> tuple[float, float, int]:
-        """Global BA (window None: first camera fixed, scale by the second) or local BA over `window`."""
-        from estimation.bundle_adjustment.factor_graph import bundle_adjust
-
-        used = self.used_observations()
-        if window is not None:
-            in_window = np.isin(self.tracks.image_index[used], window)
-            used = used[np.isin(self.tracks.track_index[used], self.tracks.track_index[used][in_window])]
-        cameras = list(self.order)
-        camera_position = {m: k for k, m in enumerate(cameras)}
-        track_ids, point_index = np.unique(self.tracks.track_index[used], return_inverse=True)
-        outside = [camera_position[m] for m in cameras if window is not None and m not in window]
-        fixed, scale_reference = (outside, None) if len(outside) >= 2 else ([0], 1)
-        ba_config = config.bundle_adjustment
-        if window is not None:
-            ba_config = ba_config.model_copy(update={"max_iterations": ba_config.local_max_iterations})
-        result = bundle_adjust(
-            self.K, [self.poses[m] for m in cameras], self.point_xyz[track_ids],
-            np.array([camera_position[int(m)] for m in self.tracks.image_index[used]], dtype=np.int64),
-            point_index, self.tracks.uv[used], ba_config,
-            fixed_cameras=fixed, scale_reference=scale_reference,
+    def __init__(
+        self,
+        tracks: Tracks,
+        K: np.ndarray,
+        config: ReconstructionConfig,
+        available: np.ndarray,
+        timer: _Timer,
+        progress: ProgressCallback | None,
+    ) -> None:
+        self.tracks, self.config, self.mapper = tracks, config, config.mapper
+        self.scene = Scene(tracks, K)
+        self.available = available  # images no earlier model holds
+        self.timer, self.progress = timer, progress
+        self.rng = np.random.default_rng(config.ransac.seed)
+        self.trials = np.zeros(len(tracks.image_names), np.int64)
+        self.failures: dict[int, str] = {}
+        self.thresholds = _Thresholds(
+            self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio, config.ransac.pnp_threshold_px
         )
-        for m, pose in zip(cameras, result.poses, strict=True):
-            self.poses[m] = pose
-        self.point_xyz[track_ids] = result.points
-        return result.initial_rms_px, result.final_rms_px, result.iterations
+        self.refinement_rounds = 0
+        # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
+        self.image_size = (2.0 * K[0, 2], 2.0 * K[1, 2])
 
+    @property
+    def max_error(self) -> float:
+        return self.config.filter.max_reprojection_px
 
-def _pair_geometries(tracks: Tracks, config: ReconstructionConfig, progress: ProgressCallback | None,
-                     fraction: tuple[float, float]) -> list[PairGeometry]:
-    pairs = [(i, j) for i, j, n in co_visible_pairs(tracks) if n >= MIN_F_CORRESPONDENCES]
-    geometries = []
-    for done, (i, j) in enumerate(pairs):
-        if progress:
-            progress(f"pair geometry {pair_name(tracks, i, j)}",
-                     fraction[0] + (fraction[1] - fraction[0]) * done / len(pairs))
-        track_ids, uv_i, uv_j = tracks.pair_correspondences(i, j)
+    @property
+    def min_angle(self) -> float:
+        return self.config.filter.min_triangulation_angle_deg
+
+    # -------------------------------------------------------------------------------------- steps
+
+    def initialize(self, candidate: InitialPairCandidate) -> None:
+        g = candidate.geometry
+        scene = self.scene
+        scene.register_image(g.i, CameraPose(R=np.eye(3), t=np.zeros(3)))
+        scene.register_image(g.j, candidate.pose_j)
+        keep = candidate.well_conditioned
+        track_ids = candidate.track_ids[keep]
+        obs_i, obs_j = self._observations_of(g.i, track_ids), self._observations_of(g.j, track_ids)
+        index = np.arange(len(track_ids))
+        scene.add_points(
+            candidate.points[keep], np.concatenate([obs_i, obs_j]), np.concatenate([index, index])
+        )
+        scene.bundle_adjust(self.config.bundle_adjustment)
+        scene.filter_points(self.max_error, self.min_angle)
+
+    def _observations_of(self, image: int, track_ids: np.ndarray) -> np.ndarray:
+        """Observation id of each given track in `image` (every track must be seen there)."""
+        in_image = np.flatnonzero(self.tracks.image_index == image)
+        order = np.argsort(self.tracks.track_index[in_image])
+        position = np.searchsorted(self.tracks.track_index[in_image][order], track_ids)
+        return in_image[order][position]
+
+    def next_images(self) -> list[int]:
+        """Unregistered images with enough 2D-3D correspondences, best visibility pyramid score first."""
+        scene, tracks = self.scene, self.tracks
+        waiting = self.available & ~scene.registered & (self.trials < self.mapper.max_registration_trials)
+        has_point = np.zeros(tracks.num_tracks, bool)
+        has_point[scene.point_track[scene.point_alive]] = True
+        visible = has_point[tracks.track_index] & waiting[tracks.image_index]
+        counts = np.bincount(tracks.image_index[visible], minlength=len(waiting))
+        scores = visibility_pyramid_scores(
+            tracks.image_index[visible], tracks.uv[visible], len(waiting), *self.image_size
+        )
+        for image in np.flatnonzero(waiting & (counts < self.mapper.min_pnp_correspondences)):
+            self.failures[int(image)] = (
+                f"only {counts[image]} 2D-3D correspondences with the reconstructed "
+                f"points (need {self.mapper.min_pnp_correspondences})"
+            )
+        ready = np.flatnonzero(waiting & (counts >= self.mapper.min_pnp_correspondences))
+        return [int(m) for m in ready[np.argsort(-scores[ready], kind="stable")]]
+
+    def register(self, image: int) -> str | None:
+        """Absolute pose of `image` from its 2D-3D correspondences; adds its inlier observations to their
+        points. Returns why it failed, or None."""
+        scene = self.scene
+        obs_ids, point_ids = scene.correspondences_2d3d(image)
+        points, uv = scene.point_xyz[point_ids], self.tracks.uv[obs_ids]
+        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.thresholds.pnp_threshold_px})
         try:
-            fundamental = ransac_fundamental(uv_i, uv_j, config.ransac)
-        except DegenerateConfigurationError:
-            continue
-        geometries.append(PairGeometry(i, j, track_ids, uv_i, uv_j, fundamental))
-    return geometries
+            if self.mapper.absolute_pose == "p3p":
+                result = absolute_pose_ransac(scene.K, points, uv, ransac)
+                pose, inliers = result.pose, result.inlier_mask
+            else:
+                linear = pnp_ransac(scene.K, points, uv, ransac)
+                pose = pnp_nonlinear(
+                    scene.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
+                ).pose
+                inliers = reprojection_errors(scene.K, pose.R, pose.t, points, uv) < ransac.pnp_threshold_px
+        except DegenerateConfigurationError as error:
+            return str(error)
+        need = max(self.thresholds.min_inliers, self.thresholds.min_inlier_ratio * len(obs_ids))
+        if inliers.sum() < need:
+            return (
+                f"absolute pose RANSAC found {int(inliers.sum())} inliers among {len(obs_ids)} 2D-3D "
+                f"correspondences (need {int(np.ceil(need))})"
+            )
+        scene.register_image(image, pose)
+        scene.add_observations(obs_ids[inliers], point_ids[inliers])
+        return None
 
-
-def _select_initial_pair(K: np.ndarray, tracks: Tracks, geometries: list[PairGeometry],
-                         config: ReconstructionConfig) -> InitialPairCandidate:
-    """Among the pairs with most F inliers, the one with most well-conditioned points (then the widest
-    median triangulation angle) whose median angle reaches min_initial_pair_median_angle_deg."""
-    ranked = sorted(geometries, key=lambda g: -int(g.fundamental.inlier_mask.sum()))
-    enough = [g for g in ranked if g.fundamental.inlier_mask.sum() >= config.min_initial_pair_inliers]
-    if not enough:
-        best = "no pair shares 8+ tracks, so 0"
-        if ranked:
-            best = (f"the best pair {pair_name(tracks, ranked[0].i, ranked[0].j)} has "
-                    f"{int(ranked[0].fundamental.inlier_mask.sum())}")
-        raise DegenerateConfigurationError(
-            f"too few matches for an initial pair: {best} RANSAC inliers, need "
-            f"{config.min_initial_pair_inliers} (min_initial_pair_inliers)"
+    def triangulate_image(self, image: int) -> None:
+        """New points for the image's tracks without one; continue existing points into it."""
+        tracks = self.tracks
+        image_tracks = tracks.track_index[tracks.image_index == image]
+        self.scene.triangulate_tracks(
+            image_tracks, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
         )
-    candidates = [evaluate_initial_pair(K, g, config) for g in enough[: config.initial_pair_candidates]]
-    with_parallax = [c for c in candidates if c.median_angle_deg >= config.min_initial_pair_median_angle_deg
-                     and c.well_conditioned.sum() >= config.min_initial_pair_inliers]
-    if not with_parallax:
-        best = max(candidates, key=lambda c: c.median_angle_deg)
-        raise DegenerateConfigurationError(
-            "degenerate initial pair (pure rotation or too little parallax): the largest median "
-            f"triangulation angle, {best.median_angle_deg:.2f} deg for "
-            f"{pair_name(tracks, best.geometry.i, best.geometry.j)}, is below "
-            f"{config.min_initial_pair_median_angle_deg} deg, or too few points are well conditioned"
+        self.scene.complete_tracks(self.max_error)
+
+    def local_bundle_adjustment(self, image: int) -> None:
+        """BA of `image` and the local_window - 1 images sharing most points with it; then complete, merge
+        and filter the points they see."""
+        scene = self.scene
+        used = scene.used_observations()
+        images = self.tracks.image_index[used]
+        own_points = np.unique(scene.obs_point[used[images == image]])
+        shared = np.bincount(
+            images[np.isin(scene.obs_point[used], own_points)], minlength=len(scene.registered)
         )
-    return max(with_parallax, key=lambda c: (int(c.well_conditioned.sum()), c.median_angle_deg))
+        shared[image] = 0
+        neighbours = np.argsort(-shared, kind="stable")[: self.config.bundle_adjustment.local_window - 1]
+        window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
+        local_config = self.config.bundle_adjustment.model_copy(
+            update={"max_iterations": self.config.bundle_adjustment.local_max_iterations}
+        )
+        scene.bundle_adjust(local_config, variable_images=window)
+        used = scene.used_observations()
+        touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
+        scene.complete_tracks(self.max_error, touched)
+        scene.merge_tracks(self.max_error)
+        scene.filter_points(self.max_error, self.min_angle, touched)
+
+    def retriangulate(self) -> int:
+        """Triangulate again the untriangulated tracks of registered image pairs whose shared tracks are
+        less than retriangulation_min_ratio triangulated (poses have improved, images were added).
+        Returns the points added."""
+        scene, tracks = self.scene, self.tracks
+        num_images = len(scene.registered)
+        in_registered = scene.registered[tracks.image_index]
+        visibility = sparse.csr_matrix(
+            (
+                np.ones(in_registered.sum()),
+                (tracks.track_index[in_registered], tracks.image_index[in_registered]),
+            ),
+            shape=(tracks.num_tracks, num_images),
+        )
+        used = scene.obs_point >= 0
+        triangulated = sparse.csr_matrix(
+            (np.ones(used.sum()), (tracks.track_index[used], tracks.image_index[used])),
+            shape=(tracks.num_tracks, num_images),
+        )
+        shared = (visibility.T @ visibility).toarray()
+        ratio = (triangulated.T @ triangulated).toarray() / np.maximum(shared, 1)
+        under = (shared > 0) & (ratio < self.mapper.retriangulation_min_ratio)
+        np.fill_diagonal(under, False)
+        if not under.any():
+            return 0
+        # A track qualifies when two of its registered images form an under-reconstructed pair.
+        hits = visibility.multiply(visibility @ sparse.csr_matrix(under.astype(float))).sum(axis=1)
+        candidates = np.flatnonzero(np.asarray(hits).ravel() > 0)
+        return scene.triangulate_tracks(
+            candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
+        )
+
+    def global_refinement(self, ba_config: BundleAdjustmentConfig) -> float:
+        """Rounds of global BA -> complete and merge tracks -> filter -> re-triangulate, until fewer than
+        refinement_min_change of the observations changed. Returns the last BA's relative cost decrease."""
+        scene = self.scene
+        decrease = 0.0
+        for _ in range(self.mapper.refinement_max_rounds):
+            before = len(scene.used_observations())
+            result = scene.bundle_adjust(ba_config)
+            decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
+            changed = scene.complete_tracks(self.max_error) + scene.merge_tracks(self.max_error)
+            changed += scene.filter_points(self.max_error, self.min_angle)
+            changed += self.retriangulate()
+            self.refinement_rounds += 1
+            if changed <= self.mapper.refinement_min_change * max(before, 1):
+                break
+        return decrease
+
+    def final_bundle_adjustment(self) -> tuple[float, int]:
+        """Converged global BA (tight tolerance), filtering and adjusting again while the filter removes
+        observations. Returns (relative cost decrease of the last BA, its iterations)."""
+        ba = self.config.bundle_adjustment
+        final = ba.model_copy(
+            update={"relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol)}
+        )
+        decrease, iterations = 0.0, 0
+        for _ in range(FINAL_BA_ROUNDS):
+            result = self.scene.bundle_adjust(final)
+            decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
+            iterations = result.iterations
+            if self.scene.filter_points(self.max_error, self.min_angle) == 0:
+                break
+        return decrease, iterations
+
+    # -------------------------------------------------------------------------------------- loop
+
+    def grow(self, num_images: int, images_done: int) -> None:
+        """Register images until none more can be: each success triangulates and adjusts; a stall
+        relaxes the thresholds once (after a global refinement that may add 2D-3D correspondences)."""
+        last_global = len(self.scene.order)
+        while True:
+            registered = None
+            for image in self.next_images():
+                if self.progress:
+                    self.progress(
+                        f"register {self.tracks.image_names[image]}",
+                        min(0.9, 0.05 + 0.85 * (images_done + len(self.scene.order)) / num_images),
+                    )
+                with self.timer.stage("registration"):
+                    reason = self.register(image)
+                self.trials[image] += 1
+                if reason is None:
+                    registered = image
+                    self.failures.pop(image, None)
+                    break
+                self.failures[image] = reason
+            if registered is None:
+                if self.thresholds.relaxed or not (self.available & ~self.scene.registered).any():
+                    return
+                with self.timer.stage("global refinement"):
+                    self.global_refinement(self.config.bundle_adjustment)
+                self.thresholds.relax(self.mapper.relaxed_registration_factor)
+                self.trials[:] = 0
+                continue
+            with self.timer.stage("triangulation"):
+                self.triangulate_image(registered)
+            with self.timer.stage("local bundle adjustment"):
+                self.local_bundle_adjustment(registered)
+            if len(self.scene.order) >= self.mapper.global_ba_growth * last_global:
+                with self.timer.stage("global refinement"):
+                    self.global_refinement(self.config.bundle_adjustment)
+                last_global = len(self.scene.order)
 
 
-def _register(model: _Model, image: int, config: ReconstructionConfig) -> str | None:
-    """PnP RANSAC + non-linear PnP for `image`; adds its 2D-3D inliers. Returns a failure reason or None."""
-    tracks = model.tracks
-    obs_ids = np.flatnonzero((tracks.image_index == image) & model.has_point[tracks.track_index])
-    if len(obs_ids) < config.min_pnp_correspondences:
-        return (f"only {len(obs_ids)} 2D-3D correspondences with the reconstructed points "
-                f"(need {config.min_pnp_correspondences})")
-    points, uv = model.point_xyz[tracks.track_index[obs_ids]], tracks.uv[obs_ids]
-    try:
-        ransac = pnp_ransac(model.K, points, uv, config.ransac)
-    except DegenerateConfigurationError as error:
-        return str(error)
-    if ransac.inlier_mask.sum() < config.min_pnp_inliers:
-        return (f"PnP RANSAC found only {int(ransac.inlier_mask.sum())} inliers among {len(obs_ids)} "
-                f"2D-3D correspondences (need {config.min_pnp_inliers})")
-    pose = pnp_nonlinear(model.K, points[ransac.inlier_mask], uv[ransac.inlier_mask], ransac.pose).pose
-    errors = reprojection_errors(model.K, pose.R, pose.t, points, uv)
-    model.poses[image] = pose
-    model.order.append(image)
-    model.obs_used[obs_ids[errors < config.ransac.pnp_threshold_px]] = True
-    return None
+# ----------------------------------------------------------------------------------------------------
 
 
-def _triangulate_new_tracks(model: _Model, image: int, config: ReconstructionConfig) -> None:
-    """Tracks seen by `image` and another registered image that have no point yet."""
-    tracks = model.tracks
-    registered = np.isin(tracks.image_index, model.order)
-    in_image = np.zeros(tracks.num_tracks, bool)
-    in_image[tracks.track_index[tracks.image_index == image]] = True
-    registered_counts = np.bincount(tracks.track_index[registered], minlength=tracks.num_tracks)
-    new = in_image & ~model.has_point & (registered_counts >= 2)
-    obs_ids = np.flatnonzero(registered & new[tracks.track_index])
-    if len(obs_ids) == 0:
-        return
-    track_ids, point_index = np.unique(tracks.track_index[obs_ids], return_inverse=True)
-    obs = observations_of(tracks, model.poses, obs_ids, point_index, len(track_ids))
-    points, kept = triangulate_robust(model.K, obs, config.filter.max_reprojection_px)
-    good = np.bincount(point_index[kept], minlength=len(track_ids)) >= 2
-    model.point_xyz[track_ids[good]] = points[good]
-    model.has_point[track_ids[good]] = True
-    model.obs_used[obs_ids[kept & good[point_index]]] = True
-
-
-def _initialize(model: _Model, candidate: InitialPairCandidate) -> None:
+def _sparse_model(
+    builder: _ModelBuilder, candidate: InitialPairCandidate, stats: ReconstructionStats
+) -> SparseModel:
+    scene, tracks = builder.scene, builder.tracks
+    used = scene.used_observations()
+    point_ids, obs_point = np.unique(scene.obs_point[used], return_inverse=True)
+    errors = scene.errors(used)
+    point_errors = np.bincount(obs_point, weights=errors, minlength=len(point_ids)) / np.maximum(
+        np.bincount(obs_point, minlength=len(point_ids)), 1
+    )
     g = candidate.geometry
-    model.poses[g.i] = CameraPose(R=np.eye(3), t=np.zeros(3))
-    model.poses[g.j] = candidate.pose_j
-    model.order.extend([g.i, g.j])
-    keep = candidate.well_conditioned
-    model.point_xyz[candidate.track_ids[keep]] = candidate.points[keep]
-    model.has_point[candidate.track_ids[keep]] = True
-    tracks = model.tracks
-    model.obs_used[np.isin(tracks.image_index, [g.i, g.j]) & model.has_point[tracks.track_index]] = True
-
-
-def _to_sparse_model(model: _Model, unregistered: dict[int, str], stats: ReconstructionStats,
-                     diagnostics: InitialPairDiagnostics) -> SparseModel:
-    tracks = model.tracks
-    used = model.used_observations()
-    track_ids, obs_point = np.unique(tracks.track_index[used], return_inverse=True)
-    errors = model.errors_of(used)
-    point_errors = np.bincount(obs_point, weights=errors, minlength=len(track_ids)) / np.maximum(
-        np.bincount(obs_point, minlength=len(track_ids)), 1)
+    diagnostics = InitialPairDiagnostics(
+        i=g.i,
+        j=g.j,
+        uv_i=g.uv_i,
+        uv_j=g.uv_j,
+        inlier_mask=g.fundamental.inlier_mask,
+        points_linear=candidate.points_linear,
+        points_nonlinear=candidate.points,
+        pose_i=CameraPose(R=np.eye(3), t=np.zeros(3)),
+        pose_j=candidate.pose_j,
+    )
+    track_ids = scene.point_track[point_ids]
     return SparseModel(
-        image_names=list(tracks.image_names), poses={m: model.poses[m] for m in model.order},
-        unregistered=unregistered, points=model.point_xyz[track_ids].copy(),
-        point_colors=tracks.colors[track_ids], point_track_ids=track_ids,
-        obs_camera=tracks.image_index[used].copy(), obs_point=obs_point, obs_uv=tracks.uv[used].copy(),
-        point_errors=point_errors, stats=stats, initial_pair_diagnostics=diagnostics,
-        registration_order=list(model.order),
+        image_names=list(tracks.image_names),
+        poses=scene.poses,
+        unregistered={},
+        points=scene.point_xyz[point_ids].copy(),
+        point_colors=tracks.colors[track_ids],
+        point_track_ids=track_ids,
+        obs_camera=tracks.image_index[used].copy(),
+        obs_point=obs_point,
+        obs_uv=tracks.uv[used].copy(),
+        point_errors=point_errors,
+        stats=stats,
+        initial_pair_diagnostics=diagnostics,
+        registration_order=list(scene.order),
     )
 
 
-def run_incremental(tracks: Tracks, K: np.ndarray, config: ReconstructionConfig,
-                    progress: ProgressCallback | None = None) -> SparseModel:
-    """Incremental SfM: initial pair by inliers and parallax, then PnP registration by most 2D-3D matches.
+def _why_no_model(
+    tracks: Tracks,
+    pairs: list[tuple[int, int, int]],
+    failures: dict[tuple[int, int], str],
+    small_models: dict[tuple[int, int], str],
+) -> str:
+    """One line per image: why no model could start from (or hold) it."""
+    lines = []
+    for m, name in enumerate(tracks.image_names):
+        own = [(i, j, n) for i, j, n in pairs if m in (i, j)]
+        if not own:
+            lines.append(f"{name}: shares no track with any other image")
+            continue
+        i, j, n = max(own, key=lambda pair: pair[2])
+        reason = small_models.get((i, j)) or failures.get((i, j)) or "not tried"
+        lines.append(f"{name}: best pair {pair_name(tracks, i, j)} ({n} shared tracks): {reason}")
+    return "no model could be started:\n" + "\n".join(lines)
 
-    The geometry works in the pixel coordinates of `tracks` and `K` as given.
-    Raises DegenerateConfigurationError if no pair can start.
+
+def reconstruct_models(
+    tracks: Tracks,
+    K: np.ndarray,
+    config: ReconstructionConfig,
+    progress: ProgressCallback | None = None,
+    pair_types: dict[tuple[int, int], str] | None = None,
+) -> list[SparseModel]:
+    """Every model incremental SfM can build from the tracks, largest first.
+
+    A model starts from the best initial pair among images no earlier model holds and grows until no
+    image registers; models under min_model_images are discarded (their pair is not tried again).
+    `pair_types` maps (i, j), i < j, to geometric verification's label; planar/panoramic pairs never start
+    a model. The geometry works in the pixel coordinates of `tracks` and `K` as given.
+    Raises DegenerateConfigurationError naming, per image, why no model could start.
     """
     num_images = len(tracks.image_names)
     if num_images < 2:
         raise InputError(f"Structure from Motion needs at least 2 images, got {num_images}")
+    K = np.asarray(K, float)
+    mapper = config.mapper
     timer = _Timer()
-    model = _Model(tracks, np.asarray(K, float))
-    filter_limits = (config.filter.max_reprojection_px, config.filter.min_triangulation_angle_deg)
-
-    with timer.stage("pair geometry"):
-        geometries = _pair_geometries(tracks, config, progress, (0.0, 0.2))
-    pair_inliers = {pair_name(tracks, g.i, g.j): int(g.fundamental.inlier_mask.sum()) for g in geometries}
-
-    if progress:
-        progress("initial pair", 0.2)
-    with timer.stage("initial pair"):
-        initial = _select_initial_pair(model.K, tracks, geometries, config)
-        _initialize(model, initial)
-        model.filter(*filter_limits)
-    g = initial.geometry
-    diagnostics = InitialPairDiagnostics(
-        i=g.i, j=g.j, uv_i=g.uv_i, uv_j=g.uv_j, inlier_mask=g.fundamental.inlier_mask,
-        points_linear=initial.points_linear, points_nonlinear=initial.points,
-        pose_i=CameraPose(R=np.eye(3), t=np.zeros(3)), pose_j=initial.pose_j,
-    )
-
-    failures: dict[int, str] = {}
-    while True:
-        waiting = [m for m in range(num_images) if m not in model.poses and m not in failures]
-        if not waiting:
-            break
-        obs_with_point = model.has_point[tracks.track_index]
-        counts = np.bincount(tracks.image_index[obs_with_point], minlength=num_images)
-        image = max(waiting, key=lambda m: counts[m])
+    pairs = co_visible_pairs(tracks)
+    pair_shared = {pair_name(tracks, i, j): n for i, j, n in pairs}
+    available = np.ones(num_images, bool)
+    failures: dict[tuple[int, int], str] = {}
+    small_models: dict[tuple[int, int], str] = {}
+    min_images = min(mapper.min_model_images, num_images)
+    built: list[tuple[_ModelBuilder, SparseModel]] = []
+    while len(built) < mapper.max_models and available.sum() >= 2:
         if progress:
-            progress(f"register {tracks.image_names[image]}", 0.25 + 0.65 * len(model.order) / num_images)
-        with timer.stage("registration"):
-            reason = _register(model, image, config)
-        if reason is not None:
-            failures[image] = reason
+            progress("initial pair", 0.02 + 0.85 * (num_images - available.sum()) / num_images)
+        untried = [
+            (i, j, n)
+            for i, j, n in pairs
+            if available[i] and available[j] and (i, j) not in failures and (i, j) not in small_models
+        ]
+        with timer.stage("initial pair"):
+            choice = choose_initial_pair(K, tracks, untried, config, pair_types)
+        new_failures = {pair_name(tracks, *pair): reason for pair, reason in choice.failures.items()}
+        failures.update(choice.failures)
+        if choice.candidate is None:
+            break
+        candidate = choice.candidate
+        builder = _ModelBuilder(tracks, K, config, available.copy(), timer, progress)
+        with timer.stage("initial pair"):
+            builder.initialize(candidate)
+        builder.grow(num_images, num_images - int(available.sum()))
+        pair = (candidate.geometry.i, candidate.geometry.j)
+        if len(builder.scene.order) < min_images:
+            small_models[pair] = (
+                f"the model it started could register only {len(builder.scene.order)} "
+                f"images (need {min_images}, min_model_images)"
+            )
             continue
-        failures.clear()  # new points may let earlier failures register now
-        with timer.stage("triangulation"):
-            _triangulate_new_tracks(model, image, config)
-            model.filter(*filter_limits)
-        with timer.stage("local bundle adjustment"):
-            model.bundle_adjust(config, window=model.order[-config.bundle_adjustment.local_window:])
-            model.filter(*filter_limits)
-
-    if progress:
-        progress("bundle adjustment", 0.9)
-    before = summarize(model.errors_of(model.used_observations()))
-    iterations = 0
-    with timer.stage("bundle adjustment"):
-        for _ in range(FINAL_BA_ROUNDS):
-            iterations += model.bundle_adjust(config, window=None)[2]
-            num_used = model.obs_used.sum()
-            model.filter(*filter_limits)
-            if model.obs_used.sum() == num_used:
-                break
-    after = summarize(model.errors_of(model.used_observations()))
+        if progress:
+            progress(
+                "bundle adjustment",
+                min(
+                    0.9, 0.05 + 0.85 * (num_images - available.sum() + len(builder.scene.order)) / num_images
+                ),
+            )
+        before = summarize(builder.scene.errors(builder.scene.used_observations()))
+        with timer.stage("bundle adjustment"):
+            builder.global_refinement(config.bundle_adjustment)
+            decrease, iterations = builder.final_bundle_adjustment()
+        after = summarize(builder.scene.errors(builder.scene.used_observations()))
+        available[builder.scene.order] = False
+        stats = ReconstructionStats(
+            reprojection_before_ba=before,
+            reprojection_after_ba=after,
+            pair_shared_tracks=pair_shared,
+            initial_pair=(tracks.image_names[pair[0]], tracks.image_names[pair[1]]),
+            stage_seconds=timer.seconds,
+            initial_pair_median_angle_deg=candidate.median_angle_deg,
+            bundle_adjustment_iterations=iterations,
+            initial_pair_failures=new_failures,
+            refinement_rounds=builder.refinement_rounds,
+            relaxed_thresholds=builder.thresholds.relaxed,
+            final_cost_decrease=decrease,
+        )
+        built.append((builder, _sparse_model(builder, candidate, stats)))
+    if not built:
+        raise DegenerateConfigurationError(_why_no_model(tracks, pairs, failures, small_models))
     if progress:
         progress("done", 1.0)
+    built.sort(key=lambda item: -len(item[1].poses))
+    models = [model for _, model in built]
+    for builder, model in built:
+        for m in range(num_images):
+            if m in model.poses:
+                continue
+            holder = next((n for n, other in enumerate(models) if m in other.poses), None)
+            if holder is not None:
+                model.unregistered[m] = (
+                    f"registered in model {holder + 1} ({len(models[holder].poses)} images)"
+                )
+            else:
+                model.unregistered[m] = builder.failures.get(m) or next(
+                    (b.failures[m] for b, _ in built if m in b.failures), "shares no registered point"
+                )
+    return models
 
-    stats = ReconstructionStats(
-        reprojection_before_ba=before, reprojection_after_ba=after, pair_inliers=pair_inliers,
-        initial_pair=(tracks.image_names[g.i], tracks.image_names[g.j]), stage_seconds=timer.seconds,
-        initial_pair_median_angle_deg=initial.median_angle_deg, bundle_adjustment_iterations=iterations,
-    )
-    return _to_sparse_model(model, failures, stats, diagnostics)
+
+def run_incremental(
+    tracks: Tracks, K: np.ndarray, config: ReconstructionConfig, progress: ProgressCallback | None = None
+) -> SparseModel:
+    """The largest model of `reconstruct_models` (the others are named in its `unregistered` reasons)."""
+    return reconstruct_models(tracks, K, config, progress)[0]

@@ -84,11 +84,11 @@ def test_ply_transforms_report_and_figures_are_written_and_loadable(unity):
     report = json.loads((out / "report.json").read_text())
     assert report == json.loads(json.dumps(result.report))
     for key in ["images_total", "images_registered", "unregistered", "points", "mean_track_length",
-                "reprojection_error_px", "ransac_inliers_per_pair", "seconds_per_stage", "intrinsics",
+                "reprojection_error_px", "shared_tracks_per_pair", "seconds_per_stage", "intrinsics",
                 "cameras"]:
         assert key in report
     assert report["mean_track_length"] >= 2.0
-    assert all(n > 0 for n in report["ransac_inliers_per_pair"].values())
+    assert all(n > 0 for n in report["shared_tracks_per_pair"].values())
     assert report["intrinsics"]["K"] == result.K.tolist()
     for camera in report["cameras"]:
         R, t, C = (np.array(camera[key]) for key in ("R", "t", "C"))

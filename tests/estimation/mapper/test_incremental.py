@@ -78,7 +78,7 @@ def test_reprojection_statistics_are_recorded_before_and_after_bundle_adjustment
     assert set(stats.pair_inliers) == {f"{a}.png|{b}.png" for a in range(1, 6) for b in range(a + 1, 6)}
     assert all(100 < n < 300 for n in stats.pair_inliers.values())   # ~49 % of 500 tracks are clean pairs
     assert {"pair geometry", "initial pair", "registration", "bundle adjustment"} <= set(stats.stage_seconds)
-    assert stats.initial_pair_median_angle_deg >= CONFIG.min_initial_pair_median_angle_deg
+    assert stats.initial_pair_median_angle_deg >= CONFIG.mapper.min_initial_pair_median_angle_deg
 
 
 def test_model_arrays_are_consistent(noisy_model, noisy_scene):
@@ -158,7 +158,7 @@ def test_too_few_matches_for_an_initial_pair_is_a_degenerate_configuration():
         reconstruct(scene.tracks, scene)
     scene = make_scene(num_points=100, seed=6)
     with pytest.raises(DegenerateConfigurationError, match="has 100 RANSAC inliers, need 200"):
-        reconstruct(scene.tracks, scene, ReconstructionConfig(min_initial_pair_inliers=200))
+        reconstruct(scene.tracks, scene, ReconstructionConfig(mapper={"min_initial_pair_inliers": 200}))
 
 
 def test_an_image_that_cannot_be_registered_is_reported_and_the_rest_succeeds():
