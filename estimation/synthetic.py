@@ -167,3 +167,83 @@ def make_scene(
                                   (width, height), rng)
     return SyntheticScene(K=K, width=width, height=height, poses=poses, points=points, colors=colors,
                           tracks=tracks, inlier_mask=inlier_mask)
+
+
+OBJECT_RADIUS = 1.5
+"""Object scenes: points lie on a sphere of this radius around the origin."""
+MAX_VIEWING_ANGLE_DEG = 70.0
+"""A surface point is seen by a camera when its normal is within this angle of the direction to the camera
+(the far side of the object is hidden), as in a capture around an object."""
+
+
+def _object_camera_poses(num_cameras: int, layout: str, rng: np.random.Generator) -> list[CameraPose]:
+    """Cameras looking at the origin: a ring (elevation about 15 deg) or a hemisphere (rings at 10..70 deg)."""
+    if layout == "ring":
+        elevations = np.full(num_cameras, 15.0)
+        azimuths = np.linspace(0.0, 360.0, num_cameras, endpoint=False)
+    elif layout == "hemisphere":
+        rings = max(2, round(np.sqrt(num_cameras / 3)))
+        per_ring = np.array_split(np.arange(num_cameras), rings)
+        elevations = np.concatenate([np.full(len(r), e) for r, e in zip(per_ring, np.linspace(10, 70, rings),
+                                                                        strict=True)])
+        azimuths = np.concatenate([np.linspace(0.0, 360.0, len(r), endpoint=False) + 17.0 * k
+                                   for k, r in enumerate(per_ring)])
+    else:
+        raise ValueError(f"layout must be 'ring' or 'hemisphere', got {layout!r}")
+    world_up = np.array([0.0, -1.0, 0.0])
+    poses = []
+    for azimuth, elevation in zip(np.radians(azimuths), np.radians(elevations + rng.uniform(-3, 3, num_cameras)),
+                                  strict=True):
+        distance = CAMERA_DISTANCE * rng.uniform(0.9, 1.1)
+        center = distance * np.array([np.sin(azimuth) * np.cos(elevation), -np.sin(elevation),
+                                      -np.cos(azimuth) * np.cos(elevation)])
+        R = look_at(center, rng.normal(0, 0.1, 3), world_up)
+        R = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.deg2rad(rng.uniform(-5, 5))) @ R
+        poses.append(CameraPose.from_center(R, center))
+    return poses
+
+
+def make_object_scene(
+    num_cameras: int = 24,
+    layout: str = "ring",
+    num_points: int = 2000,
+    noise_px: float = 0.0,
+    outlier_fraction: float = 0.0,
+    seed: int = 0,
+    width: int = 640,
+    height: int = 480,
+    shuffle: bool = False,
+) -> SyntheticScene:
+    """Photos around an object: points on a sphere, each seen only by the cameras facing its side.
+
+    `layout` "ring" or "hemisphere"; `shuffle` puts the images in random file order (image m is no longer
+    next to images m - 1 and m + 1), as unordered captures are. Noise and outliers as in `make_scene`.
+    """
+    rng = np.random.default_rng(seed)
+    focal = 0.9 * width
+    K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    poses = _object_camera_poses(num_cameras, layout, rng)
+    if shuffle:
+        poses = [poses[m] for m in rng.permutation(num_cameras)]
+    # Upper part of the sphere only for a hemisphere capture (the object stands on the ground).
+    normals = rng.normal(size=(4 * num_points, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    if layout == "hemisphere":
+        normals = normals[normals[:, 1] < 0.2]
+    normals = normals[:num_points]
+    points = OBJECT_RADIUS * normals
+    centers = np.array([pose.center for pose in poses])
+    to_camera = centers[None, :, :] - points[:, None, :]
+    cosine = np.einsum("nmk,nk->nm", to_camera, normals) / np.linalg.norm(to_camera, axis=2)
+    visible = cosine > np.cos(np.radians(MAX_VIEWING_ANGLE_DEG))
+    for m, pose in enumerate(poses):
+        uv = project(K, pose, points)
+        visible[:, m] &= (uv >= IMAGE_MARGIN_PX).all(axis=1) & (uv[:, 0] < width - IMAGE_MARGIN_PX) & (
+            uv[:, 1] < height - IMAGE_MARGIN_PX)
+    keep = visible.sum(axis=1) >= 2
+    points, visible = points[keep], visible[keep]
+    colors = rng.integers(0, 256, (len(points), 3), dtype=np.uint8)
+    tracks, inlier_mask = observe(K, poses, points, colors, visible, noise_px, outlier_fraction, (width, height),
+                                  rng)
+    return SyntheticScene(K=K, width=width, height=height, poses=poses, points=points, colors=colors,
+                          tracks=tracks, inlier_mask=inlier_mask)

@@ -55,7 +55,9 @@ class InitialPairCandidate(NamedTuple):
     points_linear: np.ndarray  # (L, 3)
     points: np.ndarray  # (L, 3) non-linear
     well_conditioned: np.ndarray  # (L,) bool: error and angle within the filter limits
-    median_angle_deg: float
+    median_angle_deg: float  # of the well-conditioned points
+    narrow: int  # points seen at less than the filter's minimum triangulation angle
+    far_off: int  # points reprojecting beyond the filter's maximum error
 
 
 class InitialPairChoice(NamedTuple):
@@ -93,9 +95,9 @@ def evaluate_initial_pair(
     errors = observation_errors(K, obs, points).reshape(2, -1).max(axis=0)
     centers = np.concatenate([np.zeros((front.sum(), 3)), np.broadcast_to(pose_j.center, (front.sum(), 3))])
     angles = triangulation_angle_deg(centers, obs.point_index, points)
-    well_conditioned = (errors <= config.filter.max_reprojection_px) & (
-        angles >= config.filter.min_triangulation_angle_deg
-    )
+    accurate = errors <= config.filter.max_reprojection_px
+    wide = angles >= config.filter.min_triangulation_angle_deg
+    well_conditioned = accurate & wide
     return InitialPairCandidate(
         geometry=geometry,
         pose_j=pose_j,
@@ -104,6 +106,8 @@ def evaluate_initial_pair(
         points=points,
         well_conditioned=well_conditioned,
         median_angle_deg=float(np.median(angles[well_conditioned])) if well_conditioned.any() else 0.0,
+        narrow=int((~wide).sum()),
+        far_off=int((~accurate).sum()),
     )
 
 
@@ -123,17 +127,14 @@ def _try_pair(
     candidate = evaluate_initial_pair(K, PairGeometry(i, j, track_ids, uv_i, uv_j, fundamental), config)
     well = int(candidate.well_conditioned.sum())
     if well < mapper.min_initial_pair_inliers:
-        return (
-            f"{well} of {int(fundamental.inlier_mask.sum())} RANSAC inliers triangulate well conditioned "
-            f"(reprojection <= {config.filter.max_reprojection_px} px, angle >= "
-            f"{config.filter.min_triangulation_angle_deg} deg), need {mapper.min_initial_pair_inliers} "
-            "(min_initial_pair_inliers)"
-        )
+        return (f"{well} of {int(fundamental.inlier_mask.sum())} RANSAC inliers triangulate well conditioned "
+                f"({candidate.narrow} seen at under {config.filter.min_triangulation_angle_deg} deg: "
+                f"{'too little parallax, ' if candidate.narrow > well else ''}{candidate.far_off} reproject "
+                f"beyond {config.filter.max_reprojection_px} px), need {mapper.min_initial_pair_inliers} "
+                "(min_initial_pair_inliers)")
     if candidate.median_angle_deg < mapper.min_initial_pair_median_angle_deg:
-        return (
-            f"median triangulation angle {candidate.median_angle_deg:.2f} deg is below "
-            f"{mapper.min_initial_pair_median_angle_deg} deg (pure rotation or too little parallax)"
-        )
+        return (f"median triangulation angle {candidate.median_angle_deg:.2f} deg is below "
+                f"{mapper.min_initial_pair_median_angle_deg} deg (pure rotation or too little parallax)")
     return candidate
 
 
