@@ -9,12 +9,16 @@ from pydantic import BaseModel, Field
 
 
 class RansacConfig(BaseModel):
-    """Robust estimation settings (fundamental matrix and PnP)."""
+    """Robust estimation settings of the RANSAC driver (estimation.geometry.ransac), for every estimator."""
 
     threshold_px: float = Field(1.0, gt=0, description="Inlier threshold in pixels (Sampson / reprojection).")
     pnp_threshold_px: float = Field(4.0, gt=0, description="PnP RANSAC inlier threshold in pixels.")
     confidence: float = Field(0.999, gt=0, lt=1, description="Chance of one outlier-free sample.")
+    min_iterations: int = Field(0, ge=0, description="Lower bound on the adaptive iteration count.")
     max_iterations: int = Field(5000, ge=1, description="Upper bound on the adaptive iteration count.")
+    local_refits: int = Field(
+        5, ge=0, description="LO-RANSAC: re-fits on the inliers of each new best model (0: none)."
+    )
     seed: int = Field(0, description="Seed of the random sampler, for repeatable runs.")
 
 
