@@ -74,10 +74,46 @@ class FilterConfig(BaseModel):
 class SiftConfig(BaseModel):
     """SIFT features and matching (used when no match files are given)."""
 
-    max_features: int = Field(8000, ge=100, description="Keypoints per image.")
+    max_features: int = Field(8192, ge=100, description="Feature budget: most keypoints kept per image.")
+    max_image_side: int = Field(
+        3200, ge=64, description="Detect on the image downscaled to this longest side; keypoints mapped back."
+    )
+    contrast_threshold: float = Field(0.04, gt=0, description="OpenCV SIFT contrastThreshold.")
     ratio: float = Field(0.8, gt=0, lt=1, description="Lowe's ratio test threshold.")
-    exhaustive_up_to: int = Field(30, ge=2, description="Match all pairs up to this many images.")
-    window: int = Field(10, ge=1, description="Otherwise match each image with its next `window` images.")
+    exhaustive_up_to: int = Field(
+        250, ge=2, description="Match all pairs up to this many images; beyond, retrieval + sequence pairs."
+    )
+    retrieval_neighbours: int = Field(30, ge=1, description="Most similar images (VLAD) matched per image.")
+    sequential_neighbours: int = Field(
+        10, ge=0, description="When the names are numbered, each image is also matched with its next ones."
+    )
+    vocabulary_size: int = Field(64, ge=2, description="k-means words of the VLAD vocabulary.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="Torch device of the descriptor matching (auto: CUDA when available)."
+    )
+
+
+class TwoViewConfig(BaseModel):
+    """Geometric verification of an image pair and its two-view geometry type (COLMAP's)."""
+
+    relative_pose: Literal["five-point", "eight-point"] = Field(
+        "five-point",
+        description="five-point: E by the minimal 5-point solver in RANSAC (needs K); eight-point: the "
+        "seed's normalized 8-point F in RANSAC, then E = K^T F K.",
+    )
+    max_error_px: float = Field(4.0, gt=0, description="Inlier threshold (Sampson / transfer error), pixels.")
+    min_inliers: int = Field(15, ge=8, description="Fewest inliers of a verified pair.")
+    min_e_f_inlier_ratio: float = Field(
+        0.95, gt=0, le=1, description="E is trusted (calibrated) when its inliers reach this share of F's."
+    )
+    max_h_inlier_ratio: float = Field(
+        0.8, gt=0, le=1, description="Planar or pure rotation when H explains over this share of E's inliers."
+    )
+    max_rotation_translation: float = Field(
+        0.02, gt=0,
+        description="A planar-or-panoramic pair is a pure rotation (panoramic) when the baseline over the "
+        "scene plane's distance, from H's singular values, is below this.",
+    )
 
 
 class ReconstructionConfig(BaseModel):
@@ -91,6 +127,7 @@ class ReconstructionConfig(BaseModel):
     bundle_adjustment: BundleAdjustmentConfig = BundleAdjustmentConfig()
     filter: FilterConfig = FilterConfig()
     sift: SiftConfig = SiftConfig()
+    two_view: TwoViewConfig = TwoViewConfig()
     min_initial_pair_inliers: int = Field(30, ge=8, description="Fewest inliers for an initial pair.")
     min_pnp_correspondences: int = Field(6, ge=6, description="Fewest 2D-3D matches to register an image.")
     min_pnp_inliers: int = Field(12, ge=6, description="Fewest PnP RANSAC inliers to accept a registration.")

@@ -39,7 +39,7 @@ def hartley_normalization(uv: np.ndarray) -> Normalization:
     return Normalization(points=(uv - mean) * s, T=T)
 
 
-def _epipolar_rows(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def epipolar_rows(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Rows of A f = 0 from x2^T F x1 = 0, for points (..., 2): (..., 9)."""
     u1, v1, u2, v2 = x1[..., 0], x1[..., 1], x2[..., 0], x2[..., 1]
     one = np.ones_like(u1)
@@ -55,13 +55,13 @@ def _enforce_rank_two(F: np.ndarray) -> np.ndarray:
 
 def _eight_point_normalized(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """min ||A f|| s.t. ||f|| = 1 on (N, 2) normalized points (last right singular vector), then rank 2."""
-    F = null_vector(_epipolar_rows(x1, x2)).reshape(3, 3)
+    F = null_vector(epipolar_rows(x1, x2)).reshape(3, 3)
     return _enforce_rank_two(F)
 
 
 def _eight_point_minimal(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Batched minimal samples (B, 8, 2): f = null vector of A via eigh(A^T A) (faster than SVD), rank 2."""
-    A = _epipolar_rows(x1, x2)
+    A = epipolar_rows(x1, x2)
     f = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)[1][..., :, 0]
     return _enforce_rank_two(f.reshape(-1, 3, 3))
 
@@ -82,8 +82,8 @@ def eight_point(uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
     return _denormalize(_eight_point_normalized(n1.points, n2.points), n1.T, n2.T)
 
 
-def sampson_distance(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
-    """d = |x2^T F x1| / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2), in pixels.
+def sampson_residual(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """r = x2^T F x1 / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2): signed, in pixels.
 
     F may be batched (B, 3, 3); the result is then (B, N).
     """
@@ -93,7 +93,12 @@ def sampson_distance(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndar
     Ftx2 = x2 @ F
     algebraic = (Fx1 * x2).sum(axis=-1)
     gradient_sq = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
-    return np.abs(algebraic) / np.sqrt(np.maximum(gradient_sq, 1e-300))
+    return algebraic / np.sqrt(np.maximum(gradient_sq, 1e-300))
+
+
+def sampson_distance(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """d = |sampson_residual|: first-order distance of (x1, x2) to the epipolar variety, in pixels."""
+    return np.abs(sampson_residual(F, uv1, uv2))
 
 
 def ransac_fundamental(uv1: np.ndarray, uv2: np.ndarray, config: RansacConfig) -> FundamentalResult:
