@@ -9,12 +9,16 @@ from pydantic import BaseModel, Field
 
 
 class RansacConfig(BaseModel):
-    """Robust estimation settings (fundamental matrix and PnP)."""
+    """Robust estimation settings of the RANSAC driver (estimation.geometry.ransac), for every estimator."""
 
     threshold_px: float = Field(1.0, gt=0, description="Inlier threshold in pixels (Sampson / reprojection).")
     pnp_threshold_px: float = Field(4.0, gt=0, description="PnP RANSAC inlier threshold in pixels.")
     confidence: float = Field(0.999, gt=0, lt=1, description="Chance of one outlier-free sample.")
+    min_iterations: int = Field(0, ge=0, description="Lower bound on the adaptive iteration count.")
     max_iterations: int = Field(5000, ge=1, description="Upper bound on the adaptive iteration count.")
+    local_refits: int = Field(
+        5, ge=0, description="LO-RANSAC: re-fits on the inliers of each new best model (0: none)."
+    )
     seed: int = Field(0, description="Seed of the random sampler, for repeatable runs.")
 
 
@@ -70,10 +74,46 @@ class FilterConfig(BaseModel):
 class SiftConfig(BaseModel):
     """SIFT features and matching (used when no match files are given)."""
 
-    max_features: int = Field(8000, ge=100, description="Keypoints per image.")
+    max_features: int = Field(8192, ge=100, description="Feature budget: most keypoints kept per image.")
+    max_image_side: int = Field(
+        3200, ge=64, description="Detect on the image downscaled to this longest side; keypoints mapped back."
+    )
+    contrast_threshold: float = Field(0.04, gt=0, description="OpenCV SIFT contrastThreshold.")
     ratio: float = Field(0.8, gt=0, lt=1, description="Lowe's ratio test threshold.")
-    exhaustive_up_to: int = Field(30, ge=2, description="Match all pairs up to this many images.")
-    window: int = Field(10, ge=1, description="Otherwise match each image with its next `window` images.")
+    exhaustive_up_to: int = Field(
+        250, ge=2, description="Match all pairs up to this many images; beyond, retrieval + sequence pairs."
+    )
+    retrieval_neighbours: int = Field(30, ge=1, description="Most similar images (VLAD) matched per image.")
+    sequential_neighbours: int = Field(
+        10, ge=0, description="When the names are numbered, each image is also matched with its next ones."
+    )
+    vocabulary_size: int = Field(64, ge=2, description="k-means words of the VLAD vocabulary.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="Torch device of the descriptor matching (auto: CUDA when available)."
+    )
+
+
+class TwoViewConfig(BaseModel):
+    """Geometric verification of an image pair and its two-view geometry type (COLMAP's)."""
+
+    relative_pose: Literal["five-point", "eight-point"] = Field(
+        "five-point",
+        description="five-point: E by the minimal 5-point solver in RANSAC (needs K); eight-point: the "
+        "seed's normalized 8-point F in RANSAC, then E = K^T F K.",
+    )
+    max_error_px: float = Field(4.0, gt=0, description="Inlier threshold (Sampson / transfer error), pixels.")
+    min_inliers: int = Field(15, ge=8, description="Fewest inliers of a verified pair.")
+    min_e_f_inlier_ratio: float = Field(
+        0.95, gt=0, le=1, description="E is trusted (calibrated) when its inliers reach this share of F's."
+    )
+    max_h_inlier_ratio: float = Field(
+        0.8, gt=0, le=1, description="Planar or pure rotation when H explains over this share of E's inliers."
+    )
+    max_rotation_translation: float = Field(
+        0.02, gt=0,
+        description="A planar-or-panoramic pair is a pure rotation (panoramic) when the baseline over the "
+        "scene plane's distance, from H's singular values, is below this.",
+    )
 
 
 class MapperConfig(BaseModel):
@@ -148,5 +188,6 @@ class ReconstructionConfig(BaseModel):
     bundle_adjustment: BundleAdjustmentConfig = BundleAdjustmentConfig()
     filter: FilterConfig = FilterConfig()
     sift: SiftConfig = SiftConfig()
+    two_view: TwoViewConfig = TwoViewConfig()
     mapper: MapperConfig = MapperConfig()
     write_figures: bool = Field(True, description="Write the PNG figures into OUT/figures.")

@@ -1,4 +1,4 @@
-"""Fundamental matrix: Hartley-normalized 8-point algorithm inside adaptive RANSAC (Sampson distance)."""
+"""Fundamental matrix: Hartley-normalized 8-point algorithm inside the RANSAC driver (Sampson distance)."""
 
 from __future__ import annotations
 
@@ -9,16 +9,9 @@ import numpy as np
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.linalg import null_vector
-from estimation.geometry.ransac import random_samples, required_iterations
+from estimation.geometry.ransac import ransac
 
 MIN_CORRESPONDENCES = 8
-HYPOTHESES_PER_BATCH = 64
-"""Minimal-sample hypotheses solved together by one batched SVD."""
-MAX_REFITS = 5
-PREVERIFICATION_POINTS = 50
-PREVERIFICATION_FRACTION = 0.5
-"""A hypothesis is scored on all points only if its inlier ratio on PREVERIFICATION_POINTS random ones
-reaches this fraction of the best full inlier ratio so far (a cheap T(d,d)-style test)."""
 
 
 class Normalization(NamedTuple):
@@ -46,7 +39,7 @@ def hartley_normalization(uv: np.ndarray) -> Normalization:
     return Normalization(points=(uv - mean) * s, T=T)
 
 
-def _epipolar_rows(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def epipolar_rows(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Rows of A f = 0 from x2^T F x1 = 0, for points (..., 2): (..., 9)."""
     u1, v1, u2, v2 = x1[..., 0], x1[..., 1], x2[..., 0], x2[..., 1]
     one = np.ones_like(u1)
@@ -62,13 +55,13 @@ def _enforce_rank_two(F: np.ndarray) -> np.ndarray:
 
 def _eight_point_normalized(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """min ||A f|| s.t. ||f|| = 1 on (N, 2) normalized points (last right singular vector), then rank 2."""
-    F = null_vector(_epipolar_rows(x1, x2)).reshape(3, 3)
+    F = null_vector(epipolar_rows(x1, x2)).reshape(3, 3)
     return _enforce_rank_two(F)
 
 
 def _eight_point_minimal(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Batched minimal samples (B, 8, 2): f = null vector of A via eigh(A^T A) (faster than SVD), rank 2."""
-    A = _epipolar_rows(x1, x2)
+    A = epipolar_rows(x1, x2)
     f = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)[1][..., :, 0]
     return _enforce_rank_two(f.reshape(-1, 3, 3))
 
@@ -89,8 +82,8 @@ def eight_point(uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
     return _denormalize(_eight_point_normalized(n1.points, n2.points), n1.T, n2.T)
 
 
-def sampson_distance(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
-    """d = |x2^T F x1| / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2), in pixels.
+def sampson_residual(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """r = x2^T F x1 / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2): signed, in pixels.
 
     F may be batched (B, 3, 3); the result is then (B, N).
     """
@@ -100,51 +93,32 @@ def sampson_distance(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndar
     Ftx2 = x2 @ F
     algebraic = (Fx1 * x2).sum(axis=-1)
     gradient_sq = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
-    return np.abs(algebraic) / np.sqrt(np.maximum(gradient_sq, 1e-300))
+    return algebraic / np.sqrt(np.maximum(gradient_sq, 1e-300))
+
+
+def sampson_distance(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """d = |sampson_residual|: first-order distance of (x1, x2) to the epipolar variety, in pixels."""
+    return np.abs(sampson_residual(F, uv1, uv2))
 
 
 def ransac_fundamental(uv1: np.ndarray, uv2: np.ndarray, config: RansacConfig) -> FundamentalResult:
-    """F maximizing #{Sampson distance < threshold_px}; adaptive N = log(1-p)/log(1-w^8); refit on inliers."""
+    """F maximizing #{Sampson distance < threshold_px}: minimal 8-point samples in the RANSAC driver,
+    each new best F re-fitted by the normalized 8-point on its inliers (LO-RANSAC)."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
-    num = len(uv1)
-    if num < MIN_CORRESPONDENCES:
+    if len(uv1) < MIN_CORRESPONDENCES:
         raise DegenerateConfigurationError(
-            f"a fundamental matrix needs at least {MIN_CORRESPONDENCES} correspondences, got {num}"
+            f"a fundamental matrix needs at least {MIN_CORRESPONDENCES} correspondences, got {len(uv1)}"
         )
-    rng = np.random.default_rng(config.seed)
-    n1, n2 = hartley_normalization(uv1), hartley_normalization(uv2)
-    best_F, best_mask, best_count = None, np.zeros(num, bool), -1
-    needed, iterations = config.max_iterations, 0
-    while iterations < needed:
-        samples = random_samples(rng, num, MIN_CORRESPONDENCES, HYPOTHESES_PER_BATCH)
-        F = _denormalize(_eight_point_minimal(n1.points[samples], n2.points[samples]), n1.T, n2.T)
-        iterations += HYPOTHESES_PER_BATCH
-        # Pre-verification: only hypotheses doing well on a random subset are scored on every point.
-        subset = rng.choice(num, size=min(num, PREVERIFICATION_POINTS), replace=False)
-        subset_ratio = (sampson_distance(F, uv1[subset], uv2[subset]) < config.threshold_px).mean(axis=1)
-        F = F[subset_ratio >= PREVERIFICATION_FRACTION * max(best_count, 0) / num]
-        if len(F) == 0:
-            continue
-        masks = sampson_distance(F, uv1, uv2) < config.threshold_px
-        counts = masks.sum(axis=1)
-        best = int(np.argmax(counts))
-        if counts[best] > best_count:
-            best_F, best_mask, best_count = F[best], masks[best], int(counts[best])
-            needed = required_iterations(best_count / num, MIN_CORRESPONDENCES, config.confidence,
-                                         config.max_iterations)
-    if best_count < MIN_CORRESPONDENCES:
-        raise DegenerateConfigurationError(f"RANSAC found no fundamental matrix with {MIN_CORRESPONDENCES}+ "
-                                           f"inliers among {num} correspondences")
-    # Least-squares refit on the consensus set, kept while the consensus does not shrink.
-    for _ in range(MAX_REFITS):
-        F_refit = eight_point(uv1[best_mask], uv2[best_mask])
-        mask = sampson_distance(F_refit, uv1, uv2) < config.threshold_px
-        if mask.sum() < best_count:
-            break
-        converged = np.array_equal(mask, best_mask)
-        best_F, best_mask, best_count = F_refit, mask, int(mask.sum())
-        if converged:
-            break
-    distance = sampson_distance(best_F, uv1, uv2)
-    return FundamentalResult(F=best_F, inlier_mask=distance < config.threshold_px, sampson_px=distance,
-                             iterations=iterations)
+    # One normalization of all points serves every minimal sample.
+    T1, T2 = hartley_normalization(uv1).T, hartley_normalization(uv2).T
+
+    def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
+        x1 = sample1 @ T1[:2, :2].T + T1[:2, 2]
+        x2 = sample2 @ T2[:2, :2].T + T2[:2, 2]
+        return _denormalize(_eight_point_minimal(x1, x2), T1, T2)
+
+    result = ransac((uv1, uv2), minimal, MIN_CORRESPONDENCES, sampson_distance, config.threshold_px, config,
+                    refit=lambda inliers1, inliers2: eight_point(inliers1, inliers2)[None],
+                    model_name="fundamental matrix")
+    return FundamentalResult(F=result.model, inlier_mask=result.inlier_mask, sampson_px=result.residuals,
+                             iterations=result.iterations)

@@ -1,4 +1,5 @@
-"""E = K^T F K, the four pose candidates and chirality, against synthetic ground truth."""
+"""E by the 5-point solver (in RANSAC) or E = K^T F K, the four pose candidates and chirality, against
+synthetic ground truth."""
 
 import numpy as np
 import pytest
@@ -10,8 +11,11 @@ from estimation.synthetic import make_scene
 from estimation.two_view.essential import (
     choose_relative_pose,
     essential_from_fundamental,
+    five_point_essential,
     in_front_of_both,
     pose_candidates,
+    ransac_essential,
+    to_normalized,
 )
 from estimation.two_view.fundamental import eight_point, ransac_fundamental
 from estimation.types import CameraPose
@@ -78,3 +82,42 @@ def test_in_front_of_both_uses_each_cameras_viewing_direction():
 def test_no_correspondences_cannot_choose_a_pose():
     with pytest.raises(DegenerateConfigurationError):
         choose_relative_pose(np.eye(3), np.eye(3), np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+def true_essential(scene, i, j):
+    rel = relative_pose(scene.poses[i], scene.poses[j])
+    t = rel.t
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ rel.R
+    return E / np.linalg.norm(E)
+
+
+def test_five_point_solutions_include_the_true_essential_matrix_and_satisfy_its_constraints():
+    scene = make_scene(num_cameras=5, num_points=200, seed=4)
+    rng = np.random.default_rng(0)
+    for i, j in [(0, 1), (0, 4), (2, 3)]:
+        _, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+        samples = np.stack([rng.choice(len(uv1), 5, replace=False) for _ in range(20)])
+        x1, x2 = to_normalized(scene.K, uv1)[samples], to_normalized(scene.K, uv2)[samples]
+        solutions = five_point_essential(x1, x2)
+        assert 20 <= len(solutions) <= 200                       # up to ten real roots per sample
+        for E in solutions:                                       # every root is an essential matrix
+            np.testing.assert_allclose(2 * E @ E.T @ E - np.trace(E @ E.T) * E, 0, atol=1e-8)
+        truth = true_essential(scene, i, j)
+        distance = np.minimum(np.abs(solutions - truth).max(axis=(1, 2)),
+                              np.abs(solutions + truth).max(axis=(1, 2)))
+        assert np.sum(distance < 1e-8) >= 20                      # the truth among each sample's roots
+
+
+def test_five_point_ransac_under_noise_and_30_percent_outliers_is_within_0_2_degrees():
+    scene = make_scene(num_points=500, noise_px=0.5, outlier_fraction=0.3, seed=1)
+    for i, j in [(0, 1), (0, 4), (2, 3)]:
+        track_ids, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+        truly_inlier = scene.inlier_mask.reshape(-1, 5)[track_ids][:, [i, j]].all(axis=1)
+        result = ransac_essential(uv1, uv2, scene.K, scene.K, 1.5, RansacConfig())
+        assert (result.inlier_mask & truly_inlier).sum() / result.inlier_mask.sum() > 0.97
+        assert (result.inlier_mask & truly_inlier).sum() / truly_inlier.sum() > 0.9
+        inliers = result.inlier_mask
+        chosen = choose_relative_pose(result.E, scene.K, uv1[inliers], uv2[inliers])
+        truth = relative_pose(scene.poses[i], scene.poses[j])
+        assert rotation_angle_deg(chosen.pose.R, truth.R) < 0.2
+        assert direction_error_deg(chosen.pose.center, truth.center) < 1.0

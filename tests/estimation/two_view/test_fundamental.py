@@ -6,10 +6,9 @@ import pytest
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.alignment import relative_pose
-from estimation.geometry.ransac import required_iterations
+from estimation.geometry.ransac import HYPOTHESES_PER_BATCH
 from estimation.synthetic import make_scene
 from estimation.two_view.fundamental import (
-    HYPOTHESES_PER_BATCH,
     eight_point,
     hartley_normalization,
     ransac_fundamental,
@@ -95,11 +94,3 @@ def test_ransac_iterations_adapt_to_the_inlier_ratio():
     assert ransac_fundamental(*clean.tracks.pair_correspondences(0, 1)[1:], config).iterations == (
         HYPOTHESES_PER_BATCH)
     assert ransac_fundamental(*dirty.tracks.pair_correspondences(0, 1)[1:], config).iterations > 1000
-
-
-def test_required_iterations_follows_the_formula():
-    # log(1 - 0.99) / log(1 - 0.5^8) = 1176.6
-    assert required_iterations(0.5, 8, 0.99, 10_000) == 1177
-    assert required_iterations(1.0, 8, 0.99, 10_000) == 1
-    assert required_iterations(0.0, 8, 0.99, 500) == 500
-    assert required_iterations(0.1, 8, 0.99, 500) == 500
