@@ -52,6 +52,10 @@ class BundleAdjustmentConfig(BaseModel):
     fixed_camera_sigma: float = Field(
         1e-6, gt=0, description="Std-dev (rad and world units) of the near-hard prior on a fixed camera."
     )
+    fixed_intrinsics_sigma: float = Field(
+        1e-6, gt=0, description="Std-dev (pixels or unitless) of the near-hard prior holding an intrinsic "
+        "parameter that is not refined (principal point, skew, coefficients the model lacks)."
+    )
     scale_sigma_relative: float = Field(
         1e-2, gt=0,
         description="Std-dev of the scale prior as a fraction of the reference distance. The pixels say "

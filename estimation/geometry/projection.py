@@ -152,6 +152,15 @@ def as_camera(camera: Camera | np.ndarray) -> Camera:
     return camera if isinstance(camera, Camera) else Camera.from_K(camera)
 
 
+CameraInput = Camera | np.ndarray | Sequence[Camera]
+"""A 3x3 K (pinhole) or Camera shared by every image, or a sequence of Cameras, one per image."""
+
+
+def is_shared(camera: CameraInput) -> bool:
+    """True for one camera (a Camera or a 3x3 K), False for a sequence of per-image Cameras."""
+    return isinstance(camera, Camera) or (isinstance(camera, np.ndarray) and camera.ndim == 2)
+
+
 class Projection(NamedTuple):
     """Pixels of projected points and their depth along the optical axis (negative: behind)."""
 
@@ -210,11 +219,16 @@ def pixel_to_normalized(camera: Camera, uv: np.ndarray) -> np.ndarray:
     return undistort(camera, np.stack([xd, yd], axis=-1))
 
 
+def transfer_pixels(source: Camera, target: Camera, uv: np.ndarray) -> np.ndarray:
+    """The pixels where `target` sees the rays that `source` sees at uv (same pose), (N, 2)."""
+    return normalized_to_pixel(target, pixel_to_normalized(source, uv))
+
+
 def ideal_pixels(camera: Camera, uv: np.ndarray) -> np.ndarray:
     """The pixels the distortion-free camera with the same K would have seen: K pixel_to_normalized(uv)."""
     if camera.model == "pinhole":
         return np.asarray(uv, float)
-    return normalized_to_pixel(camera.pinhole(), pixel_to_normalized(camera, uv))
+    return transfer_pixels(camera, camera.pinhole(), uv)
 
 
 def project(camera: Camera | np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray) -> Projection:

@@ -10,15 +10,17 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
 from scipy import sparse
 
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.projection import Camera, as_camera, transfer_pixels
 from estimation.geometry.triangulation import (
     Observations,
     observations_for_pair,
@@ -92,6 +94,7 @@ class SparseModel:
     stats: ReconstructionStats
     initial_pair_diagnostics: InitialPairDiagnostics
     registration_order: list[int] = field(default_factory=list)
+    cameras: list[Camera] = field(default_factory=list)   # image index -> intrinsics (refined by the BA)
 
     @property
     def visibility(self) -> np.ndarray:
@@ -238,10 +241,18 @@ class _Timer:
 
 
 class _Model:
-    """Mutable reconstruction state, indexed by track and by flat observation."""
+    """Mutable reconstruction state, indexed by track and by flat observation.
 
-    def __init__(self, tracks: Tracks, K: np.ndarray) -> None:
-        self.tracks, self.K = tracks, K
+    The geometry (F, E, PnP, triangulation) works with the pinhole K of the initial camera on
+    `tracks.uv` = the measured pixels `observed_uv` transferred through each image's current camera
+    (distortion and refined focal included) to that K; errors and the BA use the measured pixels.
+    """
+
+    def __init__(self, tracks: Tracks, camera: Camera, refine: IntrinsicsRefinement) -> None:
+        self.tracks, self.K, self.refine = tracks, camera.pinhole().K, refine
+        self.observed_uv = tracks.uv
+        self.cameras = [camera] * len(tracks.image_names)
+        self.use_cameras(self.cameras)
         self.poses: dict[int, CameraPose] = {}
         self.order: list[int] = []
         self.point_xyz = np.zeros((tracks.num_tracks, 3))
@@ -251,10 +262,18 @@ class _Model:
     def used_observations(self) -> np.ndarray:
         return np.flatnonzero(self.obs_used)
 
+    def use_cameras(self, cameras: list[Camera]) -> None:
+        """Adopt new intrinsics per image: the working pixels follow them."""
+        self.cameras = cameras
+        source = Camera.take(cameras, self.tracks.image_index)
+        working = transfer_pixels(source, Camera.from_K(self.K), self.observed_uv)
+        self.tracks = replace(self.tracks, uv=working)
+
     def errors_of(self, obs_ids: np.ndarray) -> np.ndarray:
         obs = observations_of(self.tracks, self.poses, obs_ids, self.tracks.track_index[obs_ids],
-                              self.tracks.num_tracks)
-        return observation_errors(self.K, obs, self.point_xyz)
+                              self.tracks.num_tracks)._replace(uv=self.observed_uv[obs_ids])
+        camera = Camera.take(self.cameras, self.tracks.image_index[obs_ids])
+        return observation_errors(camera, obs, self.point_xyz)
 
     def filter(self, max_error_px: float, min_angle_deg: float) -> None:
         """Drop observations above max_error_px (or behind the camera), then points with < 2
@@ -273,7 +292,8 @@ class _Model:
 
     def bundle_adjust(self, config: ReconstructionConfig, window: list[int] | None
                       ) -> tuple[float, float, int]:
-        """Global BA (window None: first camera fixed, scale by the second) or local BA over `window`."""
+        """Global BA (window None: first camera fixed, scale by the second; refines the intrinsics as
+        `self.refine` says) or local BA over `window` (intrinsics fixed)."""
         from estimation.bundle_adjustment.factor_graph import bundle_adjust
 
         used = self.used_observations()
@@ -289,14 +309,19 @@ class _Model:
         if window is not None:
             ba_config = ba_config.model_copy(update={"max_iterations": ba_config.local_max_iterations})
         result = bundle_adjust(
-            self.K, [self.poses[m] for m in cameras], self.point_xyz[track_ids],
+            [self.cameras[m] for m in cameras], [self.poses[m] for m in cameras], self.point_xyz[track_ids],
             np.array([camera_position[int(m)] for m in self.tracks.image_index[used]], dtype=np.int64),
-            point_index, self.tracks.uv[used], ba_config,
+            point_index, self.observed_uv[used], ba_config,
             fixed_cameras=fixed, scale_reference=scale_reference,
+            refine=self.refine,
         )
         for m, pose in zip(cameras, result.poses, strict=True):
             self.poses[m] = pose
         self.point_xyz[track_ids] = result.points
+        if self.refine.refines(self.cameras[0].model):
+            refined = dict(zip(cameras, result.cameras, strict=True))
+            shared = None if self.refine.per_image else result.cameras[0]
+            self.use_cameras([refined.get(m, shared or camera) for m, camera in enumerate(self.cameras)])
         return result.initial_rms_px, result.final_rms_px, result.iterations
 
 
@@ -413,24 +438,28 @@ def _to_sparse_model(model: _Model, unregistered: dict[int, str], stats: Reconst
         image_names=list(tracks.image_names), poses={m: model.poses[m] for m in model.order},
         unregistered=unregistered, points=model.point_xyz[track_ids].copy(),
         point_colors=tracks.colors[track_ids], point_track_ids=track_ids,
-        obs_camera=tracks.image_index[used].copy(), obs_point=obs_point, obs_uv=tracks.uv[used].copy(),
+        obs_camera=tracks.image_index[used].copy(), obs_point=obs_point,
+        obs_uv=model.observed_uv[used].copy(),
         point_errors=point_errors, stats=stats, initial_pair_diagnostics=diagnostics,
-        registration_order=list(model.order),
+        registration_order=list(model.order), cameras=list(model.cameras),
     )
 
 
-def run_incremental(tracks: Tracks, K: np.ndarray, config: ReconstructionConfig,
-                    progress: ProgressCallback | None = None) -> SparseModel:
+def run_incremental(tracks: Tracks, K: Camera | np.ndarray, config: ReconstructionConfig,
+                    progress: ProgressCallback | None = None,
+                    refine: IntrinsicsRefinement = IntrinsicsRefinement()) -> SparseModel:
     """Incremental SfM: initial pair by inliers and parallax, then PnP registration by most 2D-3D matches.
 
-    The geometry works in the pixel coordinates of `tracks` and `K` as given.
+    The geometry works in the pixel coordinates of `tracks`; `K` (a 3x3 K or a Camera) is every
+    image's initial camera; each global BA refines the intrinsics as `refine` says, and the model's
+    `cameras` carry the result.
     Raises DegenerateConfigurationError if no pair can start.
     """
     num_images = len(tracks.image_names)
     if num_images < 2:
         raise InputError(f"Structure from Motion needs at least 2 images, got {num_images}")
     timer = _Timer()
-    model = _Model(tracks, np.asarray(K, float))
+    model = _Model(tracks, as_camera(K), refine)
     filter_limits = (config.filter.max_reprojection_px, config.filter.min_triangulation_angle_deg)
 
     with timer.stage("pair geometry"):
