@@ -154,8 +154,11 @@ def load_calibration(path: Path) -> np.ndarray:
     return parse_calibration(text, str(path))
 
 
-def find_calibration(folder: Path, override: Path | None = None) -> np.ndarray:
-    """K from `override` when given, else from calibration.txt in the images folder."""
+def find_calibration(folder: Path, override: Path | None = None) -> np.ndarray | None:
+    """K from `override` when given (it must exist), else from calibration.txt in the images folder
+    when there is one, else None (the camera is then calibrated from EXIF or a prior)."""
+    if override is None and not (Path(folder) / CALIBRATION_FILE_NAME).exists():
+        return None
     return load_calibration(Path(override) if override is not None else Path(folder) / CALIBRATION_FILE_NAME)
 
 
