@@ -56,6 +56,10 @@ class BundleAdjustmentConfig(BaseModel):
     fixed_camera_sigma: float = Field(
         1e-6, gt=0, description="Std-dev (rad and world units) of the near-hard prior on a fixed camera."
     )
+    fixed_intrinsics_sigma: float = Field(
+        1e-6, gt=0, description="Std-dev (pixels or unitless) of the near-hard prior holding an intrinsic "
+        "parameter that is not refined (principal point, skew, coefficients the model lacks)."
+    )
     scale_sigma_relative: float = Field(
         1e-2, gt=0,
         description="Std-dev of the scale prior as a fraction of the reference distance. The pixels say "
@@ -177,13 +181,44 @@ class MapperConfig(BaseModel):
     )
 
 
+class CameraConfig(BaseModel):
+    """The camera model, where its first focal length comes from, and what the bundle adjustment refines.
+
+    With a calibration file, its K is held fixed and only the model's distortion is refined; without
+    one, the focal length comes from the EXIF (else focal_prior_factor * max(width, height), with a
+    warning) and the focal length and distortion are refined. The principal point stays at the
+    calibration's, or at the image centre.
+    """
+
+    model: Literal["auto", "pinhole", "simple-radial", "radial", "opencv"] = Field(
+        "auto", description="Camera model (COLMAP's). auto: pinhole with a calibration file (K fixed, as "
+        "given), simple-radial (one focal length and k1, COLMAP's default) without one."
+    )
+    single_camera: bool = Field(True, description="One camera shared by all images (False: one per image).")
+    use_exif: bool = Field(True, description="First focal length from the photos' EXIF when present.")
+    focal_prior_factor: float = Field(
+        1.2, gt=0, description="Focal length = this * max(width, height) when neither calibration nor EXIF "
+        "gives one (COLMAP's prior)."
+    )
+    min_field_of_view_deg: float = Field(
+        2.0, gt=0, lt=180, description="EXIF focal lengths giving a narrower field of view are ignored."
+    )
+    max_field_of_view_deg: float = Field(
+        150.0, gt=0, lt=180, description="EXIF focal lengths giving a wider field of view are ignored."
+    )
+
+
 class ReconstructionConfig(BaseModel):
     """Everything `estimation.reconstruct` needs besides the images folder."""
 
     features: Literal["auto", "matches", "sift"] = Field(
         "auto", description="auto: match files when the folder has them, else SIFT."
     )
-    calibration: Path | None = Field(None, description="3x3 K file; default: calibration.txt in the folder.")
+    calibration: Path | None = Field(
+        None, description="3x3 K file; default: calibration.txt in the folder, and without one the camera "
+        "is calibrated from EXIF or a prior and refined (see CameraConfig)."
+    )
+    camera: CameraConfig = CameraConfig()
     ransac: RansacConfig = RansacConfig()
     bundle_adjustment: BundleAdjustmentConfig = BundleAdjustmentConfig()
     filter: FilterConfig = FilterConfig()

@@ -1,15 +1,24 @@
-"""Bundle adjustment with GTSAM: cameras and points that best explain the observed pixels.
+"""Bundle adjustment with GTSAM: cameras, points and (on request) intrinsics that best explain the pixels.
 
-Solves  argmin_{R_c, t_c, X_p}  sum_o huber_k( || pi(K (R_c X_p + t_c)) - uv_o || / sigma )
+Solves  argmin_{R_c, t_c, X_p[, intrinsics]}  sum_o huber_k( ||pi(camera_c, R_c X_p + t_c) - uv_o|| / sigma )
 with huber_k(x) = x^2 / 2 for |x| <= k, k |x| - k^2 / 2 beyond (k = huber_threshold_px / sigma), as a
-GTSAM NonlinearFactorGraph of GenericProjectionFactorCal3_S2 factors solved by Levenberg-Marquardt.
+GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt; pi is `geometry.projection`'s camera model.
+- Intrinsics fixed: the observations are first mapped to the ideal pixels of each camera's pinhole K
+  (`projection.ideal_pixels`, exact for pinhole cameras; for distorted ones the residual is measured
+  in the undistorted image) and each becomes a GenericProjectionFactorCal3_S2 (vectorized insertion).
+- Intrinsics refined (`IntrinsicsRefinement`): each observation is a GeneralSFMFactor2 on (pose, point,
+  calibration), the calibration a variable of the graph, one shared by every camera or one per camera:
+  Cal3Bundler (f, k1, k2) for simple-radial and radial, Cal3DS2 (fx, fy, s, u0, v0, k1, k2, p1, p2)
+  for pinhole and opencv. What the model or the request holds fixed (always the principal point and
+  skew, as COLMAP does by default) is held by a near-hard prior on that component only.
 The gauge (7 DoF: rotation, translation, scale) is fixed by near-hard priors: a PriorFactorPose3 on each
 fixed camera and, when only one camera is fixed, a RangeFactorPose3 holding the distance between the
 centres of the first fixed camera and the scale-reference camera at its initial value.
 
 Keys are plain integers (camera c -> c, point p -> num_cameras + p), not gtsam Symbols: the vectorized
 gtsam.utilities.insertProjectionFactors takes the point keys as a float64 vector, which holds integers
-exactly only below 2^53 (Symbol keys carry their character in the top byte).
+exactly only below 2^53 (Symbol keys carry their character in the top byte). Calibration c has key
+num_cameras + num_points + c.
 """
 
 from __future__ import annotations
@@ -23,8 +32,16 @@ import numpy as np
 
 from estimation.config import BundleAdjustmentConfig
 from estimation.errors import InputError
+from estimation.geometry.projection import (
+    DISTORTION_PARAMETERS,
+    Camera,
+    CameraInput,
+    as_camera,
+    ideal_pixels,
+    is_shared,
+)
+from estimation.geometry.projection import reprojection_residuals as observation_residuals
 from estimation.geometry.triangulation import Observations
-from estimation.geometry.triangulation import reprojection_residuals as observation_residuals
 from estimation.types import CameraPose
 
 _LINEAR_SOLVERS = {
@@ -35,6 +52,18 @@ _LINEAR_SOLVERS = {
     "pcg_block_jacobi": "ITERATIVE",
 }
 _ORDERING_TYPES = {"colamd": "COLAMD", "metis": "METIS", "natural": "NATURAL"}
+
+
+@dataclass(frozen=True)
+class IntrinsicsRefinement:
+    """Which intrinsics the BA refines; the principal point and skew always stay as given."""
+
+    focal: bool = False        # fx, fy (f for simple-radial and radial)
+    distortion: bool = False   # the coefficients the camera model has (none for pinhole)
+    per_image: bool = False    # one calibration variable per camera instead of one shared by all
+
+    def refines(self, model: str) -> bool:
+        return self.focal or (self.distortion and model != "pinhole")
 
 
 @dataclass(frozen=True)
@@ -49,6 +78,7 @@ class BundleAdjustmentResult:
     seconds: float  # wall time of the whole call (graph construction included)
     initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
     final_cost: float
+    cameras: list[Camera]  # intrinsics per pose after the adjustment (the same object when shared)
 
 
 def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
@@ -61,22 +91,35 @@ def camera_pose_from_gtsam(pose: gtsam.Pose3) -> CameraPose:
     return CameraPose.from_center(pose.rotation().matrix().T, pose.translation())
 
 
+def per_pose_cameras(camera: CameraInput, num_poses: int) -> list[Camera]:
+    """One Camera per pose: a shared K or Camera repeated, or the given sequence as a list."""
+    if is_shared(camera):
+        return [as_camera(camera)] * num_poses
+    cameras = [as_camera(c) for c in camera]
+    if len(cameras) != num_poses:
+        raise InputError(
+            f"bundle_adjust: got {len(cameras)} cameras for {num_poses} poses (need one per pose)"
+        )
+    return cameras
+
+
 def reprojection_residuals(
-    K: np.ndarray,
+    camera: CameraInput,
     poses: Sequence[CameraPose],
     points: np.ndarray,
     camera_index: np.ndarray,
     point_index: np.ndarray,
     uv: np.ndarray,
 ) -> np.ndarray:
-    """r_o = pi(K (R_c X_p + t_c)) - uv_o for every observation, (O, 2) pixels."""
+    """r_o = pi(camera_c, R_c X_p + t_c) - uv_o for every observation, (O, 2) pixels."""
     rotations = np.stack([pose.R for pose in poses])
     translations = np.stack([pose.t for pose in poses])
     observations = Observations(
         R=rotations[camera_index], t=translations[camera_index], uv=uv,
         point_index=point_index, num_points=len(points),
     )
-    return observation_residuals(K, observations, points)
+    return observation_residuals(Camera.take(per_pose_cameras(camera, len(poses)), camera_index),
+                                 observations, points)
 
 
 def huber_cost(residuals: np.ndarray, huber_threshold_px: float, sigma_px: float = 1.0) -> float:
@@ -92,7 +135,7 @@ def rms(residuals: np.ndarray) -> float:
 
 
 def _validate(
-    K: np.ndarray,
+    cameras: Sequence[Camera],
     poses: Sequence[CameraPose],
     points: np.ndarray,
     camera_index: np.ndarray,
@@ -102,8 +145,11 @@ def _validate(
     scale_reference: int | None,
 ) -> None:
     """Raise InputError naming the argument that does not fit the others."""
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        raise InputError(f"bundle_adjust: K must be a finite 3x3 matrix, got shape {K.shape}")
+    for c, camera in enumerate(cameras):
+        if not (np.all(np.isfinite(camera.K)) and np.all(np.isfinite(camera.distortion))):
+            raise InputError(f"bundle_adjust: camera {c}'s intrinsics must be finite")
+    if len({camera.model for camera in cameras}) > 1:
+        raise InputError("bundle_adjust: every camera must have the same camera model")
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"bundle_adjust: points must be (N, 3), got shape {points.shape}")
     if uv.ndim != 2 or uv.shape[1] != 2:
@@ -137,31 +183,103 @@ def _validate(
             raise InputError("bundle_adjust: the fixed and scale-reference cameras share a centre (no scale)")
 
 
+def _pixel_noise(config: BundleAdjustmentConfig) -> gtsam.noiseModel.Base:
+    return gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(config.huber_threshold_px / config.measurement_sigma_px),
+        gtsam.noiseModel.Isotropic.Sigma(2, config.measurement_sigma_px),
+    )
+
+
 def _projection_factors(
-    K: np.ndarray,
-    num_cameras: int,
+    cameras: Sequence[Camera],
     camera_index: np.ndarray,
     point_index: np.ndarray,
     uv: np.ndarray,
     config: BundleAdjustmentConfig,
 ) -> gtsam.NonlinearFactorGraph:
-    """One GenericProjectionFactorCal3_S2 per observation, Huber-robust, keys camera c and point N_c + p."""
+    """Fixed intrinsics: one GenericProjectionFactorCal3_S2 per observation on its ideal pixel
+    (K_c undistorted), Huber-robust, keys camera c and point N_c + p."""
     graph = gtsam.NonlinearFactorGraph()
-    calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
-    pixel_noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(config.huber_threshold_px / config.measurement_sigma_px),
-        gtsam.noiseModel.Isotropic.Sigma(2, config.measurement_sigma_px),
-    )
+    num_cameras = len(cameras)
+    pixel_noise = _pixel_noise(config)
+    ideal = ideal_pixels(Camera.take(cameras, camera_index), uv) if len(uv) else uv
     # One vectorized call per camera instead of one Python call per observation.
     by_camera = np.argsort(camera_index, kind="stable")
     bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
     point_keys = (num_cameras + point_index[by_camera]).astype(float)
-    measurements = np.ascontiguousarray(uv[by_camera].T)
+    measurements = np.ascontiguousarray(ideal[by_camera].T)
     for camera in np.flatnonzero(np.diff(bounds)).tolist():
         begin, end = bounds[camera], bounds[camera + 1]
+        K = cameras[camera].K
+        calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
         gtsam.utilities.insertProjectionFactors(
             graph, camera, point_keys[begin:end], measurements[:, begin:end], pixel_noise, calibration
         )
+    return graph
+
+
+def _uses_bundler(model: str) -> bool:
+    """Cal3Bundler (one focal length, k1, k2) for simple-radial and radial; Cal3DS2 otherwise."""
+    return model in ("simple-radial", "radial")
+
+
+def camera_to_gtsam(camera: Camera) -> gtsam.Cal3Bundler | gtsam.Cal3DS2:
+    """The GTSAM calibration with the same projection as `camera`."""
+    if _uses_bundler(camera.model):
+        return gtsam.Cal3Bundler(camera.fx, camera.k1, camera.k2, camera.cx, camera.cy)
+    return gtsam.Cal3DS2(camera.fx, camera.fy, camera.skew, camera.cx, camera.cy,
+                         camera.k1, camera.k2, camera.p1, camera.p2)
+
+
+def camera_from_gtsam(calibration: gtsam.Cal3Bundler | gtsam.Cal3DS2, like: Camera) -> Camera:
+    """`like` (model, principal point, skew) with the focal lengths and coefficients of `calibration`
+    (those the model lacks, held near zero by a prior, are set to exactly zero)."""
+    bundler = isinstance(calibration, gtsam.Cal3Bundler)
+    coefficients = {"k1": calibration.k1(), "k2": calibration.k2(),
+                    "p1": 0.0 if bundler else calibration.p1(), "p2": 0.0 if bundler else calibration.p2()}
+    kept = {name: value for name, value in coefficients.items() if name in DISTORTION_PARAMETERS[like.model]}
+    return Camera(like.model, fx=calibration.fx(), fy=calibration.fx() if bundler else calibration.fy(),
+                  cx=like.cx, cy=like.cy, skew=like.skew, **kept)
+
+
+def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
+    """Which components of the GTSAM calibration's tangent vector the BA may change."""
+    distortion = refine.distortion and model != "pinhole"
+    if _uses_bundler(model):   # (f, k1, k2)
+        return np.array([refine.focal, distortion, distortion and model == "radial"])
+    return np.array([refine.focal, refine.focal, False, False, False,   # fx fy s u0 v0, then k1 k2 p1 p2
+                     *([distortion and model == "opencv"] * 4)])
+
+
+def _calibrated_factors(
+    cameras: Sequence[Camera],
+    calibration_of_camera: np.ndarray,
+    calibration_offset: int,
+    camera_index: np.ndarray,
+    point_index: np.ndarray,
+    uv: np.ndarray,
+    refine: IntrinsicsRefinement,
+    config: BundleAdjustmentConfig,
+) -> gtsam.NonlinearFactorGraph:
+    """Refined intrinsics: a GeneralSFMFactor2 per observation on (pose c, point N_c + p, calibration
+    key calibration_offset + calibration_of_camera[c]), and per calibration a prior holding exactly the
+    components that `refine` and the model keep fixed."""
+    graph = gtsam.NonlinearFactorGraph()
+    model = cameras[0].model
+    factor = gtsam.GeneralSFMFactor2Cal3Bundler if _uses_bundler(model) else gtsam.GeneralSFMFactor2Cal3DS2
+    prior = gtsam.PriorFactorCal3Bundler if _uses_bundler(model) else gtsam.PriorFactorCal3DS2
+    pixel_noise = _pixel_noise(config)
+    point_keys = len(cameras) + point_index
+    observation_calibration = calibration_offset + calibration_of_camera[camera_index]
+    for measured, pose_key, point_key, calibration_key in zip(
+        uv, camera_index.tolist(), point_keys.tolist(), observation_calibration.tolist(), strict=True
+    ):
+        graph.add(factor(measured, pixel_noise, pose_key, point_key, calibration_key))
+    held = ~_free_components(model, refine)
+    hold_noise = gtsam.noiseModel.Diagonal.Precisions(held / config.fixed_intrinsics_sigma**2)
+    for key in np.unique(observation_calibration).tolist():
+        first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
+        graph.add(prior(key, camera_to_gtsam(cameras[first]), hold_noise))
     return graph
 
 
@@ -187,13 +305,15 @@ def _gauge_factors(
 
 
 def _elimination_ordering(
-    config: BundleAdjustmentConfig, camera_keys: np.ndarray, point_keys: np.ndarray
+    config: BundleAdjustmentConfig, camera_keys: np.ndarray, point_keys: np.ndarray,
+    calibration_keys: np.ndarray,
 ) -> gtsam.Ordering | None:
-    """points_first: every point, then every camera (Schur complement order); None: let GTSAM choose."""
+    """points_first: every point, then every camera and calibration (Schur complement order);
+    None: let GTSAM choose."""
     if config.ordering != "points_first":
         return None
     ordering = gtsam.Ordering()
-    for key in (*point_keys.tolist(), *camera_keys.tolist()):
+    for key in (*point_keys.tolist(), *camera_keys.tolist(), *calibration_keys.tolist()):
         ordering.push_back(key)
     return ordering
 
@@ -229,7 +349,7 @@ def _optimizer_params(
 
 
 def bundle_adjust(
-    K: np.ndarray,
+    camera: CameraInput,
     poses: Sequence[CameraPose],
     points: np.ndarray,
     camera_index: np.ndarray,
@@ -239,24 +359,28 @@ def bundle_adjust(
     fixed_cameras: Sequence[int] = (0,),
     scale_reference: int | None = 1,
     on_iteration: IterationHook | None = None,
+    refine: IntrinsicsRefinement = IntrinsicsRefinement(),
 ) -> BundleAdjustmentResult:
     """Minimize the Huber-robust reprojection error over all observed cameras and points (GTSAM LM).
 
-    Observation o says camera `camera_index[o]` sees point `point_index[o]` at pixel `uv[o]`.
+    `camera` is a 3x3 K or Camera shared by every pose, or one Camera per pose. Observation o says
+    camera `camera_index[o]` sees point `point_index[o]` at pixel `uv[o]`.
     `fixed_cameras` keep their pose (near-hard prior); with fewer than two of them, the distance between
     the centres of `fixed_cameras[0]` and `scale_reference` keeps its initial value (None: scale free).
+    `refine` says which intrinsics are variables (shared by all cameras unless `refine.per_image`);
+    the result's `cameras` carry them.
     Cameras and points without observations (and not fixed) are returned unchanged.
     `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
     graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
     """
     start = time.perf_counter()
-    K = np.asarray(K, float)
+    cameras = per_pose_cameras(camera, len(poses))
     points = np.asarray(points, float)
     camera_index = np.asarray(camera_index, np.int64)
     point_index = np.asarray(point_index, np.int64)
     uv = np.asarray(uv, float)
     fixed_cameras = [int(c) for c in fixed_cameras]
-    _validate(K, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
+    _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
 
     num_cameras = len(poses)
@@ -264,33 +388,54 @@ def bundle_adjust(
     camera_keys = np.unique(np.concatenate([camera_index, extra_cameras]).astype(np.int64))
     observed_points = np.unique(point_index)
     point_keys = num_cameras + observed_points
+    refines = refine.refines(cameras[0].model) and len(uv) > 0
+    # Calibration variable of each camera: its own, or the one they all share.
+    calibration_of_camera = np.arange(num_cameras) if refine.per_image else np.zeros(num_cameras, np.int64)
+    calibration_offset = num_cameras + len(points)
+    calibration_keys = (calibration_offset + np.unique(calibration_of_camera[camera_index])
+                        if refines else np.zeros(0, np.int64))
 
-    graph = _projection_factors(K, num_cameras, camera_index, point_index, uv, config)
-    gtsam_poses = {camera: camera_pose_to_gtsam(poses[camera]) for camera in camera_keys.tolist()}
+    if refines:
+        graph = _calibrated_factors(cameras, calibration_of_camera, calibration_offset, camera_index,
+                                    point_index, uv, refine, config)
+    else:
+        graph = _projection_factors(cameras, camera_index, point_index, uv, config)
+    gtsam_poses = {c: camera_pose_to_gtsam(poses[c]) for c in camera_keys.tolist()}
     graph.push_back(
         _gauge_factors(gtsam_poses, fixed_cameras, scale_reference if use_scale_prior else None, config)
     )
     initial = gtsam.Values()
-    for camera, pose in gtsam_poses.items():
-        initial.insert(camera, pose)
+    for c, pose in gtsam_poses.items():
+        initial.insert(c, pose)
     for key, point in zip(point_keys.tolist(), points[observed_points], strict=True):
         initial.insert(key, point)
+    for key in calibration_keys.tolist():
+        first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
+        initial.insert(key, camera_to_gtsam(cameras[first]))
 
-    params = _optimizer_params(config, _elimination_ordering(config, camera_keys, point_keys), on_iteration)
+    ordering = _elimination_ordering(config, camera_keys, point_keys, calibration_keys)
+    params = _optimizer_params(config, ordering, on_iteration)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
     values = optimizer.optimize()
 
     adjusted_poses = list(poses)
-    for camera in camera_keys.tolist():
-        adjusted_poses[camera] = camera_pose_from_gtsam(values.atPose3(camera))
+    for c in camera_keys.tolist():
+        adjusted_poses[c] = camera_pose_from_gtsam(values.atPose3(c))
     adjusted_points = points.copy()
     if len(observed_points):
         # extractPoint3 returns every Point3 in key order, i.e. in observed_points order.
         adjusted_points[observed_points] = gtsam.utilities.extractPoint3(values)
+    adjusted_cameras = list(cameras)
+    if refines:
+        at = values.atCal3Bundler if _uses_bundler(cameras[0].model) else values.atCal3DS2
+        refined = {key - calibration_offset: camera_from_gtsam(at(key), cameras[0])
+                   for key in calibration_keys.tolist()}
+        adjusted_cameras = [refined.get(int(calibration_of_camera[c]), cameras[c])
+                            for c in range(num_cameras)]
 
-    initial_residuals = reprojection_residuals(K, poses, points, camera_index, point_index, uv)
+    initial_residuals = reprojection_residuals(cameras, poses, points, camera_index, point_index, uv)
     final_residuals = reprojection_residuals(
-        K, adjusted_poses, adjusted_points, camera_index, point_index, uv
+        adjusted_cameras, adjusted_poses, adjusted_points, camera_index, point_index, uv
     )
     return BundleAdjustmentResult(
         poses=adjusted_poses,
@@ -301,4 +446,5 @@ def bundle_adjust(
         seconds=time.perf_counter() - start,
         initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),
+        cameras=adjusted_cameras,
     )

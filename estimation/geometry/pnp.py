@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.linalg import null_vector
+from estimation.geometry.projection import as_camera, normalized_to_pixel, project
 from estimation.geometry.ransac import random_samples, required_iterations
 from estimation.types import CameraPose
 
@@ -89,16 +90,16 @@ def projection_errors(K: np.ndarray, P: np.ndarray, points: np.ndarray, uv: np.n
     """||pi(K P [X; 1]) - uv|| per point (pixels), inf behind the camera; P (..., 3, 4) -> (..., N)."""
     x_cam = points @ np.swapaxes(P[..., :3], -1, -2) + P[..., None, :, 3]
     depth = x_cam[..., 2]
-    projected = x_cam @ K.T
     safe_depth = np.where(depth > 0, depth, 1.0)
-    error = np.linalg.norm(projected[..., :2] / safe_depth[..., None] - uv, axis=-1)
-    return np.where(depth > 0, error, np.inf)
+    projected = normalized_to_pixel(as_camera(K), x_cam[..., :2] / safe_depth[..., None])
+    return np.where(depth > 0, np.linalg.norm(projected - uv, axis=-1), np.inf)
 
 
 def reprojection_errors(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray
                         ) -> np.ndarray:
     """||pi(K (R X + t)) - uv|| per point (pixels), inf behind the camera."""
-    return projection_errors(K, np.concatenate([R, t[:, None]], axis=1), points, uv)
+    projection = project(K, R, t, points)
+    return np.where(projection.depth > 0, np.linalg.norm(projection.uv - uv, axis=-1), np.inf)
 
 
 def pnp_ransac(K: np.ndarray, points: np.ndarray, uv: np.ndarray, config: RansacConfig) -> PnPResult:
@@ -148,9 +149,7 @@ def pnp_nonlinear(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: Ca
 
     def residuals(params: np.ndarray) -> np.ndarray:
         R, t = pose_of(params)
-        x_cam = points @ R.T + t
-        projected = x_cam @ K.T
-        return (projected[:, :2] / projected[:, 2:3] - uv).ravel()
+        return (project(K, R, t, points).uv - uv).ravel()
 
     start = np.concatenate([np.zeros(3), initial.t])
     solution = least_squares(residuals, start, method="lm", x_scale="jac")

@@ -11,6 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from estimation.geometry.projection import reprojection_residuals
+
 NONLINEAR_ITERATIONS = 10
 INITIAL_DAMPING = 1e-3
 
@@ -42,15 +44,6 @@ def observations_for_pair(R1, t1, R2, t2, uv1: np.ndarray, uv2: np.ndarray) -> O
         point_index=np.concatenate([np.arange(n), np.arange(n)]),
         num_points=n,
     )
-
-
-def reprojection_residuals(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
-    """r_o = pi(K (R_o X_p(o) + t_o)) - uv_o, (O, 2) pixels (depth clamped so behind-camera is large)."""
-    x_cam = np.einsum("oij,oj->oi", obs.R, points[obs.point_index]) + obs.t
-    depth = np.where(np.abs(x_cam[:, 2]) < 1e-12, 1e-12, x_cam[:, 2])
-    u = K[0, 0] * x_cam[:, 0] / depth + K[0, 1] * x_cam[:, 1] / depth + K[0, 2]
-    v = K[1, 1] * x_cam[:, 1] / depth + K[1, 2]
-    return np.stack([u, v], axis=1) - obs.uv
 
 
 def mean_reprojection_px(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:

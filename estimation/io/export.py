@@ -1,6 +1,7 @@
 """Writers (and readers, for round trips) of the reconstruction's files.
 
-- COLMAP text model (`cameras.txt`, `images.txt`, `points3D.txt`): PINHOLE camera, world-to-camera
+- COLMAP text model (`cameras.txt`, `images.txt`, `points3D.txt`): the camera (PINHOLE, SIMPLE_RADIAL,
+  RADIAL or OPENCV with COLMAP's parameter order; one shared, or one per image), world-to-camera
   quaternion (qw qx qy qz) and translation per image, named by file name, point tracks and errors.
 - PLY point cloud with colours (binary little-endian or ASCII).
 - `transforms.json` in the nerfstudio / instant-ngp convention: camera-to-world in OpenGL axes.
@@ -18,12 +19,13 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from estimation.errors import InputError
+from estimation.geometry.projection import COLMAP_MODEL_NAMES, Camera, CameraInput, as_camera, is_shared
 from estimation.types import CameraPose
 
 PIXEL_CENTER_SHIFT = 0.5
@@ -92,9 +94,11 @@ class ColmapModel:
     its POINTS2D (uv in OpenCV pixels) and the point id each belongs to (-1: none).
     """
 
-    K: np.ndarray
+    K: np.ndarray                               # the first camera's K
     width: int
     height: int
+    cameras: dict[int, Camera]                  # camera id -> intrinsics (OpenCV pixels)
+    image_camera_ids: dict[int, int]            # image id -> camera id
     image_names: dict[int, str]
     poses: dict[int, CameraPose]
     image_uv: dict[int, np.ndarray]             # (n_i, 2)
@@ -106,9 +110,28 @@ class ColmapModel:
     tracks: list[np.ndarray]                    # per point: (L, 2) of (image id, point2D index)
 
 
+def _colmap_cameras(camera: CameraInput, image_indices: Sequence[int]
+                    ) -> tuple[dict[int, Camera], dict[int, int]]:
+    """(camera id -> Camera, image index -> camera id): id 1 when shared, image index + 1 per image."""
+    if is_shared(camera):
+        return {COLMAP_CAMERA_ID: as_camera(camera)}, dict.fromkeys(image_indices, COLMAP_CAMERA_ID)
+    cameras = list(camera)
+    return {m + 1: cameras[m] for m in image_indices}, {m: m + 1 for m in image_indices}
+
+
+def _shift_principal_point(camera: Camera, shift: float) -> Camera:
+    return replace(camera, cx=camera.cx + shift, cy=camera.cy + shift)
+
+
+def colmap_camera_line(camera_id: int, camera: Camera, width: int, height: int) -> str:
+    """`CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]`, principal point moved to COLMAP's pixel convention."""
+    params = " ".join(f"{v:.17g}" for v in _shift_principal_point(camera, PIXEL_CENTER_SHIFT).colmap_params())
+    return f"{camera_id} {COLMAP_MODEL_NAMES[camera.model]} {width} {height} {params}"
+
+
 def write_colmap_text(
     folder: Path,
-    K: np.ndarray,
+    camera: CameraInput,
     width: int,
     height: int,
     image_names: Sequence[str],
@@ -122,6 +145,7 @@ def write_colmap_text(
 ) -> None:
     """cameras.txt, images.txt, points3D.txt of the registered images (`poses` keyed by image index).
 
+    `camera` is shared (one camera, id 1) or a list indexed by image index (camera id = image id).
     COLMAP image id = image index + 1, point id = point index + 1. Observation o says point
     obs_point[o] is seen by image obs_camera[o] at pixel obs_uv[o] (OpenCV convention).
     """
@@ -134,12 +158,12 @@ def write_colmap_text(
     if unknown:
         raise ValueError(f"observations refer to unregistered image indices {sorted(unknown)}")
 
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + PIXEL_CENTER_SHIFT, K[1, 2] + PIXEL_CENTER_SHIFT
+    cameras, camera_of_image = _colmap_cameras(camera, sorted(poses))
     (folder / "cameras.txt").write_text(
         "# Camera list with one line of data per camera:\n"
         "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
-        "# Number of cameras: 1\n"
-        f"{COLMAP_CAMERA_ID} PINHOLE {width} {height} {fx:.12g} {fy:.12g} {cx:.12g} {cy:.12g}\n"
+        f"# Number of cameras: {len(cameras)}\n"
+        + "".join(colmap_camera_line(camera_id, c, width, height) + "\n" for camera_id, c in cameras.items())
     )
 
     # The POINT2D_IDX of an observation is its position in its image's POINTS2D line.
@@ -157,7 +181,7 @@ def write_colmap_text(
         q = rotation_to_quaternion(pose.R)
         lines.append(
             f"{image_index + 1} {' '.join(f'{v:.17g}' for v in q)} {' '.join(f'{v:.17g}' for v in pose.t)} "
-            f"{COLMAP_CAMERA_ID} {image_names[image_index]}"
+            f"{camera_of_image[image_index]} {image_names[image_index]}"
         )
         in_image = order[obs_camera[order] == image_index]
         point2d_index[in_image] = np.arange(in_image.size)
@@ -203,18 +227,24 @@ def _parse_numbers(path: Path, line_number: int, tokens: Sequence[str]) -> np.nd
 
 
 def read_colmap_text(folder: Path) -> ColmapModel:
-    """A COLMAP text model written by `write_colmap_text` (single PINHOLE camera); InputError if malformed."""
+    """A COLMAP text model written by `write_colmap_text`; InputError if malformed."""
     folder = Path(folder)
-    camera_lines = _data_lines(folder / "cameras.txt")
-    if len(camera_lines) != 1:
-        raise InputError(f"{folder / 'cameras.txt'}: expected exactly one camera, found {len(camera_lines)}")
-    line_number, line = camera_lines[0]
-    tokens = line.split()
-    if len(tokens) != 8 or tokens[1] != "PINHOLE":
-        raise InputError(f"{folder / 'cameras.txt'}, line {line_number}: expected a PINHOLE camera line")
-    width, height = int(tokens[2]), int(tokens[3])
-    fx, fy, cx, cy = _parse_numbers(folder / "cameras.txt", line_number, tokens[4:])
-    K = np.array([[fx, 0.0, cx - PIXEL_CENTER_SHIFT], [0.0, fy, cy - PIXEL_CENTER_SHIFT], [0.0, 0.0, 1.0]])
+    cameras_path = folder / "cameras.txt"
+    cameras, sizes = {}, set()
+    for line_number, line in _data_lines(cameras_path):
+        tokens = line.split()
+        try:
+            camera = Camera.from_colmap(tokens[1] if len(tokens) > 1 else "",
+                                        _parse_numbers(cameras_path, line_number, tokens[4:]))
+            camera_id, size = int(tokens[0]), (int(tokens[2]), int(tokens[3]))
+        except ValueError as error:
+            raise InputError(f"{cameras_path}, line {line_number}: {error}") from None
+        cameras[camera_id] = _shift_principal_point(camera, -PIXEL_CENTER_SHIFT)
+        sizes.add(size)
+    if len(sizes) != 1:
+        raise InputError(f"{cameras_path}: expected cameras of one image size, found {sorted(sizes)}")
+    (width, height), = sizes
+    K = next(iter(cameras.values())).K
 
     images_path = folder / "images.txt"
     if not images_path.is_file():
@@ -222,7 +252,7 @@ def read_colmap_text(folder: Path) -> ColmapModel:
     # Two lines per image; the second (POINTS2D) may be blank, so blank lines only separate images.
     image_lines = [(n, line) for n, line in enumerate(images_path.read_text().splitlines(), start=1)
                    if not line.startswith("#")]
-    image_names, poses, image_uv, image_point_ids = {}, {}, {}, {}
+    image_names, poses, image_uv, image_point_ids, image_camera_ids = {}, {}, {}, {}, {}
     cursor = 0
     while cursor < len(image_lines):
         pose_line, header = image_lines[cursor]
@@ -239,6 +269,7 @@ def read_colmap_text(folder: Path) -> ColmapModel:
         values = _parse_numbers(images_path, pose_line, tokens[1:8])
         poses[image_id] = CameraPose(R=quaternion_to_rotation(values[:4]), t=values[4:7])
         image_names[image_id] = tokens[9]
+        image_camera_ids[image_id] = int(tokens[8])
         triples = _parse_numbers(images_path, points_line, points2d.split())
         if triples.size % 3:
             raise InputError(f"{images_path}, line {points_line}: POINTS2D must be X, Y, POINT3D_ID triples")
@@ -258,7 +289,8 @@ def read_colmap_text(folder: Path) -> ColmapModel:
         errors.append(values[7])
         tracks.append(values[8:].astype(np.int64).reshape(-1, 2))
     return ColmapModel(
-        K=K, width=width, height=height, image_names=image_names, poses=poses, image_uv=image_uv,
+        K=K, width=width, height=height, cameras=cameras, image_camera_ids=image_camera_ids,
+        image_names=image_names, poses=poses, image_uv=image_uv,
         image_point_ids=image_point_ids, point_ids=np.array(point_ids, np.int64),
         points=np.array(points, float).reshape(-1, 3), colors=np.array(colors, np.uint8).reshape(-1, 3),
         errors=np.array(errors, float), tracks=tracks,
@@ -315,29 +347,37 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 # --- transforms.json ------------------------------------------------------------------------------
 
+def _intrinsics_fields(camera: Camera) -> dict:
+    """fl_x fl_y cx cy k1 k2 p1 p2 of nerfstudio's OPENCV model (every model here is a special case)."""
+    return {"fl_x": float(camera.fx), "fl_y": float(camera.fy),
+            "cx": float(camera.cx) + PIXEL_CENTER_SHIFT, "cy": float(camera.cy) + PIXEL_CENTER_SHIFT,
+            "k1": float(camera.k1), "k2": float(camera.k2), "p1": float(camera.p1), "p2": float(camera.p2)}
+
+
 def transforms_dict(
-    K: np.ndarray,
+    camera: Camera | np.ndarray,
     width: int,
     height: int,
     frames: Sequence[tuple[str, CameraPose]],
     ply_file_path: str | None = None,
+    frame_cameras: Sequence[Camera] | None = None,
 ) -> dict:
-    """nerfstudio / instant-ngp `transforms.json` content; frames = (file_path, world-to-camera pose)."""
-    fx, fy = float(K[0, 0]), float(K[1, 1])
+    """nerfstudio / instant-ngp `transforms.json` content; frames = (file_path, world-to-camera pose).
+
+    `camera` (a Camera or 3x3 K) gives the file's intrinsics; `frame_cameras` (one per frame, for
+    per-image cameras) adds each frame's own, which nerfstudio prefers over the file's."""
+    camera = as_camera(camera)
     content = {
         "camera_model": "OPENCV",
-        "fl_x": fx,
-        "fl_y": fy,
-        "cx": float(K[0, 2]) + PIXEL_CENTER_SHIFT,
-        "cy": float(K[1, 2]) + PIXEL_CENTER_SHIFT,
+        **_intrinsics_fields(camera),
         "w": int(width),
         "h": int(height),
-        "camera_angle_x": 2 * math.atan(width / (2 * fx)),
-        "camera_angle_y": 2 * math.atan(height / (2 * fy)),
-        "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        "camera_angle_x": 2 * math.atan(width / (2 * float(camera.fx))),
+        "camera_angle_y": 2 * math.atan(height / (2 * float(camera.fy))),
         "frames": [
-            {"file_path": file_path, "transform_matrix": opencv_pose_to_opengl_c2w(pose).tolist()}
-            for file_path, pose in frames
+            {"file_path": file_path, "transform_matrix": opencv_pose_to_opengl_c2w(pose).tolist(),
+             **(_intrinsics_fields(frame_cameras[f]) if frame_cameras is not None else {})}
+            for f, (file_path, pose) in enumerate(frames)
         ],
     }
     if ply_file_path is not None:

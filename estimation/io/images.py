@@ -1,12 +1,18 @@
-"""The images folder and the calibration: which images, their ids and size, and the 3x3 K."""
+"""The images folder and the calibration: which images, their ids and size, the 3x3 K, and what the
+photos' EXIF says about the focal length.
+
+Images are used as they are displayed: the EXIF orientation is applied when loading (and the width and
+height of a rotated photo swap), so pixels, K and every output refer to the upright image.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
 
 from estimation.errors import InputError
 
@@ -17,6 +23,12 @@ MIN_IMAGES = 2
 K_LAST_ROW_TOLERANCE = 1e-9
 SINGULAR_CONDITION = 1e12
 """K whose condition number exceeds this is treated as singular."""
+ROTATED_ORIENTATIONS = (5, 6, 7, 8)
+"""EXIF orientations that turn the stored image by 90 degrees (width and height swap)."""
+FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
+"""The 35 mm equivalent focal length is defined on the diagonal of a 36x24 mm frame (CIPA DC-008)."""
+MM_PER_RESOLUTION_UNIT = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}
+"""EXIF FocalPlaneResolutionUnit -> millimetres (1: none, read as inches as the standard's default)."""
 
 
 @dataclass(frozen=True)
@@ -43,11 +55,19 @@ def _sort_key(path: Path) -> tuple[int, float, str]:
     return (0, int(stem), path.name) if stem.isdigit() else (1, 0.0, path.name)
 
 
+def _upright_size(image: Image.Image) -> tuple[int, int]:
+    """(width, height) of the image as displayed: swapped when its EXIF orientation turns it 90 degrees."""
+    width, height = image.size
+    rotated = image.getexif().get(ExifTags.Base.Orientation) in ROTATED_ORIENTATIONS
+    return (height, width) if rotated else (width, height)
+
+
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) read from the file header; InputError if it is not a readable image."""
+    """(width, height) of the upright image (EXIF orientation applied), read from the file header;
+    InputError if it is not a readable image."""
     try:
         with Image.open(path) as image:
-            return image.size
+            return _upright_size(image)
     except (UnidentifiedImageError, OSError) as error:
         raise InputError(f"{path}: not a readable PNG/JPEG image ({error})") from None
 
@@ -84,10 +104,10 @@ def list_images(folder: Path, min_images: int = MIN_IMAGES) -> ImageSet:
 
 
 def load_rgb(path: Path) -> np.ndarray:
-    """(H, W, 3) uint8 RGB pixels of an image file."""
+    """(H, W, 3) uint8 RGB pixels of an image file, upright (its EXIF orientation applied)."""
     try:
         with Image.open(path) as image:
-            return np.asarray(image.convert("RGB"))
+            return np.asarray(ImageOps.exif_transpose(image).convert("RGB"))
     except (UnidentifiedImageError, OSError) as error:
         raise InputError(f"{path}: not a readable PNG/JPEG image ({error})") from None
 
@@ -134,6 +154,69 @@ def load_calibration(path: Path) -> np.ndarray:
     return parse_calibration(text, str(path))
 
 
-def find_calibration(folder: Path, override: Path | None = None) -> np.ndarray:
-    """K from `override` when given, else from calibration.txt in the images folder."""
+def find_calibration(folder: Path, override: Path | None = None) -> np.ndarray | None:
+    """K from `override` when given (it must exist), else from calibration.txt in the images folder
+    when there is one, else None (the camera is then calibrated from EXIF or a prior)."""
+    if override is None and not (Path(folder) / CALIBRATION_FILE_NAME).exists():
+        return None
     return load_calibration(Path(override) if override is not None else Path(folder) / CALIBRATION_FILE_NAME)
+
+
+class ExifFocal(NamedTuple):
+    """The focal length in pixels of the upright image that the EXIF gives, or why it gives none."""
+
+    focal_px: float | None
+    source: str          # "FocalLengthIn35mmFilm", "FocalLength+FocalPlaneXResolution" or "none"
+    problem: str | None  # why the EXIF was not used (absent, zero, absurd field of view ...)
+
+
+def _positive(value: object) -> float | None:
+    """The EXIF rational/number as a finite positive float, else None."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return number if np.isfinite(number) and number > 0 else None
+
+
+def exif_focal(path: Path, field_of_view_deg: tuple[float, float]) -> ExifFocal:
+    """f_px = f35 / 43.27 mm * image diagonal (35 mm equivalent), else f_mm * FocalPlaneXResolution / unit
+    (scaled by width / ExifImageWidth when the file was resized). A focal whose field of view across the
+    larger side lies outside `field_of_view_deg` (min, max) is rejected as a lie."""
+    path = Path(path)
+    try:
+        with Image.open(path) as image:
+            raw_width, raw_height = image.size
+            width, height = _upright_size(image)
+            exif = image.getexif().get_ifd(ExifTags.IFD.Exif)
+    except (UnidentifiedImageError, OSError) as error:
+        raise InputError(f"{path}: not a readable PNG/JPEG image ({error})") from None
+    tags = ExifTags.Base
+    candidates: list[tuple[str, float | None, str]] = []
+    if tags.FocalLengthIn35mmFilm in exif:
+        f35 = _positive(exif[tags.FocalLengthIn35mmFilm])
+        focal_px = f35 / FULL_FRAME_DIAGONAL_MM * float(np.hypot(width, height)) if f35 else None
+        candidates.append(("FocalLengthIn35mmFilm", focal_px,
+                           f"FocalLengthIn35mmFilm = {exif[tags.FocalLengthIn35mmFilm]}"))
+    if tags.FocalLength in exif and tags.FocalPlaneXResolution in exif:
+        focal_mm = _positive(exif[tags.FocalLength])
+        per_unit = _positive(exif[tags.FocalPlaneXResolution])
+        unit_mm = MM_PER_RESOLUTION_UNIT.get(int(exif.get(tags.FocalPlaneResolutionUnit, 2)))
+        exif_width = _positive(exif.get(tags.ExifImageWidth)) or raw_width
+        focal_px = (focal_mm * per_unit / unit_mm * raw_width / exif_width
+                    if focal_mm and per_unit and unit_mm else None)
+        candidates.append(("FocalLength+FocalPlaneXResolution", focal_px,
+                           f"FocalLength = {exif[tags.FocalLength]} mm, FocalPlaneXResolution = "
+                           f"{exif[tags.FocalPlaneXResolution]}"))
+    problems = []
+    for source, focal_px, described in candidates:
+        if focal_px is None:
+            problems.append(f"{described} is not a positive focal length")
+            continue
+        fov = float(np.degrees(2 * np.arctan(max(width, height) / (2 * focal_px))))
+        if not field_of_view_deg[0] <= fov <= field_of_view_deg[1]:
+            problems.append(f"{described} gives an absurd field of view of {fov:.3g} deg "
+                            f"(plausible: {field_of_view_deg[0]:g}..{field_of_view_deg[1]:g})")
+            continue
+        return ExifFocal(float(focal_px), source, None)
+    return ExifFocal(None, "none", "; ".join(problems) or "no EXIF focal length")

@@ -22,10 +22,12 @@ from typing import NamedTuple
 import numpy as np
 from scipy import sparse
 
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
 from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared
 from estimation.mapper.initial_pair import (
     InitialPairCandidate,
     choose_initial_pair,
@@ -100,6 +102,7 @@ class SparseModel:
     stats: ReconstructionStats
     initial_pair_diagnostics: InitialPairDiagnostics
     registration_order: list[int] = field(default_factory=list)
+    cameras: list[Camera] = field(default_factory=list)  # image index -> intrinsics (refined by the BA)
 
     @property
     def visibility(self) -> np.ndarray:
@@ -152,17 +155,11 @@ class _Thresholds:
 class _ModelBuilder:
     """Grows one model from its initial pair (orchestration of the Scene's named operations)."""
 
-    def __init__(
-        self,
-        tracks: Tracks,
-        K: np.ndarray,
-        config: ReconstructionConfig,
-        available: np.ndarray,
-        timer: _Timer,
-        progress: ProgressCallback | None,
-    ) -> None:
-        self.tracks, self.config, self.mapper = tracks, config, config.mapper
-        self.scene = Scene(tracks, K)
+    def __init__(self, tracks: Tracks, camera: CameraInput, refine: IntrinsicsRefinement,
+                 config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
+                 progress: ProgressCallback | None) -> None:
+        self.config, self.mapper = config, config.mapper
+        self.scene = Scene(tracks, camera, refine)
         self.available = available  # images no earlier model holds
         self.timer, self.progress = timer, progress
         self.rng = np.random.default_rng(config.ransac.seed)
@@ -173,7 +170,12 @@ class _ModelBuilder:
         )
         self.refinement_rounds = 0
         # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
-        self.image_size = (2.0 * K[0, 2], 2.0 * K[1, 2])
+        self.image_size = (2.0 * self.scene.K[0, 2], 2.0 * self.scene.K[1, 2])
+
+    @property
+    def tracks(self) -> Tracks:
+        """The scene's tracks, in the working pixels of its pinhole K."""
+        return self.scene.tracks
 
     @property
     def max_error(self) -> float:
@@ -427,11 +429,12 @@ def _sparse_model(
         point_track_ids=track_ids,
         obs_camera=tracks.image_index[used].copy(),
         obs_point=obs_point,
-        obs_uv=tracks.uv[used].copy(),
+        obs_uv=scene.observed_uv[used].copy(),
         point_errors=point_errors,
         stats=stats,
         initial_pair_diagnostics=diagnostics,
         registration_order=list(scene.order),
+        cameras=list(scene.cameras),
     )
 
 
@@ -456,9 +459,10 @@ def _why_no_model(
 
 def reconstruct_models(
     tracks: Tracks,
-    K: np.ndarray,
+    camera: CameraInput,
     config: ReconstructionConfig,
     progress: ProgressCallback | None = None,
+    refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     pair_types: dict[tuple[int, int], str] | None = None,
 ) -> list[SparseModel]:
     """Every model incremental SfM can build from the tracks, largest first.
@@ -466,13 +470,15 @@ def reconstruct_models(
     A model starts from the best initial pair among images no earlier model holds and grows until no
     image registers; models under min_model_images are discarded (their pair is not tried again).
     `pair_types` maps (i, j), i < j, to geometric verification's label; planar/panoramic pairs never start
-    a model. The geometry works in the pixel coordinates of `tracks` and `K` as given.
+    a model. `camera` (a 3x3 K, a Camera, or one Camera per image) is every image's initial camera; each
+    global BA refines the intrinsics as `refine` says, and the models' `cameras` carry the result.
     Raises DegenerateConfigurationError naming, per image, why no model could start.
     """
     num_images = len(tracks.image_names)
     if num_images < 2:
         raise InputError(f"Structure from Motion needs at least 2 images, got {num_images}")
-    K = np.asarray(K, float)
+    first_camera = as_camera(camera) if is_shared(camera) else camera[0]
+    K = first_camera.pinhole().K
     mapper = config.mapper
     timer = _Timer()
     pairs = co_visible_pairs(tracks)
@@ -497,7 +503,7 @@ def reconstruct_models(
         if choice.candidate is None:
             break
         candidate = choice.candidate
-        builder = _ModelBuilder(tracks, K, config, available.copy(), timer, progress)
+        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress)
         with timer.stage("initial pair"):
             builder.initialize(candidate)
         builder.grow(num_images, num_images - int(available.sum()))
@@ -557,8 +563,8 @@ def reconstruct_models(
     return models
 
 
-def run_incremental(
-    tracks: Tracks, K: np.ndarray, config: ReconstructionConfig, progress: ProgressCallback | None = None
-) -> SparseModel:
+def run_incremental(tracks: Tracks, camera: CameraInput, config: ReconstructionConfig,
+                    progress: ProgressCallback | None = None,
+                    refine: IntrinsicsRefinement = IntrinsicsRefinement()) -> SparseModel:
     """The largest model of `reconstruct_models` (the others are named in its `unregistered` reasons)."""
-    return reconstruct_models(tracks, K, config, progress)[0]
+    return reconstruct_models(tracks, camera, config, progress, refine)[0]

@@ -7,15 +7,22 @@ track may be split into several points (observations that disagree), which `merg
 one point explains them all, and `complete_tracks` continues a point into newly registered images, as
 COLMAP's IncrementalTriangulator does with its correspondence graph. Everything is vectorized over flat
 observation arrays; the named methods are the only way the mapper changes the scene.
+
+Intrinsics: every image has a `Camera` (distortion included), refined by the global BA. The minimal
+solvers and triangulation work with the pinhole `K` of the first camera on `tracks.uv`, the measured
+pixels `observed_uv` transferred through each image's current camera to K; reprojection errors, the
+filters and the BA use the measured pixels and the cameras.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from estimation.config import BundleAdjustmentConfig
+from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared, transfer_pixels
 from estimation.geometry.triangulation import (
     Observations,
     observation_errors,
@@ -26,7 +33,7 @@ from estimation.geometry.triangulation import (
 from estimation.types import CameraPose, Tracks
 
 if TYPE_CHECKING:  # GTSAM loads only when a bundle adjustment runs
-    from estimation.bundle_adjustment.factor_graph import BundleAdjustmentResult
+    from estimation.bundle_adjustment.factor_graph import BundleAdjustmentResult, IntrinsicsRefinement
 
 MAX_MERGE_ROUNDS = 3
 """merge_tracks joins two points of a track per round; tracks split three ways or more need more rounds."""
@@ -35,9 +42,15 @@ MAX_MERGE_ROUNDS = 3
 class Scene:
     """Registered images (world-to-camera poses) and points over the observations of `tracks`."""
 
-    def __init__(self, tracks: Tracks, K: np.ndarray) -> None:
-        self.tracks, self.K = tracks, np.asarray(K, float)
+    def __init__(self, tracks: Tracks, camera: CameraInput,
+                 refine: IntrinsicsRefinement | None = None) -> None:
         num_images = len(tracks.image_names)
+        cameras = [as_camera(camera)] * num_images if is_shared(camera) else list(camera)
+        self.K = cameras[0].pinhole().K
+        self.refine = refine
+        self.observed_uv = tracks.uv
+        self.tracks = tracks
+        self.use_cameras(cameras)
         self.R = np.full((num_images, 3, 3), np.nan)
         self.t = np.full((num_images, 3), np.nan)
         self.registered = np.zeros(num_images, bool)
@@ -48,6 +61,13 @@ class Scene:
         self.point_alive = np.zeros(0, bool)
 
     # ------------------------------------------------------------------------------------------ images
+
+    def use_cameras(self, cameras: list[Camera]) -> None:
+        """Adopt new intrinsics per image: the working pixels follow them."""
+        self.cameras = cameras
+        source = Camera.take(cameras, self.tracks.image_index)
+        working = transfer_pixels(source, Camera.from_K(self.K), self.observed_uv)
+        self.tracks = replace(self.tracks, uv=working)
 
     def pose(self, image: int) -> CameraPose:
         return CameraPose(R=self.R[image].copy(), t=self.t[image].copy())
@@ -155,13 +175,13 @@ class Scene:
         )
 
     def errors(self, obs_ids: np.ndarray, point_ids: np.ndarray | None = None) -> np.ndarray:
-        """Reprojection error (px, inf behind the camera) of each observation against its point, or
-        against point_ids[k] when given."""
+        """Reprojection error (measured px through the image's camera, inf behind it) of each observation
+        against its point, or against point_ids[k] when given."""
         obs_ids = np.asarray(obs_ids, np.int64)
         points = self.obs_point[obs_ids] if point_ids is None else np.asarray(point_ids, np.int64)
-        return observation_errors(
-            self.K, self.observations(obs_ids, points, len(self.point_alive)), self.point_xyz
-        )
+        obs = self.observations(obs_ids, points, len(self.point_alive))._replace(uv=self.observed_uv[obs_ids])
+        camera = Camera.take(self.cameras, self.tracks.image_index[obs_ids])
+        return observation_errors(camera, obs, self.point_xyz)
 
     def triangulation_angles(self, point_ids: np.ndarray) -> np.ndarray:
         """Largest angle (deg) between two viewing rays of each given point (point_ids sorted, unique)."""
@@ -324,12 +344,13 @@ class Scene:
     def bundle_adjust(
         self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None
     ) -> BundleAdjustmentResult:
-        """Global BA (variable_images None: first image fixed, scale by the second) or local BA of the
-        points seen by `variable_images`, with the other images that see them held fixed.
+        """Global BA (variable_images None: first image fixed, scale by the second; refines the intrinsics
+        as `refine` says) or local BA of the points seen by `variable_images`, with the other images that
+        see them held fixed (intrinsics fixed).
 
         Returns the adjustment's result (costs, RMS, iterations); the scene holds the adjusted values.
         """
-        from estimation.bundle_adjustment.factor_graph import bundle_adjust
+        from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement, bundle_adjust
 
         used = self.used_observations()
         images = self.tracks.image_index
@@ -337,7 +358,9 @@ class Scene:
         position = np.full(len(self.registered), -1, np.int64)
         position[cameras] = np.arange(len(cameras))
         fixed, scale_reference = [0], 1
+        refine = self.refine or IntrinsicsRefinement()
         if variable_images is not None:
+            refine = IntrinsicsRefinement()
             local_points = np.unique(self.obs_point[used[np.isin(images[used], variable_images)]])
             used = used[np.isin(self.obs_point[used], local_points)]
             outside = np.setdiff1d(np.unique(images[used]), variable_images)
@@ -345,17 +368,15 @@ class Scene:
                 fixed, scale_reference = position[outside].tolist(), None
         point_ids, point_index = np.unique(self.obs_point[used], return_inverse=True)
         result = bundle_adjust(
-            self.K,
-            [self.pose(m) for m in cameras],
-            self.point_xyz[point_ids],
-            position[images[used]],
-            point_index,
-            self.tracks.uv[used],
-            config,
-            fixed_cameras=fixed,
-            scale_reference=scale_reference,
+            [self.cameras[m] for m in cameras], [self.pose(m) for m in cameras], self.point_xyz[point_ids],
+            position[images[used]], point_index, self.observed_uv[used], config, fixed_cameras=fixed,
+            scale_reference=scale_reference, refine=refine,
         )
         for m, pose in zip(cameras, result.poses, strict=True):
             self.set_pose(m, pose)
         self.point_xyz[point_ids] = result.points
+        if refine.refines(self.cameras[0].model):
+            refined = dict(zip(cameras, result.cameras, strict=True))
+            shared = None if refine.per_image else result.cameras[0]
+            self.use_cameras([refined.get(m, shared or camera) for m, camera in enumerate(self.cameras)])
         return result

@@ -135,10 +135,10 @@ def test_asking_for_match_files_where_there_are_none_is_an_input_error(shared_da
         reconstruct(folder, tmp_path / "out", ReconstructionConfig(features="matches"))
 
 
-def test_a_missing_calibration_is_an_input_error_naming_the_file(shared_data, tmp_path):
+def test_a_named_calibration_file_that_is_missing_is_an_input_error_naming_it(shared_data, tmp_path):
     folder = copy_images(shared_data / "unity_hall", tmp_path / "in", ["1.png", "2.png"])
-    with pytest.raises(InputError, match="calibration.txt: calibration file not found"):
-        reconstruct(folder, tmp_path / "out")
+    with pytest.raises(InputError, match="nothing.txt: calibration file not found"):
+        reconstruct(folder, tmp_path / "out", ReconstructionConfig(calibration=tmp_path / "nothing.txt"))
 
 
 def test_sift_features_also_register_all_unity_hall_images(shared_data, tmp_path):

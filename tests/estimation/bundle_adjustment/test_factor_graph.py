@@ -224,14 +224,15 @@ def test_unobserved_points_and_cameras_are_returned_unchanged():
         (lambda a: {**a, "points": a["points"][:, :2]}, "points must be"),
         (lambda a: {**a, "fixed_cameras": ()}, "fixed_cameras"),
         (lambda a: {**a, "scale_reference": 0}, "scale_reference"),
-        (lambda a: {**a, "K": np.eye(2)}, "K must"),
+        (lambda a: {**a, "camera": [a["camera"]] * 2}, "2 cameras for 3 poses"),
+        (lambda a: {**a, "camera": np.full((3, 3), np.nan)}, "intrinsics must be finite"),
     ],
 )
 def test_bad_input_raises_input_error_naming_the_argument(change, message):
     scene = make_scene(num_cameras=3, num_points=20, seed=9)
     image_index, track_index, uv = observations(scene)
     arguments = {
-        "K": scene.K,
+        "camera": scene.K,
         "poses": scene.poses,
         "points": scene.points,
         "camera_index": image_index,

@@ -103,7 +103,8 @@ def test_a_bad_calibration_is_an_input_error_naming_the_file(tmp_path, case):
         load_calibration(path)
 
 
-def test_a_missing_calibration_is_an_input_error_naming_the_expected_file(tmp_path):
-    expected = f"{tmp_path / 'calibration.txt'}: calibration file not found"
+def test_a_folder_without_calibration_has_none_but_a_named_missing_file_is_an_input_error(tmp_path):
+    assert find_calibration(tmp_path) is None
+    expected = f"{tmp_path / 'other.txt'}: calibration file not found"
     with pytest.raises(InputError, match=re.escape(expected)):
-        find_calibration(tmp_path)
+        find_calibration(tmp_path, tmp_path / "other.txt")
