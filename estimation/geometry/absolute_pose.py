@@ -1,10 +1,11 @@
 """Absolute camera pose from 2D-3D correspondences: minimal P3P inside LO-RANSAC, then non-linear refinement.
 
 The minimal solver is OpenCV's P3P (Ding et al. 2023, up to four poses per sample); every solution is
-scored. When a hypothesis beats the best consensus so far, the local optimization of LO-RANSAC
-(Chum et al. 2003, as COLMAP's LORANSAC) refits EPnP on its inliers and keeps the refit if it gathers
-more. The winner is refined by `pnp_nonlinear` (Levenberg-Marquardt on the reprojection error) on its
-inliers. The seed's 6-point DLT (`pnp.pnp_ransac`) stays available as the linear alternative.
+scored by the project's one RANSAC driver (`geometry.ransac`). When a hypothesis beats the best
+consensus so far, the driver's local optimization (LO-RANSAC, Chum et al. 2003, as COLMAP's LORANSAC)
+refits EPnP on its inliers and keeps the refit while the consensus does not shrink. The winner is
+refined by `pnp_nonlinear` (Levenberg-Marquardt on the reprojection error) on its inliers. The seed's
+6-point DLT (`pnp.pnp_ransac`) stays available as the linear alternative.
 """
 
 from __future__ import annotations
@@ -17,15 +18,12 @@ import numpy as np
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.pnp import pnp_nonlinear, projection_errors
-from estimation.geometry.ransac import random_samples, required_iterations
+from estimation.geometry.ransac import ransac
 from estimation.types import CameraPose
 
 P3P_SAMPLE_SIZE = 3
 EPNP_MIN_CORRESPONDENCES = 6
 """cv2's EPnP (and `pnp_nonlinear`) need this many correspondences."""
-HYPOTHESES_PER_BATCH = 32
-LOCAL_OPTIMIZATION_ROUNDS = 3
-"""EPnP refits on the inliers of a new best hypothesis (LO-RANSAC), at most this many while they improve."""
 
 
 class AbsolutePoseResult(NamedTuple):
@@ -34,7 +32,6 @@ class AbsolutePoseResult(NamedTuple):
     pose: CameraPose
     inlier_mask: np.ndarray  # (N,) bool: reprojection error below the threshold under `pose`
     iterations: int  # minimal samples drawn
-    local_optimizations: int  # EPnP refits that improved the consensus
 
 
 def _pose_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -76,63 +73,57 @@ def epnp(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> CameraPose | None
     return CameraPose(R=P[:, :3], t=P[:, 3])
 
 
-def _inliers(
-    K: np.ndarray, pose: CameraPose, points: np.ndarray, uv: np.ndarray, threshold: float
-) -> np.ndarray:
-    return projection_errors(K, np.concatenate([pose.R, pose.t[:, None]], axis=1), points, uv) < threshold
-
-
 def absolute_pose_ransac(
     K: np.ndarray, points: np.ndarray, uv: np.ndarray, config: RansacConfig
 ) -> AbsolutePoseResult:
-    """argmax_{R,t} #{||pi(K (R X + t)) - uv|| < pnp_threshold_px}: P3P samples, EPnP local optimization,
-    N = log(1-p)/log(1-w^3) adaptive iterations; the winner refined by Levenberg-Marquardt on its inliers."""
+    """argmax_{R,t} #{||pi(K (R X + t)) - uv|| < pnp_threshold_px}: P3P samples in the shared RANSAC driver
+    (adaptive N = log(1-p)/log(1-w^3)), EPnP refits of each new best (LO-RANSAC), then Levenberg-Marquardt
+    on the inliers."""
     points, uv, K = np.asarray(points, float), np.asarray(uv, float), np.asarray(K, float)
-    num = len(points)
-    if num < EPNP_MIN_CORRESPONDENCES:
+    if len(points) < EPNP_MIN_CORRESPONDENCES:
         raise DegenerateConfigurationError(
-            f"absolute pose needs at least {EPNP_MIN_CORRESPONDENCES} 2D-3D correspondences, got {num}"
+            f"absolute pose needs {EPNP_MIN_CORRESPONDENCES}+ 2D-3D correspondences, got {len(points)}"
         )
     threshold = config.pnp_threshold_px
-    rng = np.random.default_rng(config.seed)
-    best_pose, best_mask, best_count = None, np.zeros(num, bool), 0
-    needed, iterations, local_optimizations = config.max_iterations, 0, 0
-    while iterations < needed:
-        samples = random_samples(rng, num, P3P_SAMPLE_SIZE, HYPOTHESES_PER_BATCH)
-        iterations += HYPOTHESES_PER_BATCH
-        hypotheses = [pose for sample in samples for pose in p3p(K, points[sample], uv[sample])]
-        if not hypotheses:
-            continue
-        P = np.stack([np.concatenate([pose.R, pose.t[:, None]], axis=1) for pose in hypotheses])
-        masks = projection_errors(K, P, points, uv) < threshold
-        counts = masks.sum(axis=1)
-        best = int(np.argmax(counts))
-        if counts[best] <= best_count:
-            continue
-        best_pose, best_mask, best_count = hypotheses[best], masks[best], int(counts[best])
-        for _ in range(LOCAL_OPTIMIZATION_ROUNDS):
-            if best_count < EPNP_MIN_CORRESPONDENCES:
-                break
-            refit = epnp(K, points[best_mask], uv[best_mask])
-            if refit is None:
-                break
-            refit_mask = _inliers(K, refit, points, uv, threshold)
-            if refit_mask.sum() <= best_count:
-                break
-            best_pose, best_mask, best_count = refit, refit_mask, int(refit_mask.sum())
-            local_optimizations += 1
-        needed = required_iterations(
-            best_count / num, P3P_SAMPLE_SIZE, config.confidence, config.max_iterations
+
+    def as_matrices(poses: list[CameraPose]) -> np.ndarray:
+        return np.array([np.concatenate([pose.R, pose.t[:, None]], axis=1) for pose in poses]).reshape(
+            -1, 3, 4
         )
-    if best_pose is None or best_count < EPNP_MIN_CORRESPONDENCES:
+
+    def minimal(sample_points: np.ndarray, sample_uv: np.ndarray) -> np.ndarray:
+        return as_matrices(
+            [pose for X, x in zip(sample_points, sample_uv, strict=True) for pose in p3p(K, X, x)]
+        )
+
+    def residuals(P: np.ndarray, X: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return projection_errors(K, P, X, x)
+
+    def refit(X: np.ndarray, x: np.ndarray) -> np.ndarray:
+        pose = epnp(K, X, x) if len(X) >= EPNP_MIN_CORRESPONDENCES else None
+        return as_matrices([] if pose is None else [pose])
+
+    result = ransac(
+        (points, uv),
+        minimal,
+        P3P_SAMPLE_SIZE,
+        residuals,
+        threshold,
+        config,
+        refit=refit,
+        model_name="camera pose",
+    )
+    best_pose = CameraPose(R=result.model[:, :3], t=result.model[:, 3])
+    best_mask = result.inlier_mask
+    if best_mask.sum() < EPNP_MIN_CORRESPONDENCES:
         raise DegenerateConfigurationError(
-            f"absolute pose RANSAC found no pose with {EPNP_MIN_CORRESPONDENCES}+ inliers among {num} "
-            f"2D-3D correspondences"
+            f"absolute pose RANSAC found no pose with {EPNP_MIN_CORRESPONDENCES}+ inliers in {len(points)} "
+            "2D-3D correspondences"
         )
     refined = pnp_nonlinear(K, points[best_mask], uv[best_mask], best_pose).pose
-    refined_mask = _inliers(K, refined, points, uv, threshold)
-    if refined_mask.sum() < best_count:  # the refinement may not lose the consensus it started from
-        refined, refined_mask = best_pose, best_mask
-    return AbsolutePoseResult(
-        pose=refined, inlier_mask=refined_mask, iterations=iterations, local_optimizations=local_optimizations
+    refined_mask = (
+        projection_errors(K, np.concatenate([refined.R, refined.t[:, None]], axis=1), points, uv) < threshold
     )
+    if refined_mask.sum() < best_mask.sum():  # the refinement may not lose the consensus it started from
+        refined, refined_mask = best_pose, best_mask
+    return AbsolutePoseResult(pose=refined, inlier_mask=refined_mask, iterations=result.iterations)

@@ -78,7 +78,7 @@ class InitialPairDiagnostics:
     j: int
     uv_i: np.ndarray  # (K, 2) all putative correspondences
     uv_j: np.ndarray  # (K, 2)
-    inlier_mask: np.ndarray  # (K,) RANSAC (F) inliers
+    inlier_mask: np.ndarray  # (K,) inliers of the verified two-view model (E, or F)
     points_linear: np.ndarray  # (L, 3) DLT points of the inliers in front of both cameras
     points_nonlinear: np.ndarray  # (L, 3) the same after non-linear triangulation
     pose_i: CameraPose  # the two cameras in the initial pair's frame (i at the origin)
@@ -413,7 +413,7 @@ def _sparse_model(
         j=g.j,
         uv_i=g.uv_i,
         uv_j=g.uv_j,
-        inlier_mask=g.fundamental.inlier_mask,
+        inlier_mask=g.inlier_mask,
         points_linear=candidate.points_linear,
         points_nonlinear=candidate.points,
         pose_i=CameraPose(R=np.eye(3), t=np.zeros(3)),

@@ -1,12 +1,13 @@
 """The pair a model starts from: candidates from the image graph, each tried until one works.
 
-Candidates are the co-visible pairs ranked by shared (verified) tracks. They are evaluated in batches:
-robust F (8-point RANSAC), E = K^T F K, the chirality-checked relative pose, triangulation of the inliers,
-and their parallax. A candidate passes with enough well-conditioned points and a median triangulation
-angle at min_initial_pair_median_angle_deg; of a batch's passing candidates the one with most
-well-conditioned points wins, preferring those reaching preferred_initial_pair_angle_deg (wide baselines
-start better conditioned models). A failed candidate only records its reason: the next batch is tried
-while the graph has pairs left (COLMAP tries pairs the same way).
+Candidates are the co-visible pairs ranked by shared (verified) tracks. Each is evaluated in turn:
+geometric verification (`two_view.geometry`: E by the 5-point solver, F and H in RANSAC; planar and
+panoramic pairs are refused), the chirality-checked relative pose, triangulation of the inliers, and
+their parallax. A candidate passes with enough well-conditioned points and a median triangulation
+angle at min_initial_pair_median_angle_deg; the first reaching preferred_initial_pair_angle_deg is taken
+at once (wide baselines start better conditioned models), else the passing one with most well-conditioned
+points among the first initial_pair_candidates evaluated. A failed candidate only records its reason:
+the next is tried while the graph has pairs left (COLMAP tries pairs the same way).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import numpy as np
 from scipy import sparse
 
 from estimation.config import ReconstructionConfig
-from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.triangulation import (
     observation_errors,
     observations_for_pair,
@@ -27,7 +27,7 @@ from estimation.geometry.triangulation import (
 )
 from estimation.two_view.essential import choose_relative_pose, essential_from_fundamental
 from estimation.two_view.fundamental import MIN_CORRESPONDENCES as MIN_F_CORRESPONDENCES
-from estimation.two_view.fundamental import FundamentalResult, ransac_fundamental
+from estimation.two_view.geometry import estimate_two_view_geometry
 from estimation.types import CameraPose, Tracks
 
 EXCLUDED_PAIR_TYPES = frozenset({"planar", "panoramic", "planar_or_panoramic"})
@@ -36,14 +36,15 @@ triangulate from, or a homography explains the pair as well as F does."""
 
 
 class PairGeometry(NamedTuple):
-    """Correspondences of one image pair through shared tracks, and their robust fundamental matrix."""
+    """Correspondences of one image pair through shared tracks, and their verified essential matrix."""
 
     i: int
     j: int
     track_ids: np.ndarray
     uv_i: np.ndarray
     uv_j: np.ndarray
-    fundamental: FundamentalResult
+    E: np.ndarray  # x_j^T E x_i = 0 on normalized coordinates
+    inlier_mask: np.ndarray  # (K,) inliers of the verified model
 
 
 class InitialPairCandidate(NamedTuple):
@@ -84,10 +85,10 @@ def co_visible_pairs(tracks: Tracks) -> list[tuple[int, int, int]]:
 def evaluate_initial_pair(
     K: np.ndarray, geometry: PairGeometry, config: ReconstructionConfig
 ) -> InitialPairCandidate:
-    """E = K^T F K, chirality, DLT + non-linear triangulation of the F inliers, and their parallax."""
-    inliers = geometry.fundamental.inlier_mask
+    """Chirality of E's four poses, DLT + non-linear triangulation of the inliers, and their parallax."""
+    inliers = geometry.inlier_mask
     uv_i, uv_j = geometry.uv_i[inliers], geometry.uv_j[inliers]
-    relative = choose_relative_pose(essential_from_fundamental(geometry.fundamental.F, K), K, uv_i, uv_j)
+    relative = choose_relative_pose(geometry.E, K, uv_i, uv_j)
     front = relative.in_front
     pose_j = relative.pose
     obs = observations_for_pair(np.eye(3), np.zeros(3), pose_j.R, pose_j.t, uv_i[front], uv_j[front])
@@ -120,14 +121,17 @@ def _try_pair(
     if len(track_ids) < max(MIN_F_CORRESPONDENCES, mapper.min_initial_pair_inliers):
         need = mapper.min_initial_pair_inliers
         return f"{len(track_ids)} shared tracks, need {need} (min_initial_pair_inliers)"
-    try:
-        fundamental = ransac_fundamental(uv_i, uv_j, config.ransac)
-    except DegenerateConfigurationError as error:
-        return f"no fundamental matrix: {error}"
-    candidate = evaluate_initial_pair(K, PairGeometry(i, j, track_ids, uv_i, uv_j, fundamental), config)
+    verified = estimate_two_view_geometry(uv_i, uv_j, K, K, config.two_view, config.ransac)
+    if not verified.can_initialize:
+        return (f"geometric verification labels it {verified.type} ({verified.num_inliers_f} F, "
+                f"{verified.num_inliers_e} E, {verified.num_inliers_h} H inliers)")
+    E = verified.E if verified.E is not None else essential_from_fundamental(verified.F, K)
+    candidate = evaluate_initial_pair(
+        K, PairGeometry(i, j, track_ids, uv_i, uv_j, E, verified.inlier_mask), config
+    )
     well = int(candidate.well_conditioned.sum())
     if well < mapper.min_initial_pair_inliers:
-        return (f"{well} of {int(fundamental.inlier_mask.sum())} RANSAC inliers triangulate well conditioned "
+        return (f"{well} of {verified.num_inliers} RANSAC inliers triangulate well conditioned "
                 f"({candidate.narrow} seen at under {config.filter.min_triangulation_angle_deg} deg: "
                 f"{'too little parallax, ' if candidate.narrow > well else ''}{candidate.far_off} reproject "
                 f"beyond {config.filter.max_reprojection_px} px), need {mapper.min_initial_pair_inliers} "
@@ -145,8 +149,10 @@ def choose_initial_pair(
     config: ReconstructionConfig,
     pair_types: dict[tuple[int, int], str] | None = None,
 ) -> InitialPairChoice:
-    """The first batch of candidates (most shared tracks first) with a passing pair decides; pairs
-    labelled planar/panoramic by verification are skipped. Never raises for a failed candidate."""
+    """The first passing candidate (most shared tracks first) reaching preferred_initial_pair_angle_deg,
+    else the best passing one among the first initial_pair_candidates evaluated (or, when none of them
+    passes, the first that does later); pairs labelled planar/panoramic by verification are skipped.
+    Never raises for a failed candidate."""
     mapper = config.mapper
     failures: dict[tuple[int, int], str] = {}
     ranked = sorted(pairs, key=lambda pair: (-pair[2], pair[0], pair[1]))
@@ -161,9 +167,11 @@ def choose_initial_pair(
         evaluated += 1
         if isinstance(outcome, str):
             failures[(i, j)] = outcome
-        else:
-            batch.append(outcome)
-        if batch and evaluated % mapper.initial_pair_candidates == 0:
+            continue
+        if outcome.median_angle_deg >= mapper.preferred_initial_pair_angle_deg:
+            return InitialPairChoice(outcome, failures)
+        batch.append(outcome)
+        if evaluated >= mapper.initial_pair_candidates:
             break
     if not batch:
         return InitialPairChoice(None, failures)
