@@ -149,18 +149,26 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     """Per point, argmax over pairs (a, b) of its observations of #{o : ||r_o(DLT(a, b))|| < max_error_px}
     (pairs under min_angle_deg or behind a camera score nothing), then non-linear on the consensus.
 
-    All points at once: `hypotheses_per_point` random observation pairs per point (every pair when a point
-    has two observations), scored against all of the point's observations in one vectorized pass.
+    All points at once: `hypotheses_per_point` observation pairs per point (every pair when there are no
+    more than that, random ones otherwise), scored against all of the point's observations in one
+    vectorized pass.
     """
     order = np.argsort(obs.point_index, kind="stable")
     counts = np.bincount(obs.point_index, minlength=obs.num_points)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     H = hypotheses_per_point
-    # Pair h of point p: observations a and b != a among the point's (sorted) observations.
+    # Pair h of point p: observations a and b != a among the point's (sorted) observations; every pair in
+    # turn while h < n (n - 1) / 2 (h -> (a, b), b < a, in triangular order), random pairs beyond.
     count_ph = np.repeat(np.maximum(counts, 2), H)
-    a_offset = np.floor(rng.random(obs.num_points * H) * count_ph).astype(np.int64)
-    b_offset = (a_offset + 1 + np.floor(rng.random(obs.num_points * H) * (count_ph - 1)).astype(np.int64)
+    h = np.tile(np.arange(H), obs.num_points)
+    a_listed = np.floor((1 + np.sqrt(1 + 8 * h)) / 2).astype(np.int64)
+    b_listed = h - a_listed * (a_listed - 1) // 2
+    a_random = np.floor(rng.random(obs.num_points * H) * count_ph).astype(np.int64)
+    b_random = (a_random + 1 + np.floor(rng.random(obs.num_points * H) * (count_ph - 1)).astype(np.int64)
                 ) % count_ph
+    listed = h < count_ph * (count_ph - 1) // 2
+    a_offset = np.where(listed, a_listed, a_random)
+    b_offset = np.where(listed, b_listed, b_random)
     start_ph = np.repeat(starts, H)
     usable = np.repeat(counts >= 2, H)
     pair_obs = order[np.stack([start_ph + a_offset, start_ph + b_offset]) * usable]      # (2, P*H)
