@@ -21,10 +21,12 @@ from estimation.geometry.projection import Camera
 from estimation.io.export import transforms_dict, write_colmap_text, write_json, write_ply
 from estimation.io.images import ExifFocal, ImageSet, exif_focal, find_calibration, list_images, load_rgb
 from estimation.io.matchfile import find_match_files, load_match_tracks
-from estimation.mapper.incremental import ReprojectionSummary, SparseModel, run_incremental
+from estimation.mapper.incremental import ReprojectionSummary, SparseModel, reconstruct_models
 from estimation.types import ProgressCallback, Tracks
 
 SPARSE_DIR = "sparse"
+MODELS_DIR = "models"
+"""With export_all_models, model k >= 2 (largest first) goes to OUT/models/<k>/ (the largest is OUT/)."""
 PLY_NAME = "points.ply"
 TRANSFORMS_NAME = "transforms.json"
 REPORT_NAME = "report.json"
@@ -64,8 +66,9 @@ class ReconstructionResult:
     K: np.ndarray                    # the (first registered image's) refined K
     width: int
     height: int
-    model: SparseModel
+    model: SparseModel               # the largest model (the one written to out_dir)
     report: dict
+    models: tuple[SparseModel, ...] = ()   # every model, largest first (models[0] is `model`)
 
 
 @dataclass(frozen=True)
@@ -209,12 +212,31 @@ def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: Spars
     return report
 
 
+def model_summary(images: ImageSet, model: SparseModel) -> dict:
+    """One model in report.json's `models` list: its images, points and how it started and ended."""
+    num_points = int(len(model.points))
+    stats = model.stats
+    return {
+        "images_registered": len(model.poses),
+        "images": [images.names[i] for i in model.registration_order],
+        "points": num_points,
+        "mean_track_length": float(np.bincount(model.obs_point).mean()) if num_points else 0.0,
+        "initial_pair": list(stats.initial_pair),
+        "initial_pair_failures": dict(stats.initial_pair_failures),
+        "reprojection_error_px": _error_summary(stats.reprojection_after_ba),
+        "refinement_rounds": int(stats.refinement_rounds),
+        "relaxed_thresholds": bool(stats.relaxed_thresholds),
+        "final_ba_relative_cost_decrease": float(stats.final_cost_decrease),
+    }
+
+
 def build_report(
     images: ImageSet,
     initial: InitialIntrinsics,
     features: FeatureTracks,
     model: SparseModel,
     seconds: dict[str, float],
+    models: tuple[SparseModel, ...] = (),
 ) -> dict:
     """The report.json content: counts, errors before/after BA, inliers per pair, timings, cameras."""
     stats = model.stats
@@ -237,6 +259,7 @@ def build_report(
         "initial_pair_median_triangulation_angle_deg": float(stats.initial_pair_median_angle_deg),
         "registration_order": [images.names[i] for i in model.registration_order],
         "bundle_adjustment_iterations": int(stats.bundle_adjustment_iterations),
+        "models": [model_summary(images, each) for each in (models or (model,))],
         "seconds_per_stage": seconds,
         "seconds_total": float(sum(seconds.values())),
         "features": {"source": features.source, "tracks": features.tracks.num_tracks,
@@ -322,9 +345,10 @@ def reconstruct(
         features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end))
 
     camera = initial.cameras if initial.refine.per_image else initial.cameras[0]
-    model = run_incremental(features.tracks, camera, config,
-                            progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
-                            refine=initial.refine)
+    models = tuple(reconstruct_models(features.tracks, camera, config,
+                                      progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
+                                      refine=initial.refine))
+    model = models[0]
     seconds.update({name: float(value) for name, value in model.stats.stage_seconds.items()})
 
     report_output = _scaled(progress, PROGRESS_PIPELINE_END, 1.0)
@@ -332,13 +356,18 @@ def reconstruct(
     out_dir.mkdir(parents=True, exist_ok=True)
     with _timed(seconds, "export"):
         outputs = write_outputs(out_dir, images, model, single_camera=not initial.refine.per_image)
+        if config.mapper.export_all_models:
+            for number, other in enumerate(models[1:], start=2):
+                written = write_outputs(out_dir / MODELS_DIR / str(number), images, other,
+                                        single_camera=not initial.refine.per_image)
+                outputs.update({f"model_{number}_{name}": path for name, path in written.items()})
     if config.write_figures:
         report_output("writing figures", 0.5)
         with _timed(seconds, "figures"):
             outputs.update(write_figures(out_dir, images, model))
-    report = build_report(images, initial, features, model, seconds)
+    report = build_report(images, initial, features, model, seconds, models)
     report["outputs"] = {name: os.path.relpath(path, out_dir) for name, path in outputs.items()}
     write_json(out_dir / REPORT_NAME, report)
     report_output("finished", 1.0)
     return ReconstructionResult(out_dir=out_dir, K=_registered_cameras(model)[0].K, width=images.width,
-                                height=images.height, model=model, report=report)
+                                height=images.height, model=model, report=report, models=models)

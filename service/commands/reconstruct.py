@@ -54,12 +54,16 @@ class StageProgressBars:
               help="3x3 K file; default: calibration.txt in IMAGES_DIR.")
 @click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True,
               help="auto: the folder's matching{i}.txt files when present, else SIFT.")
-def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str) -> None:
+@click.option("--all-models", is_flag=True,
+              help="Also write every smaller model (images no model could join) to OUT/models/<k>/.")
+def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str,
+                all_models: bool) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
     from estimation import reconstruct as run_reconstruction
 
-    config = ReconstructionConfig(features=features, calibration=calibration)
+    config = ReconstructionConfig(features=features, calibration=calibration,
+                                  mapper={"export_all_models": all_models})
     try:
         with StageProgressBars() as progress:
             result = run_reconstruction(images_dir, out_dir, config, progress=progress)
@@ -75,6 +79,11 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
         f"{report['points']} points, "
         f"reprojection error after BA: RMS {after['rms']:.3f} px, median {after['median']:.3f} px"
     )
+    if len(report["models"]) > 1:
+        sizes = ", ".join(str(model["images_registered"]) for model in report["models"])
+        where = "OUT/models/<k>/" if all_models else "report.json (--all-models writes them)"
+        click.echo(f"{len(report['models'])} models ({sizes} images); the largest is written, the others "
+                   f"are in {where}")
     for entry in report["unregistered"]:
         click.echo(f"not registered: {entry['image']} ({entry['reason']})")
     click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "
