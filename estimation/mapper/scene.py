@@ -35,6 +35,11 @@ from estimation.types import CameraPose, Tracks
 if TYPE_CHECKING:  # GTSAM loads only when a bundle adjustment runs
     from estimation.bundle_adjustment.factor_graph import BundleAdjustmentResult, IntrinsicsRefinement
 
+TWO_VIEW_ERROR_FACTOR = 0.5
+"""A two-view point is fitted to both rays, so each of its reprojection errors is about half the pair's
+epipolar distance: half the limit keeps two-view points as consistent as the pair's verification (and
+drops the wrong matches lying up to twice that far from the epipolar line, which nothing else can
+reveal; measured on synthetic rings, they were the largest error left)."""
 MAX_MERGE_ROUNDS = 3
 """merge_tracks joins two points of a track per round; tracks split three ways or more need more rounds."""
 
@@ -325,14 +330,16 @@ class Scene:
     def filter_points(
         self, max_error_px: float, min_angle_deg: float, point_ids: np.ndarray | None = None
     ) -> int:
-        """Drop observations reprojecting beyond max_error_px (or behind their camera), then points with
-        fewer than two observations or a triangulation angle below min_angle_deg. Returns the number of
-        observations removed."""
+        """Drop observations reprojecting beyond max_error_px (two-view points: TWO_VIEW_ERROR_FACTOR times
+        that) or behind their camera, then points with fewer than two observations or a triangulation
+        angle below min_angle_deg. Returns the number of observations removed."""
         used = self.used_observations()
         if point_ids is not None:
             used = used[np.isin(self.obs_point[used], point_ids)]
         before = len(self.used_observations())
-        self.remove_observations(used[self.errors(used) > max_error_px])
+        two_view = self.point_observation_counts()[self.obs_point[used]] == 2
+        limit = np.where(two_view, TWO_VIEW_ERROR_FACTOR * max_error_px, max_error_px)
+        self.remove_observations(used[self.errors(used) > limit])
         candidates = np.flatnonzero(self.point_alive)
         if point_ids is not None:
             candidates = np.intersect1d(candidates, point_ids)

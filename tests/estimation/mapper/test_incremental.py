@@ -212,9 +212,7 @@ def test_an_object_capture_in_shuffled_file_order_with_30_percent_outliers_regis
     assert sorted(model.poses) == list(range(num_cameras)), model.unregistered
     errors = pose_errors(model, scene)
     assert errors.rotation_deg.mean() < 0.2
-    # The worst camera: two-view points whose second observation is an outlier near the epipolar line
-    # cannot be told from true ones and pull on it (~25 of ~5000 observations).
-    assert errors.rotation_deg.max() < 0.75
+    assert errors.rotation_deg.max() < 0.4
     assert errors.center.max() < 0.01 * scene.scene_size
     assert np.bincount(model.obs_point).mean() > 3        # tracks continue beyond their first pair
 
