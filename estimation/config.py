@@ -133,8 +133,8 @@ class MapperConfig(BaseModel):
         8.0, gt=0, description="Of a batch's passing candidates, those reaching this median angle win."
     )
     initial_pair_candidates: int = Field(
-        10, ge=1, description="Candidate pairs (most shared tracks first) evaluated per batch; when none "
-        "of a batch works, the next batch is tried until the image graph has no pair left.",
+        10, ge=1, description="Passing initial-pair candidates (most shared tracks first) compared when "
+        "none reaches preferred_initial_pair_angle_deg; failed ones are skipped until the graph has no pair.",
     )
     min_pnp_correspondences: int = Field(
         6, ge=6, description="Fewest 2D-3D matches to try registering an image."

@@ -5,8 +5,8 @@ geometric verification (`two_view.geometry`: E by the 5-point solver, F and H in
 panoramic pairs are refused), the chirality-checked relative pose, triangulation of the inliers, and
 their parallax. A candidate passes with enough well-conditioned points and a median triangulation
 angle at min_initial_pair_median_angle_deg; the first reaching preferred_initial_pair_angle_deg is taken
-at once (wide baselines start better conditioned models), else the passing one with most well-conditioned
-points among the first initial_pair_candidates evaluated. A failed candidate only records its reason:
+at once (wide baselines start better conditioned models), else the one with most well-conditioned points
+among the first initial_pair_candidates passing ones. A failed candidate only records its reason:
 the next is tried while the graph has pairs left (COLMAP tries pairs the same way).
 """
 
@@ -150,28 +150,25 @@ def choose_initial_pair(
     pair_types: dict[tuple[int, int], str] | None = None,
 ) -> InitialPairChoice:
     """The first passing candidate (most shared tracks first) reaching preferred_initial_pair_angle_deg,
-    else the best passing one among the first initial_pair_candidates evaluated (or, when none of them
-    passes, the first that does later); pairs labelled planar/panoramic by verification are skipped.
-    Never raises for a failed candidate."""
+    else the best of the first initial_pair_candidates passing ones (or of all that pass); pairs labelled
+    planar/panoramic by verification are skipped. Never raises for a failed candidate."""
     mapper = config.mapper
     failures: dict[tuple[int, int], str] = {}
     ranked = sorted(pairs, key=lambda pair: (-pair[2], pair[0], pair[1]))
     batch: list[InitialPairCandidate] = []
-    evaluated = 0
     for i, j, _ in ranked:
         label = (pair_types or {}).get((i, j))
         if label in EXCLUDED_PAIR_TYPES:
             failures[(i, j)] = f"geometric verification labels it {label}"
             continue
         outcome = _try_pair(K, tracks, i, j, config)
-        evaluated += 1
         if isinstance(outcome, str):
             failures[(i, j)] = outcome
             continue
         if outcome.median_angle_deg >= mapper.preferred_initial_pair_angle_deg:
             return InitialPairChoice(outcome, failures)
         batch.append(outcome)
-        if evaluated >= mapper.initial_pair_candidates:
+        if len(batch) >= mapper.initial_pair_candidates:
             break
     if not batch:
         return InitialPairChoice(None, failures)
