@@ -24,18 +24,21 @@ Sets (../shared/data):
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import shutil
-import sys
-import tempfile
-import time
-from dataclasses import dataclass
-from pathlib import Path
 
-import numpy as np
-from PIL import Image
+os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap: warnings and errors only, before it loads
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from PIL import Image  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
