@@ -159,6 +159,7 @@ def unity_hall_problem(data_dir: Path) -> Problem:
     import estimation.bundle_adjustment.factor_graph as bundle_adjustment_module
     from estimation.api import extract_tracks
     from estimation.config import ReconstructionConfig
+    from estimation.geometry.projection import as_camera, is_shared
     from estimation.io.images import find_calibration, list_images
     from estimation.mapper.incremental import run_incremental
 
@@ -166,11 +167,12 @@ def unity_hall_problem(data_dir: Path) -> Problem:
     original = bundle_adjustment_module.bundle_adjust
 
     def recording(
-        K, poses, points, camera_index, point_index, uv, config, fixed_cameras=(0,), scale_reference=1
+        camera, poses, points, camera_index, point_index, uv, config, fixed_cameras=(0,), scale_reference=1,
+        **options,
     ):
         calls.append(
             {
-                "K": K,
+                "K": as_camera(camera if is_shared(camera) else camera[0]).K,
                 "poses": list(poses),
                 "points": np.array(points),
                 "camera_index": camera_index,
@@ -181,7 +183,8 @@ def unity_hall_problem(data_dir: Path) -> Problem:
             }
         )
         return original(
-            K, poses, points, camera_index, point_index, uv, config, fixed_cameras, scale_reference
+            camera, poses, points, camera_index, point_index, uv, config, fixed_cameras, scale_reference,
+            **options,
         )
 
     config = ReconstructionConfig(write_figures=False)
