@@ -72,7 +72,9 @@ class FilterConfig(BaseModel):
     """Which triangulated points are kept."""
 
     max_reprojection_px: float = Field(4.0, gt=0, description="Drop points whose error exceeds this.")
-    min_triangulation_angle_deg: float = Field(1.0, ge=0, description="Drop points seen at smaller angles.")
+    min_triangulation_angle_deg: float = Field(
+        1.5, ge=0, description="Drop points seen at smaller angles (COLMAP's filter_min_tri_angle)."
+    )
 
 
 class SiftConfig(BaseModel):
