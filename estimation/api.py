@@ -79,9 +79,11 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 
 
 def extract_tracks(
-    images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None
+    images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
+    K: np.ndarray | None = None,
 ) -> FeatureTracks:
-    """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`)."""
+    """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
+    pairs are verified with E when K is given, else with F."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -93,13 +95,21 @@ def extract_tracks(
         return FeatureTracks(parsed.tracks, source, details)
     from estimation.features.sift import sift_tracks  # OpenCV is only needed here
 
-    result = sift_tracks(images, config.sift, ransac=config.ransac, progress=report)
+    result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
+                         progress=report)
     details = {
         "keypoints_per_image": dict(zip(images.names, result.keypoints_per_image, strict=True)),
         "matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                              for (i, j), n in result.matches_per_pair.items()},
         "verified_matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                                       for (i, j), n in result.verified_per_pair.items()},
+        "two_view_geometry_per_pair": {
+            f"{images.names[i]}|{images.names[j]}": {
+                "type": geometry.type.value, "inliers": geometry.num_inliers,
+                "h_e_inlier_ratio": round(geometry.h_e_inlier_ratio, 4),
+            }
+            for (i, j), geometry in result.two_view.items()
+        },
         "rejected_links": result.num_rejected_links,
     }
     return FeatureTracks(result.tracks, source, details)
@@ -214,7 +224,7 @@ def reconstruct(
 
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]
     with _timed(seconds, "features"):
-        features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end))
+        features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end), K=K)
 
     model = run_incremental(features.tracks, K, config,
                             progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END))
