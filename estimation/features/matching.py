@@ -36,36 +36,43 @@ def matching_device(device: str) -> torch.device:
     return torch.device(device)
 
 
-def match_one_to_many(descriptors_a: np.ndarray, partners: list[np.ndarray], ratio: float,
-                      device: torch.device = torch.device("cpu")) -> list[DescriptorMatches]:
-    """Per partner b: nearest neighbours a -> b with d1 < ratio * d2 whose b -> a nearest is the same a."""
-    if len(descriptors_a) < 2:
-        return [EMPTY_MATCHES] * len(partners)
-    usable = [k for k, b in enumerate(partners) if len(b) >= 2]
-    results = [EMPTY_MATCHES] * len(partners)
-    if not usable:
-        return results
-    width = max(len(partners[k]) for k in usable)
-    stacked = torch.zeros((len(usable), width, descriptors_a.shape[1]), dtype=torch.float32, device=device)
-    squared_b = torch.full((len(usable), width), float("inf"), device=device)
-    for row, k in enumerate(usable):
-        b = torch.as_tensor(partners[k], dtype=torch.float32, device=device)
-        stacked[row, : len(b)] = b
-        squared_b[row, : len(b)] = (b * b).sum(dim=1)
-    a = torch.as_tensor(descriptors_a, dtype=torch.float32, device=device)
-    squared_a = (a * a).sum(dim=1)
-    flat_b = stacked.reshape(-1, stacked.shape[-1])
+class DescriptorSet(NamedTuple):
+    """One image's descriptors as a float32 tensor on the matching device, with their squared norms."""
 
+    descriptors: torch.Tensor      # (N, D)
+    squared_norms: torch.Tensor    # (N,)
+
+
+def descriptor_set(descriptors: np.ndarray, device: torch.device) -> DescriptorSet:
+    tensor = torch.as_tensor(np.asarray(descriptors, np.float32), device=device)
+    return DescriptorSet(tensor, (tensor * tensor).sum(dim=1))
+
+
+def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio: float, max_distance: float
+                      ) -> list[DescriptorMatches]:
+    """Per partner b: nearest neighbours a -> b with d1 < ratio * d2 and d1 < max_distance whose b -> a
+    nearest neighbour is the same a (Euclidean distances d)."""
+    results = [EMPTY_MATCHES] * len(partners)
+    usable = [k for k, b in enumerate(partners) if len(b.descriptors) >= 2]
+    if len(query.descriptors) < 2 or not usable:
+        return results
+    device = query.descriptors.device
+    stacked = torch.nn.utils.rnn.pad_sequence([partners[k].descriptors for k in usable], batch_first=True)
+    squared_b = torch.nn.utils.rnn.pad_sequence([partners[k].squared_norms for k in usable], batch_first=True,
+                                                padding_value=float("inf"))
+    num_partners, width = squared_b.shape
+    flat_b, flat_squared_b = stacked.reshape(num_partners * width, -1), squared_b.reshape(1, -1)
+    a, squared_a = query
     num_a = len(a)
-    top_distance = torch.empty((num_a, len(usable), 2), device=device)
-    top_index = torch.empty((num_a, len(usable)), dtype=torch.int64, device=device)
-    nearest_a_distance = torch.full((len(usable), width), float("inf"), device=device)
-    nearest_a = torch.zeros((len(usable), width), dtype=torch.int64, device=device)
-    block = max(1, DISTANCE_BLOCK_ELEMENTS // max(1, flat_b.shape[0]))
+    top_distance = torch.empty((num_a, num_partners, 2), device=device)
+    top_index = torch.empty((num_a, num_partners), dtype=torch.int64, device=device)
+    nearest_a_distance = torch.full((num_partners, width), float("inf"), device=device)
+    nearest_a = torch.zeros((num_partners, width), dtype=torch.int64, device=device)
+    block = max(1, DISTANCE_BLOCK_ELEMENTS // (num_partners * width))
     for start in range(0, num_a, block):
         stop = min(start + block, num_a)
-        distance = (squared_a[start:stop, None] + squared_b.reshape(1, -1)
-                    - 2.0 * (a[start:stop] @ flat_b.T)).reshape(stop - start, len(usable), width)
+        distance = torch.addmm(squared_a[start:stop, None] + flat_squared_b, a[start:stop], flat_b.T,
+                               alpha=-2.0).reshape(stop - start, num_partners, width)
         top = torch.topk(distance, 2, dim=2, largest=False)
         top_distance[start:stop] = top.values
         top_index[start:stop] = top.indices[:, :, 0]
@@ -77,7 +84,7 @@ def match_one_to_many(descriptors_a: np.ndarray, partners: list[np.ndarray], rat
     distances = top_distance.clamp_min(0.0).sqrt()
     ratios = distances[..., 0] / distances[..., 1].clamp_min(torch.finfo(torch.float32).tiny)
     mutual = torch.gather(nearest_a.T, 0, top_index) == torch.arange(num_a, device=device)[:, None]
-    accepted = (distances[..., 0] < ratio * distances[..., 1]) & mutual
+    accepted = (ratios < ratio) & (distances[..., 0] < max_distance) & mutual
     accepted, top_index, ratios = accepted.cpu().numpy(), top_index.cpu().numpy(), ratios.cpu().numpy()
     for row, k in enumerate(usable):
         index_a = np.flatnonzero(accepted[:, row])
@@ -86,20 +93,24 @@ def match_one_to_many(descriptors_a: np.ndarray, partners: list[np.ndarray], rat
 
 
 def match_descriptors(descriptors_a: np.ndarray, descriptors_b: np.ndarray, ratio: float,
-                      device: torch.device = torch.device("cpu")) -> DescriptorMatches:
-    """Nearest neighbours a -> b passing d1 < ratio * d2 whose b -> a nearest neighbour is the same a."""
-    return match_one_to_many(descriptors_a, [descriptors_b], ratio, device)[0]
+                      max_distance: float = np.inf) -> DescriptorMatches:
+    """Nearest neighbours a -> b passing d1 < ratio * d2 (and d1 < max_distance) whose b -> a nearest
+    neighbour is the same a, on the CPU."""
+    cpu = torch.device("cpu")
+    return match_one_to_many(descriptor_set(descriptors_a, cpu), [descriptor_set(descriptors_b, cpu)], ratio,
+                             max_distance)[0]
 
 
 def match_pairs(descriptors: list[np.ndarray], pairs: list[tuple[int, int]], ratio: float,
-                device: torch.device = torch.device("cpu")) -> dict[tuple[int, int], DescriptorMatches]:
+                max_distance: float = np.inf, device: torch.device = torch.device("cpu")
+                ) -> dict[tuple[int, int], DescriptorMatches]:
     """Matches of every pair (i, j), each image i matched against all its partners j in one batch."""
+    sets = [descriptor_set(d, device) for d in descriptors]
     partners_of: dict[int, list[int]] = defaultdict(list)
     for i, j in pairs:
         partners_of[i].append(j)
     matches = {}
     for i, partners in partners_of.items():
-        for j, result in zip(partners, match_one_to_many(descriptors[i], [descriptors[j] for j in partners],
-                                                         ratio, device), strict=True):
-            matches[(i, j)] = result
+        results = match_one_to_many(sets[i], [sets[j] for j in partners], ratio, max_distance)
+        matches.update({(i, j): result for j, result in zip(partners, results, strict=True)})
     return matches

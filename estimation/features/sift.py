@@ -118,7 +118,7 @@ def sift_tracks(
 
     pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
     report("matching", DETECTION_SHARE)
-    matches = match_pairs([f.descriptors for f in features], pairs, config.ratio,
+    matches = match_pairs([f.descriptors for f in features], pairs, config.ratio, config.max_distance,
                           matching_device(config.device))
     report("matching", DETECTION_SHARE + MATCHING_SHARE)
 
