@@ -37,32 +37,35 @@ def matching_device(device: str) -> torch.device:
 
 
 class DescriptorSet(NamedTuple):
-    """One image's descriptors as a float32 tensor on the matching device, with their squared norms."""
+    """One image's descriptors (N, D) float32 and their squared norms (N,), as numpy arrays."""
 
-    descriptors: torch.Tensor      # (N, D)
-    squared_norms: torch.Tensor    # (N,)
-
-
-def descriptor_set(descriptors: np.ndarray, device: torch.device) -> DescriptorSet:
-    tensor = torch.as_tensor(np.asarray(descriptors, np.float32), device=device)
-    return DescriptorSet(tensor, (tensor * tensor).sum(dim=1))
+    descriptors: np.ndarray
+    squared_norms: np.ndarray
 
 
-def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio: float, max_distance: float
-                      ) -> list[DescriptorMatches]:
+def descriptor_set(descriptors: np.ndarray) -> DescriptorSet:
+    descriptors = np.ascontiguousarray(descriptors, np.float32)
+    return DescriptorSet(descriptors, np.einsum("nd,nd->n", descriptors, descriptors))
+
+
+def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio: float, max_distance: float,
+                      device: torch.device = torch.device("cpu")) -> list[DescriptorMatches]:
     """Per partner b: nearest neighbours a -> b with d1 < ratio * d2 and d1 < max_distance whose b -> a
     nearest neighbour is the same a (Euclidean distances d)."""
     results = [EMPTY_MATCHES] * len(partners)
     usable = [k for k, b in enumerate(partners) if len(b.descriptors) >= 2]
     if len(query.descriptors) < 2 or not usable:
         return results
-    device = query.descriptors.device
-    stacked = torch.nn.utils.rnn.pad_sequence([partners[k].descriptors for k in usable], batch_first=True)
-    squared_b = torch.nn.utils.rnn.pad_sequence([partners[k].squared_norms for k in usable], batch_first=True,
-                                                padding_value=float("inf"))
-    num_partners, width = squared_b.shape
-    flat_b, flat_squared_b = stacked.reshape(num_partners * width, -1), squared_b.reshape(1, -1)
-    a, squared_a = query
+    # Padding: zero descriptors at infinite distance (their squared norm is +inf).
+    num_partners, width = len(usable), max(len(partners[k].descriptors) for k in usable)
+    stacked = np.zeros((num_partners, width, query.descriptors.shape[1]), np.float32)
+    squared_b = np.full((num_partners, width), np.inf, np.float32)
+    for row, k in enumerate(usable):
+        stacked[row, : len(partners[k].descriptors)] = partners[k].descriptors
+        squared_b[row, : len(partners[k].descriptors)] = partners[k].squared_norms
+    flat_b = torch.from_numpy(stacked.reshape(num_partners * width, -1)).to(device)
+    flat_squared_b = torch.from_numpy(squared_b.reshape(1, -1)).to(device)
+    a, squared_a = (torch.from_numpy(array).to(device) for array in query)
     num_a = len(a)
     top_distance = torch.empty((num_a, num_partners, 2), device=device)
     top_index = torch.empty((num_a, num_partners), dtype=torch.int64, device=device)
@@ -95,9 +98,8 @@ def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio
 def match_descriptors(descriptors_a: np.ndarray, descriptors_b: np.ndarray, ratio: float,
                       max_distance: float = np.inf) -> DescriptorMatches:
     """Nearest neighbours a -> b passing d1 < ratio * d2 (and d1 < max_distance) whose b -> a nearest
-    neighbour is the same a, on the CPU."""
-    cpu = torch.device("cpu")
-    return match_one_to_many(descriptor_set(descriptors_a, cpu), [descriptor_set(descriptors_b, cpu)], ratio,
+    neighbour is the same a."""
+    return match_one_to_many(descriptor_set(descriptors_a), [descriptor_set(descriptors_b)], ratio,
                              max_distance)[0]
 
 
@@ -105,12 +107,12 @@ def match_pairs(descriptors: list[np.ndarray], pairs: list[tuple[int, int]], rat
                 max_distance: float = np.inf, device: torch.device = torch.device("cpu")
                 ) -> dict[tuple[int, int], DescriptorMatches]:
     """Matches of every pair (i, j), each image i matched against all its partners j in one batch."""
-    sets = [descriptor_set(d, device) for d in descriptors]
+    sets = [descriptor_set(d) for d in descriptors]
     partners_of: dict[int, list[int]] = defaultdict(list)
     for i, j in pairs:
         partners_of[i].append(j)
     matches = {}
     for i, partners in partners_of.items():
-        results = match_one_to_many(sets[i], [sets[j] for j in partners], ratio, max_distance)
+        results = match_one_to_many(sets[i], [sets[j] for j in partners], ratio, max_distance, device)
         matches.update({(i, j): result for j, result in zip(partners, results, strict=True)})
     return matches
