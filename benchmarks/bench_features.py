@@ -10,6 +10,10 @@ two-view verification). Both use every core of the machine. Sets:
   camera_angle_x;
 - fountain: ../shared/data/strecha/fountain-P11 (11 views, 3072x2048), K from calibration.txt.
 
+On lego it also measures the retrieval used beyond `exhaustive_up_to` images (VLAD, untimed): the share of
+the view pairs whose ground-truth viewing directions are within 20 / 30 degrees that the retrieval
+neighbours contain.
+
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_features.py
     python benchmarks/bench_features.py --sets lego --max-side 3200 --max-features 8192
 """
@@ -29,8 +33,9 @@ import numpy as np
 from PIL import Image
 
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
-from estimation.features.sift import sift_tracks
-from estimation.io.images import find_calibration, list_images
+from estimation.features.pairs import exhaustive_pairs, retrieval_pairs, train_vocabulary, vlad
+from estimation.features.sift import detect_features, sift_tracks
+from estimation.io.images import find_calibration, list_images, load_rgb
 from neural.data import load_image
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -50,6 +55,30 @@ def prepare_lego(data: Path, folder: Path) -> np.ndarray:
     focal = 0.5 * width / math.tan(0.5 * meta["camera_angle_x"])
     centre = width / 2 - 0.5
     return np.array([[focal, 0.0, centre], [0.0, focal, centre], [0.0, 0.0, 1.0]])
+
+
+def lego_retrieval_recall(data: Path, folder: Path, config: SiftConfig) -> list[str]:
+    """Recall of the VLAD retrieval pairs against ground-truth view-direction neighbours, per k."""
+    images = list_images(folder)
+    direction = {}
+    for split in LEGO_SPLITS:
+        for frame in json.loads((data / "lego_200" / f"transforms_{split}.json").read_text())["frames"]:
+            direction[f"{Path(frame['file_path']).name}.png"] = -np.array(frame["transform_matrix"])[:3, 2]
+    views = np.stack([direction[name] for name in images.names])
+    angle = np.degrees(np.arccos(np.clip(views @ views.T, -1.0, 1.0)))
+    descriptors = [detect_features(load_rgb(path), config).descriptors for path in images.paths]
+    vocabulary = train_vocabulary(descriptors, config.vocabulary_size)
+    global_descriptors = np.stack([vlad(d, vocabulary) for d in descriptors])
+    lines = []
+    for k in (10, 20, config.retrieval_neighbours):
+        pairs = retrieval_pairs(global_descriptors, k)
+        recall = []
+        for limit in (20, 30):
+            close = {(i, j) for i, j in exhaustive_pairs(len(images)) if angle[i, j] < limit}
+            recall.append(f"{len(pairs & close) / len(close):.3f} of {len(close)} pairs within {limit} deg")
+        lines.append(f"retrieval k={k}: {len(pairs)} of {len(images) * (len(images) - 1) // 2} pairs; recall "
+                     + ", ".join(recall))
+    return lines
 
 
 def run_ours(folder: Path, K: np.ndarray, config: SiftConfig) -> dict:
@@ -135,7 +164,7 @@ def main() -> None:
     args = parser.parse_args()
     config = SiftConfig(max_image_side=args.max_side, max_features=args.max_features)
     print(f"load before: {os.getloadavg()}  (cores: {os.cpu_count()})")
-    rows = []
+    rows, retrieval = [], []
     for name in args.sets:
         with tempfile.TemporaryDirectory(prefix="bench_features_") as tmp:
             work = Path(tmp)
@@ -143,6 +172,7 @@ def main() -> None:
                 folder = work / "images"
                 folder.mkdir()
                 K = prepare_lego(args.data, folder)
+                retrieval = lego_retrieval_recall(args.data, folder, config)
             else:
                 folder = args.data / "strecha" / "fountain-P11"
                 K = find_calibration(folder)
@@ -163,6 +193,7 @@ def main() -> None:
                   f"{r['match']:.1f} | {r['verify']:.1f} | {r['total']:.1f} | {ratio} | {r['pairs']} | "
                   f"{r['matches_per_pair']:.1f} | {r['verified_pairs']} | "
                   f"{r['inliers_per_verified_pair']:.1f} | {types} |")
+    print("\n".join(["", *retrieval]))
     print(f"\nload after: {os.getloadavg()}")
 
 
