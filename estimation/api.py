@@ -99,9 +99,11 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 
 
 def extract_tracks(
-    images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None
+    images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
+    K: np.ndarray | None = None,
 ) -> FeatureTracks:
-    """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`)."""
+    """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
+    pairs are verified with E when K is given, else with F."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -113,13 +115,21 @@ def extract_tracks(
         return FeatureTracks(parsed.tracks, source, details)
     from estimation.features.sift import sift_tracks  # OpenCV is only needed here
 
-    result = sift_tracks(images, config.sift, ransac=config.ransac, progress=report)
+    result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
+                         progress=report)
     details = {
         "keypoints_per_image": dict(zip(images.names, result.keypoints_per_image, strict=True)),
         "matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                              for (i, j), n in result.matches_per_pair.items()},
         "verified_matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                                       for (i, j), n in result.verified_per_pair.items()},
+        "two_view_geometry_per_pair": {
+            f"{images.names[i]}|{images.names[j]}": {
+                "type": geometry.type.value, "inliers": geometry.num_inliers,
+                "h_e_inlier_ratio": round(geometry.h_e_inlier_ratio, 4),
+            }
+            for (i, j), geometry in result.two_view.items()
+        },
         "rejected_links": result.num_rejected_links,
     }
     return FeatureTracks(result.tracks, source, details)
@@ -342,12 +352,17 @@ def reconstruct(
 
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]
     with _timed(seconds, "features"):
-        features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end))
+        calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
+        features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end),
+                                  K=calibration_K)
+    index_of = {name: m for m, name in enumerate(images.names)}
+    pair_types = {tuple(sorted(index_of[name] for name in pair.split("|"))): geometry["type"]
+                  for pair, geometry in features.details.get("two_view_geometry_per_pair", {}).items()}
 
     camera = initial.cameras if initial.refine.per_image else initial.cameras[0]
     models = tuple(reconstruct_models(features.tracks, camera, config,
                                       progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
-                                      refine=initial.refine))
+                                      refine=initial.refine, pair_types=pair_types))
     model = models[0]
     seconds.update({name: float(value) for name, value in model.stats.stage_seconds.items()})
 

@@ -84,8 +84,13 @@ class SiftConfig(BaseModel):
     max_image_side: int = Field(
         3200, ge=64, description="Detect on the image downscaled to this longest side; keypoints mapped back."
     )
-    contrast_threshold: float = Field(0.04, gt=0, description="OpenCV SIFT contrastThreshold.")
+    contrast_threshold: float = Field(
+        0.02, gt=0, description="OpenCV SIFT contrastThreshold (0.02 = COLMAP's peak threshold 0.02 / 3)."
+    )
     ratio: float = Field(0.8, gt=0, lt=1, description="Lowe's ratio test threshold.")
+    max_distance: float = Field(
+        0.7, gt=0, description="Largest descriptor distance of a match (RootSIFT: unit norm; COLMAP's 0.7)."
+    )
     exhaustive_up_to: int = Field(
         250, ge=2, description="Match all pairs up to this many images; beyond, retrieval + sequence pairs."
     )

@@ -1,49 +1,44 @@
-"""SIFT features and matches (OpenCV) merged into multi-view `Tracks`, for folders without match files.
+"""SIFT features and matches (OpenCV + torch) merged into multi-view `Tracks`, for folders without match
+files.
 
-Each pair of images is matched with Lowe's ratio test and a mutual (cross) check; all pairs are
-matched for small sets, each image with its next `window` images for long sequences. With a
-RansacConfig, each pair's matches are then verified geometrically (RANSAC fundamental matrix, a loose
-threshold: this only keeps wrong matches from chaining separate points into one track; the pipeline
-estimates the pair geometry itself). The surviving matches are joined into tracks by the image-aware
-union-find of `track_building`, most distinctive matches (lowest ratio) first.
+Detection runs on the image downscaled to `max_image_side` (keypoints mapped back to full-resolution
+pixels, OpenCV convention: the centre of the top-left pixel is (0, 0)) and keeps the `max_features`
+strongest keypoints; descriptors are RootSIFT (sqrt of the L1-normalized SIFT vector, hence unit L2
+norm, so Euclidean distance compares them by the Hellinger kernel). Candidate pairs come from
+`features.pairs` (exhaustive, or retrieval + sequence), matches from `features.matching` (ratio test and
+mutual check). With a TwoViewConfig every pair is verified geometrically (`two_view.geometry`: E, F and H
+in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. The surviving matches
+are joined into tracks by the image-aware union-find of `track_building`, most distinctive matches
+(lowest ratio) first.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import cv2
 import numpy as np
 
-from estimation.config import RansacConfig, SiftConfig
+from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import DegenerateConfigurationError
+from estimation.features.matching import DescriptorMatches, match_pairs, matching_device
+from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
 from estimation.io.images import ImageSet, load_rgb
-from estimation.two_view.fundamental import ransac_fundamental
+from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry
 from estimation.types import ProgressCallback, Tracks
 
 DETECTION_SHARE = 0.4
-"""Fraction of the SIFT progress spent detecting (the rest matching), for the progress bar."""
-TWO_VIEW_THRESHOLD_PX = 4.0
-"""Sampson distance for the pairwise verification (COLMAP's two-view default); loose on purpose."""
-MIN_VERIFIED_MATCHES = 15
-"""A pair with fewer matches (before or after verification) contributes none: too few to trust."""
+MATCHING_SHARE = 0.2
+"""Fractions of the SIFT progress spent detecting and matching (the rest verifying), for the progress bar."""
 
 
 class ImageFeatures(NamedTuple):
-    """Keypoints (N, 2) pixel uv and their SIFT descriptors (N, 128) float32."""
+    """Keypoints (N, 2) full-resolution pixel uv and their RootSIFT descriptors (N, 128) float32."""
 
     uv: np.ndarray
     descriptors: np.ndarray
-
-
-class DescriptorMatches(NamedTuple):
-    """Matches a[index_a[k]] <-> b[index_b[k]] with Lowe's ratio d1/d2 of each (lower = more distinctive)."""
-
-    index_a: np.ndarray
-    index_b: np.ndarray
-    ratio: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -55,67 +50,35 @@ class SiftResult:
     matches_per_pair: dict[tuple[int, int], int]        # after the ratio test and mutual check
     verified_per_pair: dict[tuple[int, int], int]       # kept after geometric verification
     num_rejected_links: int
+    two_view: dict[tuple[int, int], TwoViewGeometry] = field(default_factory=dict)   # verified pairs
 
 
-def detect_features(rgb: np.ndarray, max_features: int) -> ImageFeatures:
-    """SIFT keypoints and descriptors of an (H, W, 3) uint8 image, at most `max_features` of them."""
+def root_sift(descriptors: np.ndarray) -> np.ndarray:
+    """RootSIFT: d' = sqrt(d / ||d||_1), so ||d'||_2 = 1 (Arandjelovic & Zisserman 2012)."""
+    descriptors = np.asarray(descriptors, np.float32)
+    l1 = np.abs(descriptors).sum(axis=1, keepdims=True)
+    return np.sqrt(descriptors / np.maximum(l1, np.finfo(np.float32).tiny))
+
+
+def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
+    """SIFT on the (H, W, 3) uint8 image downscaled to config.max_image_side (area averaging), at most
+    config.max_features keypoints; uv in full-resolution pixels: u = (u_s + 0.5) W / W_s - 0.5."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    keypoints, descriptors = cv2.SIFT_create(nfeatures=max_features).detectAndCompute(gray, None)
+    height, width = gray.shape
+    scale = min(1.0, config.max_image_side / max(height, width))
+    if scale < 1.0:
+        size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    sift = cv2.SIFT_create(nfeatures=config.max_features, contrastThreshold=config.contrast_threshold)
+    keypoints, descriptors = sift.detectAndCompute(gray, None)
     if descriptors is None:
         return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
-    return ImageFeatures(np.array([kp.pt for kp in keypoints], float).reshape(-1, 2), descriptors)
-
-
-def match_descriptors(
-    descriptors_a: np.ndarray, descriptors_b: np.ndarray, ratio: float
-) -> DescriptorMatches:
-    """Nearest neighbours a -> b passing d1 < ratio * d2 whose b -> a nearest neighbour is the same a."""
-    empty = DescriptorMatches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
-    if len(descriptors_a) < 2 or len(descriptors_b) < 2:
-        return empty
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    forward = matcher.knnMatch(descriptors_a, descriptors_b, k=2)
-    backward = matcher.match(descriptors_b, descriptors_a)
-    nearest_a_of_b = np.full(len(descriptors_b), -1, np.int64)
-    for match in backward:
-        nearest_a_of_b[match.queryIdx] = match.trainIdx
-    index_a, index_b, ratios = [], [], []
-    for candidates in forward:
-        if len(candidates) < 2:
-            continue
-        best, second = candidates
-        if best.distance < ratio * second.distance and nearest_a_of_b[best.trainIdx] == best.queryIdx:
-            index_a.append(best.queryIdx)
-            index_b.append(best.trainIdx)
-            ratios.append(best.distance / max(second.distance, np.finfo(float).tiny))
-    if not index_a:
-        return empty
-    return DescriptorMatches(np.array(index_a, np.int64), np.array(index_b, np.int64), np.array(ratios))
-
-
-def candidate_pairs(num_images: int, config: SiftConfig) -> list[tuple[int, int]]:
-    """All pairs up to `exhaustive_up_to` images; otherwise each image with its next `window` images."""
-    if num_images <= config.exhaustive_up_to:
-        return [(i, j) for i in range(num_images) for j in range(i + 1, num_images)]
-    return [(i, j) for i in range(num_images) for j in range(i + 1, min(i + 1 + config.window, num_images))]
-
-
-def verify_matches(
-    uv_a: np.ndarray, uv_b: np.ndarray, matches: DescriptorMatches, ransac: RansacConfig
-) -> DescriptorMatches:
-    """The matches consistent with one fundamental matrix (Sampson distance < TWO_VIEW_THRESHOLD_PX);
-    none if fewer than MIN_VERIFIED_MATCHES remain or no F is found."""
-    none = DescriptorMatches(*(array[:0] for array in matches))
-    if len(matches.ratio) < MIN_VERIFIED_MATCHES:
-        return none
-    config = ransac.model_copy(update={"threshold_px": TWO_VIEW_THRESHOLD_PX})
-    try:
-        inliers = ransac_fundamental(uv_a[matches.index_a], uv_b[matches.index_b], config).inlier_mask
-    except DegenerateConfigurationError:
-        return none
-    if inliers.sum() < MIN_VERIFIED_MATCHES:
-        return none
-    return DescriptorMatches(*(array[inliers] for array in matches))
+    # OpenCV's nfeatures keeps ties (and extra orientations) at the cut: enforce the budget exactly.
+    strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[: config.max_features]
+    keypoints, descriptors = [keypoints[k] for k in strongest], descriptors[strongest]
+    uv_small = np.array([kp.pt for kp in keypoints], float).reshape(-1, 2)
+    to_full = np.array([width / gray.shape[1], height / gray.shape[0]])
+    return ImageFeatures((uv_small + 0.5) * to_full - 0.5, root_sift(descriptors))
 
 
 def sample_colors(rgb: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -126,37 +89,53 @@ def sample_colors(rgb: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return rgb[rows, columns]
 
 
+def verify_pair(uv_a: np.ndarray, uv_b: np.ndarray, matches: DescriptorMatches, K: np.ndarray | None,
+                two_view: TwoViewConfig, ransac: RansacConfig) -> tuple[DescriptorMatches, TwoViewGeometry]:
+    """The matches that are inliers of the pair's two-view geometry (none when it is degenerate)."""
+    geometry = estimate_two_view_geometry(uv_a[matches.index_a], uv_b[matches.index_b], K, K, two_view,
+                                          ransac)
+    return DescriptorMatches(*(array[geometry.inlier_mask] for array in matches)), geometry
+
+
 def sift_tracks(
     images: ImageSet,
     config: SiftConfig,
-    ransac: RansacConfig | None = None,
+    two_view: TwoViewConfig | None = None,
+    ransac: RansacConfig = RansacConfig(),
+    K: np.ndarray | None = None,
     progress: ProgressCallback | None = None,
 ) -> SiftResult:
-    """Detect, match (and with `ransac`, verify) the candidate pairs, merge the matches into tracks.
-
-    `progress(stage, fraction)` gets this step's own fraction 0..1.
-    """
+    """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
+    merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1."""
     report = progress or (lambda stage, fraction: None)
     features, colors = [], []
     for index, path in enumerate(images.paths):
         rgb = load_rgb(path)
-        image_features = detect_features(rgb, config.max_features)
+        image_features = detect_features(rgb, config)
         features.append(image_features)
         colors.append(sample_colors(rgb, image_features.uv))
         report("features", DETECTION_SHARE * (index + 1) / len(images))
 
+    pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
+    report("matching", DETECTION_SHARE)
+    matches = match_pairs([f.descriptors for f in features], pairs, config.ratio, config.max_distance,
+                          matching_device(config.device))
+    report("matching", DETECTION_SHARE + MATCHING_SHARE)
+
     offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])
-    pairs = candidate_pairs(len(images), config)
-    links, link_ratios, matches_per_pair, verified_per_pair = [], [], {}, {}
+    links, link_ratios, verified_per_pair, geometries = [], [], {}, {}
     for count, (i, j) in enumerate(pairs, start=1):
-        matches = match_descriptors(features[i].descriptors, features[j].descriptors, config.ratio)
-        matches_per_pair[(i, j)] = len(matches.ratio)
-        if ransac is not None:
-            matches = verify_matches(features[i].uv, features[j].uv, matches, ransac)
-        verified_per_pair[(i, j)] = len(matches.ratio)
-        links.append(np.stack([offsets[i] + matches.index_a, offsets[j] + matches.index_b], axis=1))
-        link_ratios.append(matches.ratio)
-        report("matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * count / len(pairs))
+        pair_matches = matches[(i, j)]
+        if two_view is not None and len(pair_matches.ratio) < two_view.min_inliers:
+            pair_matches = DescriptorMatches(*(array[:0] for array in pair_matches))
+        elif two_view is not None:
+            pair_matches, geometries[(i, j)] = verify_pair(features[i].uv, features[j].uv, pair_matches,
+                                                           K, two_view, ransac)
+        verified_per_pair[(i, j)] = len(pair_matches.ratio)
+        links.append(np.stack([offsets[i] + pair_matches.index_a, offsets[j] + pair_matches.index_b], axis=1))
+        link_ratios.append(pair_matches.ratio)
+        report("verification", DETECTION_SHARE + MATCHING_SHARE + (1 - DETECTION_SHARE - MATCHING_SHARE)
+               * count / len(pairs))
     all_links = np.concatenate(links).reshape(-1, 2) if links else np.zeros((0, 2), np.int64)
     if len(all_links) == 0:
         raise DegenerateConfigurationError(f"{images.folder}: SIFT found no matches between any two images")
@@ -173,7 +152,8 @@ def sift_tracks(
     return SiftResult(
         tracks=assembly.tracks,
         keypoints_per_image=[len(f.uv) for f in features],
-        matches_per_pair=matches_per_pair,
+        matches_per_pair={pair: len(m.ratio) for pair, m in matches.items()},
         verified_per_pair=verified_per_pair,
         num_rejected_links=assembly.num_rejected_links,
+        two_view=geometries,
     )

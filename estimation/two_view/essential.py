@@ -178,13 +178,14 @@ def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.nda
     """min over E = [t]x exp([w]x) R0 of sum r_i^2, r_i the Sampson residual of F = K2^-T E K1^-1 in pixels
     (Levenberg-Marquardt on w and t, ||t|| fixed by normalization inside the residual)."""
     start = pose_candidates(E)[0]          # any of the four factorizations E ~ [t]x R
+    K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
 
     def essential_of(params: np.ndarray) -> np.ndarray:
         t = params[3:] / np.linalg.norm(params[3:])
         return skew(t) @ Rotation.from_rotvec(params[:3]).as_matrix() @ start.R
 
     def residuals(params: np.ndarray) -> np.ndarray:
-        return sampson_residual(fundamental_from_essential(essential_of(params), K1, K2), uv1, uv2)
+        return sampson_residual(K2_inv_T @ essential_of(params) @ K1_inv, uv1, uv2)
 
     solution = least_squares(residuals, np.concatenate([np.zeros(3), start.t]), method="lm")
     return essential_of(solution.x)
@@ -193,8 +194,8 @@ def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.nda
 def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold_px: float,
                      config: RansacConfig) -> EssentialResult:
     """E maximizing #{Sampson distance of F = K2^-T E K1^-1 < threshold_px}: minimal 5-point samples in the
-    RANSAC driver; each new best E is re-fitted on its inliers (8-point on normalized coordinates, then
-    `refine_essential`: LO-RANSAC with a non-linear local step)."""
+    RANSAC driver, each new best E re-fitted by the 8-point algorithm on its normalized inliers (LO), and
+    the final E polished by `refine_essential` on its inliers."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
 
     def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
@@ -204,10 +205,15 @@ def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.nd
         return sampson_distance(fundamental_from_essential(E, K1, K2), points1, points2)
 
     def refit(inliers1: np.ndarray, inliers2: np.ndarray) -> np.ndarray:
-        E = project_to_essential(eight_point(to_normalized(K1, inliers1), to_normalized(K2, inliers2)))
-        return refine_essential(E, inliers1, inliers2, K1, K2)[None]
+        E = eight_point(to_normalized(K1, inliers1), to_normalized(K2, inliers2))
+        return project_to_essential(E)[None]
 
     result = ransac((uv1, uv2), minimal, FIVE_POINT_SAMPLE, residuals, threshold_px, config, refit=refit,
                     model_name="essential matrix")
-    return EssentialResult(E=result.model, inlier_mask=result.inlier_mask, sampson_px=result.residuals,
+    inliers = result.inlier_mask
+    E = refine_essential(result.model, uv1[inliers], uv2[inliers], K1, K2)
+    distance = residuals(E[None], uv1, uv2)[0]
+    if (distance < threshold_px).sum() < inliers.sum():       # the polish may not lose consensus
+        E, distance = result.model, result.residuals
+    return EssentialResult(E=E, inlier_mask=distance < threshold_px, sampson_px=distance,
                            iterations=result.iterations)

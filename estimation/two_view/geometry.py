@@ -18,8 +18,15 @@ import numpy as np
 
 from estimation.config import RansacConfig, TwoViewConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.two_view.essential import fundamental_from_essential, project_to_essential, ransac_essential
+from estimation.geometry.ransac import required_iterations
+from estimation.two_view.essential import (
+    FIVE_POINT_SAMPLE,
+    fundamental_from_essential,
+    project_to_essential,
+    ransac_essential,
+)
 from estimation.two_view.fundamental import ransac_fundamental, sampson_distance
+from estimation.two_view.homography import MIN_CORRESPONDENCES as H_SAMPLE
 from estimation.two_view.homography import homography_translation, ransac_homography
 
 
@@ -93,28 +100,41 @@ def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray 
                                num_inliers_f=int(fundamental.inlier_mask.sum()) if fundamental else 0,
                                num_inliers_e=0, num_inliers_h=0)
     F, f_mask = fundamental.F, fundamental.inlier_mask
+    num_f = int(f_mask.sum())
+
+    def searching_for(share: float, sample_size: int) -> RansacConfig:
+        """The RANSAC settings that find, with the configured confidence, a model explaining `share` of
+        the matches: a model needs that many inliers to change the decision, so no more samples."""
+        needed = required_iterations(min(share, 1.0), sample_size, ransac.confidence, ransac.max_iterations)
+        return ransac.model_copy(update={"max_iterations": needed})
+
     E, e_mask, H, h_mask = None, none, None, none
     if calibrated and config.relative_pose == "five-point":
-        essential = _robust(ransac_essential, uv1, uv2, K1, K2, threshold, ransac)
+        essential = _robust(ransac_essential, uv1, uv2, K1, K2, threshold,
+                            searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE))
         if essential is not None:
             E, e_mask = essential.E, essential.inlier_mask
     elif calibrated:
         E = project_to_essential(K2.T @ F @ K1)        # the seed's E = K^T F K
         e_mask = sampson_distance(fundamental_from_essential(E, K1, K2), uv1, uv2) < threshold
-    homography = _robust(ransac_homography, uv1, uv2, threshold, ransac)
+    num_e = int(e_mask.sum())
+    use_e = E is not None and num_e >= config.min_inliers and num_e >= config.min_e_f_inlier_ratio * num_f
+    num_reference = num_e if use_e else num_f
+    homography = _robust(ransac_homography, uv1, uv2, threshold,
+                         searching_for(config.max_h_inlier_ratio * num_reference / len(uv1), H_SAMPLE))
     if homography is not None:
         H, h_mask = homography.H, homography.inlier_mask
-    num_f, num_e, num_h = int(f_mask.sum()), int(e_mask.sum()), int(h_mask.sum())
+    num_h = int(h_mask.sum())
 
     def result(type_: TwoViewGeometryType, mask: np.ndarray) -> TwoViewGeometry:
         return TwoViewGeometry(type=type_, inlier_mask=mask, F=F, E=E, H=H, num_inliers_f=num_f,
                                num_inliers_e=num_e, num_inliers_h=num_h)
 
-    if E is not None and num_e >= config.min_inliers and num_e >= config.min_e_f_inlier_ratio * num_f:
-        if num_h > config.max_h_inlier_ratio * num_e:
-            rotation = homography_translation(H, K1, K2) < config.max_rotation_translation
-            return result(TwoViewGeometryType.PANORAMIC if rotation else TwoViewGeometryType.PLANAR, e_mask)
+    if num_h > config.max_h_inlier_ratio * num_reference:
+        if not use_e:
+            return result(TwoViewGeometryType.PLANAR_OR_PANORAMIC, f_mask)
+        rotation = homography_translation(H, K1, K2) < config.max_rotation_translation
+        return result(TwoViewGeometryType.PANORAMIC if rotation else TwoViewGeometryType.PLANAR, e_mask)
+    if use_e:
         return result(TwoViewGeometryType.CALIBRATED, e_mask)
-    if num_h > config.max_h_inlier_ratio * num_f:
-        return result(TwoViewGeometryType.PLANAR_OR_PANORAMIC, f_mask)
     return result(TwoViewGeometryType.UNCALIBRATED, f_mask)

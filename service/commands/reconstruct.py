@@ -54,15 +54,21 @@ class StageProgressBars:
               help="3x3 K file; default: calibration.txt in IMAGES_DIR.")
 @click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True,
               help="auto: the folder's matching{i}.txt files when present, else SIFT.")
+@click.option("--relative-pose", type=click.Choice(["five-point", "eight-point"]), default="five-point",
+              show_default=True,
+              help="five-point: E by the minimal 5-point solver in RANSAC; eight-point: the normalized "
+                   "8-point F in RANSAC, then E = K^T F K.")
 @click.option("--all-models", is_flag=True,
               help="Also write every smaller model (images no model could join) to OUT/models/<k>/.")
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str,
-                all_models: bool) -> None:
+                relative_pose: str, all_models: bool) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
     from estimation import reconstruct as run_reconstruction
+    from estimation.config import TwoViewConfig
 
     config = ReconstructionConfig(features=features, calibration=calibration,
+                                  two_view=TwoViewConfig(relative_pose=relative_pose),
                                   mapper={"export_all_models": all_models})
     try:
         with StageProgressBars() as progress:

@@ -1,4 +1,5 @@
-"""SIFT features: ratio test and mutual check, pair selection, and tracks that agree with known geometry."""
+"""SIFT features: RootSIFT, detection downscaled with keypoints mapped back, the feature budget, and
+tracks that agree with known geometry."""
 
 from __future__ import annotations
 
@@ -6,61 +7,50 @@ import cv2
 import numpy as np
 import pytest
 
-from estimation.config import RansacConfig, SiftConfig
+from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import InputError
-from estimation.features.sift import (
-    MIN_VERIFIED_MATCHES,
-    DescriptorMatches,
-    candidate_pairs,
-    detect_features,
-    match_descriptors,
-    sample_colors,
-    sift_tracks,
-    verify_matches,
-)
-from estimation.io.images import list_images, load_rgb
+from estimation.features.matching import match_descriptors
+from estimation.features.sift import detect_features, root_sift, sample_colors, sift_tracks
+from estimation.io.images import find_calibration, list_images, load_rgb
 from estimation.io.matchfile import load_match_tracks
-from estimation.synthetic import make_scene
+from estimation.two_view.geometry import TwoViewGeometryType
 
 
-def unit(vector: np.ndarray) -> np.ndarray:
-    return (vector / np.linalg.norm(vector)).astype(np.float32)
+def test_root_sift_is_the_l2_normalized_square_root_of_the_l1_normalized_descriptor():
+    raw = np.random.default_rng(0).integers(0, 256, (50, 128)).astype(np.float32)
+    descriptors = root_sift(raw)
+    np.testing.assert_allclose(np.linalg.norm(descriptors, axis=1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(descriptors**2, raw / raw.sum(axis=1, keepdims=True), rtol=1e-5)
+    # Hellinger: the dot product of RootSIFT is the Bhattacharyya coefficient of the L1-normalized SIFT.
+    p = raw / raw.sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(descriptors[0] @ descriptors[1], np.sqrt(p[0] * p[1]).sum(), rtol=1e-5)
 
 
-def test_the_ratio_test_drops_a_match_with_two_equally_close_candidates():
-    rng = np.random.default_rng(0)
-    a = np.stack([unit(rng.normal(size=128)) for _ in range(3)])
-    b = np.concatenate([a + 0.01, [a[0] + 0.012]]).astype(np.float32)   # a[0] has two near twins in b
-    matches = match_descriptors(a, b, ratio=0.8)
-    np.testing.assert_array_equal(matches.index_a, [1, 2])
-    np.testing.assert_array_equal(matches.index_b, [1, 2])
-    assert np.all(matches.ratio < 0.8)
+def textured_image(width: int, height: int, seed: int) -> np.ndarray:
+    texture = cv2.GaussianBlur(np.random.default_rng(seed).normal(size=(height, width)), (0, 0), 2.5)
+    gray = cv2.normalize(texture, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return np.repeat(gray[:, :, None], 3, axis=2)
 
 
-def test_the_mutual_check_keeps_only_the_match_both_sides_agree_on():
-    rng = np.random.default_rng(1)
-    base = unit(rng.normal(size=128))
-    far = [unit(rng.normal(size=128)) for _ in range(3)]
-    # a[0] and a[1] both have b[0] as their clear nearest neighbour; b[0]'s nearest is a[1].
-    a = np.stack([unit(base + 0.08 * far[0]), unit(base + 0.01 * far[1])])
-    b = np.stack([base, far[2]])
-    matches = match_descriptors(a, b, ratio=0.9)
-    np.testing.assert_array_equal(matches.index_a, [1])
-    np.testing.assert_array_equal(matches.index_b, [0])
+def test_keypoints_detected_downscaled_are_mapped_back_to_full_resolution_pixels():
+    small = textured_image(240, 180, seed=3)
+    large = cv2.resize(small, (720, 540), interpolation=cv2.INTER_CUBIC)    # the same view, 3x the pixels
+    reference = detect_features(small, SiftConfig(max_features=400))
+    mapped = detect_features(large, SiftConfig(max_features=400, max_image_side=240))
+    assert len(mapped.uv) > 100
+    assert mapped.uv.max() > 500                                # full-resolution pixel coordinates
+    expected = (reference.uv + 0.5) * 3 - 0.5                  # OpenCV convention: pixel centres at integers
+    distance = np.linalg.norm(mapped.uv[:, None] - expected[None], axis=2).min(axis=1)
+    assert np.median(distance) < 0.5                            # mapping uv * 3 instead would be 1 px off
+    assert np.mean(distance < 1.5) > 0.9
+    naive = np.linalg.norm(mapped.uv[:, None] - reference.uv[None] * 3, axis=2).min(axis=1)
+    assert np.median(naive) > np.median(distance) + 0.5
 
 
-def test_too_few_descriptors_give_no_matches():
-    one, five = np.zeros((1, 128), np.float32), np.zeros((5, 128), np.float32)
-    assert len(match_descriptors(one, five, 0.8).ratio) == 0
-
-
-def test_small_sets_match_every_pair_and_long_sequences_a_window():
-    all_pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-    assert candidate_pairs(4, SiftConfig(exhaustive_up_to=4)) == all_pairs
-    windowed = candidate_pairs(40, SiftConfig(exhaustive_up_to=30, window=3))
-    assert len(windowed) == 37 * 3 + 2 + 1
-    assert all(1 <= j - i <= 3 for i, j in windowed)
-    assert (0, 3) in windowed and (0, 4) not in windowed and (38, 39) in windowed
+def test_the_feature_budget_keeps_the_strongest_keypoints():
+    rgb = textured_image(320, 240, seed=4)
+    assert len(detect_features(rgb, SiftConfig(max_features=100)).uv) <= 100
+    assert len(detect_features(rgb, SiftConfig(max_features=5000)).uv) > 100
 
 
 def test_matches_between_an_image_and_its_warp_follow_the_homography(shared_data):
@@ -70,7 +60,8 @@ def test_matches_between_an_image_and_its_warp_follow_the_homography(shared_data
                   [scale * np.sin(angle), scale * np.cos(angle), -20.0],
                   [2e-5, 1e-5, 1.0]])
     warped = cv2.warpPerspective(rgb, H, (rgb.shape[1], rgb.shape[0]))
-    features_a, features_b = detect_features(rgb, 1500), detect_features(warped, 1500)
+    config = SiftConfig(max_features=1500)
+    features_a, features_b = detect_features(rgb, config), detect_features(warped, config)
     matches = match_descriptors(features_a.descriptors, features_b.descriptors, ratio=0.8)
     assert len(matches.ratio) >= 200
     mapped = cv2.perspectiveTransform(features_a.uv[matches.index_a][None], H)[0]
@@ -84,33 +75,11 @@ def test_colours_are_sampled_at_the_nearest_pixel_clamped_to_the_image():
                                   [rgb[1, 0], rgb[0, 2]])
 
 
-def test_verification_keeps_the_matches_that_fit_one_epipolar_geometry():
-    scene = make_scene(num_cameras=2, num_points=300, noise_px=0.5, outlier_fraction=0.2, seed=4)
-    uv = scene.tracks.uv.reshape(300, 2, 2)                     # every track is seen by both cameras
-    inlier = scene.inlier_mask.reshape(300, 2).all(axis=1)
-    order = np.random.default_rng(0).permutation(300)          # matches refer to keypoints by index
-    matches = DescriptorMatches(np.arange(300), order, np.linspace(0.1, 0.7, 300))
-    uv_b = np.empty((300, 2))
-    uv_b[order] = uv[:, 1]
-    verified = verify_matches(uv[:, 0], uv_b, matches, RansacConfig())
-    kept = np.zeros(300, bool)
-    kept[verified.index_a] = True
-    np.testing.assert_array_equal(verified.index_b, order[verified.index_a])
-    assert kept[inlier].mean() > 0.97                           # the true matches survive
-    assert kept[~inlier].mean() < 0.1                           # random pixels rarely fit the geometry
-
-
-def test_a_pair_with_too_few_matches_contributes_none():
-    count = MIN_VERIFIED_MATCHES - 1
-    matches = DescriptorMatches(np.arange(count), np.arange(count), np.zeros(count))
-    uv = np.random.default_rng(0).uniform(0, 100, (count, 2))
-    assert len(verify_matches(uv, uv + 5, matches, RansacConfig()).ratio) == 0
-
-
 @pytest.fixture(scope="module")
 def unity_sift(shared_data):
     images = list_images(shared_data / "unity_hall")
-    return images, sift_tracks(images, SiftConfig(max_features=1500), ransac=RansacConfig())
+    K = find_calibration(shared_data / "unity_hall")
+    return images, sift_tracks(images, SiftConfig(max_features=1500), TwoViewConfig(), RansacConfig(), K=K)
 
 
 def test_sift_tracks_on_unity_hall_are_multiview_and_consistent(unity_sift):
@@ -118,6 +87,8 @@ def test_sift_tracks_on_unity_hall_are_multiview_and_consistent(unity_sift):
     tracks = result.tracks
     assert len(result.matches_per_pair) == 10                    # 5 images: all pairs
     assert all(result.verified_per_pair[pair] <= n for pair, n in result.matches_per_pair.items())
+    # A general hall scene: verified pairs are calibrated, never planar or pure rotation.
+    assert {g.type for g in result.two_view.values()} == {TwoViewGeometryType.CALIBRATED}
     lengths = np.bincount(tracks.track_index)
     assert lengths.min() >= 2 and lengths.max() >= 4             # pairwise matches chained into tracks
     keys = tracks.track_index * len(images) + tracks.image_index
