@@ -51,15 +51,26 @@ class StageProgressBars:
 @click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
               help="Output folder (created): sparse/, points.ply, transforms.json, report.json, figures/.")
 @click.option("--calibration", type=click.Path(path_type=Path), default=None,
-              help="3x3 K file; default: calibration.txt in IMAGES_DIR.")
+              help="3x3 K file; default: calibration.txt in IMAGES_DIR, and without one the camera is "
+                   "calibrated from EXIF or a prior and refined.")
 @click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True,
               help="auto: the folder's matching{i}.txt files when present, else SIFT.")
-def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str) -> None:
+@click.option("--camera-model", type=click.Choice(["auto", "pinhole", "simple-radial", "radial", "opencv"]),
+              default="auto", show_default=True,
+              help="COLMAP camera model. auto: pinhole with a calibration file (K fixed), simple-radial "
+                   "without one (focal length from EXIF or 1.2*max(w,h), refined with k1 by the bundle "
+                   "adjustment).")
+@click.option("--single-camera/--per-image-camera", default=True, show_default=True,
+              help="One camera shared by all photos, or one per photo.")
+def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, camera_model: str,
+                single_camera: bool) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
     from estimation import reconstruct as run_reconstruction
+    from estimation.config import CameraConfig
 
-    config = ReconstructionConfig(features=features, calibration=calibration)
+    config = ReconstructionConfig(features=features, calibration=calibration,
+                                  camera=CameraConfig(model=camera_model, single_camera=single_camera))
     try:
         with StageProgressBars() as progress:
             result = run_reconstruction(images_dir, out_dir, config, progress=progress)
@@ -75,6 +86,12 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
         f"{report['points']} points, "
         f"reprojection error after BA: RMS {after['rms']:.3f} px, median {after['median']:.3f} px"
     )
+    intrinsics = report["intrinsics"]
+    camera = intrinsics.get("camera") or next(iter(intrinsics["cameras"].values()))
+    click.echo(f"camera {intrinsics['model']} ({intrinsics['source']}): fx {camera['fx']:.2f} "
+               f"fy {camera['fy']:.2f} k1 {camera['k1']:.4f} k2 {camera['k2']:.4f}")
+    for warning in report["warnings"]:
+        click.echo(f"warning: {warning}")
     for entry in report["unregistered"]:
         click.echo(f"not registered: {entry['image']} ({entry['reason']})")
     click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "
