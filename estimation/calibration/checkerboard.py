@@ -29,6 +29,7 @@ CORNERS_FIGURE_NAME = "checkerboard_corners.png"
 MIN_BOARDS = 3
 """Zhang's method needs three views of the plane for the five intrinsics (more for distortion)."""
 MAX_DETECTION_SIDE = 1000
+FIGURE_THUMBNAIL_WIDTH = 400
 SUBPIX_WINDOW_FRACTION = 0.25
 """cornerSubPix's half window: this fraction of the smallest distance between neighbouring corners."""
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
@@ -137,8 +138,11 @@ def write_calibration(result: CheckerboardCalibration, folder: Path, out_dir: Pa
         names = list(result.corners)
         titles = [f"{name}: RMS {result.per_image_rms_px[name]:.2f} px" if name in result.per_image_rms_px
                   else f"{name}: board not found" for name in names]
-        paths["figure"] = plot_checkerboard_corners(
-            [load_rgb(Path(folder) / name) for name in names], [result.corners[n] for n in names], titles,
-            out_dir / CORNERS_FIGURE_NAME,
-        )
+        scale = min(1.0, FIGURE_THUMBNAIL_WIDTH / result.width)
+        thumbnails = [cv2.resize(load_rgb(Path(folder) / name), None, fx=scale, fy=scale,
+                                 interpolation=cv2.INTER_AREA) for name in names]
+        corners = [None if result.corners[n] is None else (result.corners[n] + 0.5) * scale - 0.5
+                   for n in names]
+        paths["figure"] = plot_checkerboard_corners(thumbnails, corners, titles,
+                                                    out_dir / CORNERS_FIGURE_NAME)
     return paths
