@@ -31,17 +31,17 @@ from estimation.types import CameraPose
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "strecha"
 
 
-def ground_truth(folder: Path) -> tuple[dict[str, CameraPose], float]:
-    """(image name -> true pose, true focal length = mean of fx and fy of the first camera)."""
+def ground_truth(folder: Path) -> tuple[dict[str, CameraPose], np.ndarray]:
+    """(image name -> true pose, the first camera's true K)."""
     cameras = json.loads((folder / "ground_truth.json").read_text())["cameras"]
     poses = {name: CameraPose(R=np.array(c["R"]), t=np.array(c["t"])) for name, c in cameras.items()}
-    K = np.array(next(iter(cameras.values()))["K"])
-    return poses, float((K[0, 0] + K[1, 1]) / 2)
+    return poses, np.array(next(iter(cameras.values()))["K"])
 
 
-def run(folder: Path, calibrated: bool, camera_model: str) -> dict:
+def run(folder: Path, calibrated: bool, camera_model: str, principal_point: bool) -> dict:
     """One reconstruction of the folder's JPEGs (with or without its calibration.txt) and its errors."""
-    truth, true_focal = ground_truth(folder)
+    truth, true_K = ground_truth(folder)
+    true_focal = (true_K[0, 0] + true_K[1, 1]) / 2
     with tempfile.TemporaryDirectory(prefix="bench_intrinsics_") as work:
         images = Path(work) / "images"
         images.mkdir()
@@ -49,8 +49,9 @@ def run(folder: Path, calibrated: bool, camera_model: str) -> dict:
             shutil.copy(path, images / path.name)
         if calibrated:
             shutil.copy(folder / "calibration.txt", images / "calibration.txt")
-        config = ReconstructionConfig(write_figures=False, camera=CameraConfig(
-            model="auto" if calibrated else camera_model))
+        camera_config = CameraConfig(model="auto" if calibrated else camera_model,
+                                     refine_principal_point=principal_point and not calibrated)
+        config = ReconstructionConfig(write_figures=False, camera=camera_config)
         start = time.perf_counter()
         result = reconstruct(images, Path(work) / "out", config)
         seconds = time.perf_counter() - start
@@ -63,6 +64,8 @@ def run(folder: Path, calibrated: bool, camera_model: str) -> dict:
     return {
         "registered": f"{report['images_registered']}/{report['images_total']}",
         "focal": focal, "focal_error_pct": 100 * (focal - true_focal) / true_focal,
+        "principal_point_error_px": float(np.hypot(camera.get("cx", np.nan) - true_K[0, 2],
+                                                   camera.get("cy", np.nan) - true_K[1, 2])),
         "k1": camera.get("k1", 0.0), "k2": camera.get("k2", 0.0),
         "rotation_mean_deg": float(errors.rotation_deg.mean()),
         "rotation_max_deg": float(errors.rotation_deg.max()),
@@ -78,17 +81,22 @@ def main() -> None:
     parser.add_argument("--camera-model", default="simple-radial",
                         choices=["pinhole", "simple-radial", "radial", "opencv"],
                         help="camera model of the uncalibrated runs")
+    parser.add_argument("--refine-principal-point", action="store_true",
+                        help="uncalibrated runs also refine cx, cy (pinhole and opencv)")
+    parser.add_argument("--uncalibrated-only", action="store_true", help="skip the runs with calibration.txt")
     args = parser.parse_args()
     print(f"load average {os.getloadavg()}")
-    print("| set | calibration | registered | focal px | focal err % | k1 | k2 | rot mean deg | rot max deg "
-          "| centre mean m | RMS px | s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| set | calibration | registered | focal px | focal err % | pp err px | k1 | k2 | rot mean deg "
+          "| rot max deg | centre mean m | RMS px | s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name in args.sets:
-        for calibrated in (True, False):
-            row = run(args.data / name, calibrated, args.camera_model)
-            label = "calibration.txt" if calibrated else f"none ({args.camera_model})"
+        for calibrated in (False,) if args.uncalibrated_only else (True, False):
+            row = run(args.data / name, calibrated, args.camera_model, args.refine_principal_point)
+            label = "calibration.txt" if calibrated else (
+                f"none ({args.camera_model}{', cx cy refined' if args.refine_principal_point else ''})")
             print(f"| {name} | {label} | {row['registered']} | {row['focal']:.1f} "
-                  f"| {row['focal_error_pct']:+.2f} | {row['k1']:+.4f} | {row['k2']:+.4f} "
+                  f"| {row['focal_error_pct']:+.2f} | {row['principal_point_error_px']:.1f} "
+                  f"| {row['k1']:+.4f} | {row['k2']:+.4f} "
                   f"| {row['rotation_mean_deg']:.3f} "
                   f"| {row['rotation_max_deg']:.3f} | {row['center_mean']:.4f} | {row['rms_px']:.3f} "
                   f"| {row['seconds']:.0f} |", flush=True)

@@ -135,6 +135,9 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
     warning (focal length and distortion refined). The principal point is K's, or the image centre."""
     model = resolve_camera_model(config, K is not None)
     per_image = not config.single_camera
+    if config.refine_principal_point and model not in ("pinhole", "opencv"):
+        raise InputError(f"refining the principal point needs the pinhole or opencv camera model, "
+                         f"not {model}")
     if K is not None:
         camera = Camera.from_K(K).as_model(model)
         return InitialIntrinsics(
@@ -171,7 +174,8 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
         cameras = [camera_of(float(np.median(found)) if found else prior_px)] * len(images)
     source = "prior" if not found else "exif" if not missing else "exif and prior"
     return InitialIntrinsics(cameras=cameras, source=source, focal_sources=focal_sources,
-                             refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image),
+                             refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image,
+                                                         principal_point=config.refine_principal_point),
                              warnings=warnings)
 
 
@@ -192,7 +196,7 @@ def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: Spars
     report = {
         "K": cameras[0].K.tolist(), "width": images.width, "height": images.height,
         "model": cameras[0].model, "source": initial.source,
-        "refined": {"focal_length": initial.refine.focal,
+        "refined": {"focal_length": initial.refine.focal, "principal_point": initial.refine.principal_point,
                     "distortion": initial.refine.distortion and cameras[0].model != "pinhole"},
         "single_camera": not initial.refine.per_image,
         "pixel_convention": "centre of the top-left pixel at (0, 0) (OpenCV); COLMAP files add 0.5",

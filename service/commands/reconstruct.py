@@ -62,15 +62,18 @@ class StageProgressBars:
                    "adjustment).")
 @click.option("--single-camera/--per-image-camera", default=True, show_default=True,
               help="One camera shared by all photos, or one per photo.")
+@click.option("--refine-principal-point", is_flag=True,
+              help="Without a calibration file, also refine cx, cy (pinhole and opencv models only).")
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, camera_model: str,
-                single_camera: bool) -> None:
+                single_camera: bool, refine_principal_point: bool) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
     from estimation import reconstruct as run_reconstruction
     from estimation.config import CameraConfig
 
     config = ReconstructionConfig(features=features, calibration=calibration,
-                                  camera=CameraConfig(model=camera_model, single_camera=single_camera))
+                                  camera=CameraConfig(model=camera_model, single_camera=single_camera,
+                                                      refine_principal_point=refine_principal_point))
     try:
         with StageProgressBars() as progress:
             result = run_reconstruction(images_dir, out_dir, config, progress=progress)

@@ -305,3 +305,18 @@ def test_fixed_intrinsics_stay_as_given_and_distorted_pixels_are_undistorted_fir
     assert result.cameras == [TRUE_RADIAL] * 5
     assert result.final_rms_px < 1e-4
     assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 1e-4
+
+
+def test_the_principal_point_is_refined_on_request_for_the_opencv_model():
+    truth = Camera("opencv", fx=600.0, fy=605.0, cx=390.0, cy=310.0, k1=-0.1, k2=0.01, p1=1e-3, p2=-1e-3)
+    scene = make_scene(num_cameras=10, num_points=500, noise_px=0.3, seed=6, camera=truth)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3))
+    refine = IntrinsicsRefinement(focal=True, distortion=True, principal_point=True)
+    result = bundle_adjust(prior_camera("opencv"), poses, points, *observations(scene),
+                           BundleAdjustmentConfig(), refine=refine)
+    camera = result.cameras[0]
+    assert np.hypot(camera.cx - truth.cx, camera.cy - truth.cy) < 3.0     # started 10.8 px away
+    assert camera.fx == pytest.approx(truth.fx, rel=0.01) and camera.fy == pytest.approx(truth.fy, rel=0.01)
+    with pytest.raises(InputError, match="principal point can be refined for the pinhole and opencv"):
+        bundle_adjust(prior_camera("radial"), poses, points, *observations(scene), BundleAdjustmentConfig(),
+                      refine=refine)
