@@ -22,9 +22,8 @@ import numpy as np
 
 from estimation.errors import InputError
 from estimation.geometry.projection import Camera
-from estimation.io.images import CALIBRATION_FILE_NAME, list_images, load_rgb
+from estimation.io.images import CALIBRATION_FILE_NAME, DISTORTION_FILE_NAME, list_images, load_rgb
 
-DISTORTION_FILE_NAME = "distortion.json"
 CORNERS_FIGURE_NAME = "checkerboard_corners.png"
 MIN_BOARDS = 3
 """Zhang's method needs three views of the plane for the five intrinsics (more for distortion)."""

@@ -15,7 +15,7 @@ from estimation.api import initial_intrinsics
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import CameraConfig
 from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_ply
-from estimation.io.images import list_images
+from estimation.io.images import find_calibration, find_distortion, list_images
 from estimation.synthetic import project
 
 pytestmark = pytest.mark.slow
@@ -237,3 +237,19 @@ def test_unity_hall_without_calibration_registers_every_image_and_exports_the_re
     assert (transforms["fl_x"], transforms["k1"], transforms["k2"]) == (camera["fx"], camera["k1"], 0.0)
     colmap = read_colmap_text(tmp_path / "out" / "sparse")
     assert colmap.cameras[1].model == "simple-radial"
+
+
+def test_the_distortion_json_of_sfmnerf_calibrate_comes_with_its_calibration_and_is_held(tmp_path):
+    folder = jpegs_with_exif(tmp_path, focal_35mm=None)
+    (folder / "calibration.txt").write_text("100 0 60\n0 101 40\n0 0 1\n")
+    coefficients = {"k1": -0.1, "k2": 0.02, "p1": 1e-3, "p2": -2e-3}
+    (folder / "distortion.json").write_text(json.dumps({"camera": {"model": "opencv", **coefficients}}))
+    initial = initial_intrinsics(list_images(folder), find_calibration(folder), CameraConfig(),
+                                 find_distortion(folder))
+    camera = initial.cameras[0]
+    assert camera.model == "opencv" and initial.source == "calibration file and distortion.json"
+    assert (camera.k1, camera.k2, camera.p1, camera.p2) == tuple(coefficients.values())
+    assert not initial.refine.refines("opencv")
+    (folder / "distortion.json").write_text("{}")
+    with pytest.raises(InputError, match=r"distortion.json: expected the distortion.json of `sfmnerf"):
+        find_distortion(folder)
