@@ -275,6 +275,14 @@ class _Model:
         camera = Camera.take(self.cameras, self.tracks.image_index[obs_ids])
         return observation_errors(camera, obs, self.point_xyz)
 
+    def readmit(self, max_error_px: float) -> None:
+        """Take back the observations of registered images and triangulated tracks within max_error_px:
+        those an earlier filter dropped while the intrinsics were still wrong."""
+        tracks = self.tracks
+        candidates = np.flatnonzero(~self.obs_used & self.has_point[tracks.track_index]
+                                    & np.isin(tracks.image_index, self.order))
+        self.obs_used[candidates[self.errors_of(candidates) <= max_error_px]] = True
+
     def filter(self, max_error_px: float, min_angle_deg: float) -> None:
         """Drop observations above max_error_px (or behind the camera), then points with < 2
         observations or a triangulation angle below min_angle_deg."""
@@ -510,6 +518,8 @@ def run_incremental(tracks: Tracks, K: Camera | np.ndarray, config: Reconstructi
         for _ in range(FINAL_BA_ROUNDS):
             iterations += model.bundle_adjust(config, window=None)[2]
             num_used = model.obs_used.sum()
+            if refine.refines(model.cameras[0].model):
+                model.readmit(config.filter.max_reprojection_px)
             model.filter(*filter_limits)
             if model.obs_used.sum() == num_used:
                 break
