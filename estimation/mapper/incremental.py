@@ -300,8 +300,9 @@ class _Model:
 
     def bundle_adjust(self, config: ReconstructionConfig, window: list[int] | None
                       ) -> tuple[float, float, int]:
-        """Global BA (window None: first camera fixed, scale by the second; refines the intrinsics as
-        `self.refine` says) or local BA over `window` (intrinsics fixed)."""
+        """Global BA (window None: first camera fixed, scale by the second) or local BA over `window`;
+        both refine the intrinsics as `self.refine` says (as COLMAP's local BA does), and the model
+        adopts them."""
         from estimation.bundle_adjustment.factor_graph import bundle_adjust
 
         used = self.used_observations()
@@ -459,8 +460,9 @@ def run_incremental(tracks: Tracks, K: Camera | np.ndarray, config: Reconstructi
     """Incremental SfM: initial pair by inliers and parallax, then PnP registration by most 2D-3D matches.
 
     The geometry works in the pixel coordinates of `tracks`; `K` (a 3x3 K or a Camera) is every
-    image's initial camera; each global BA refines the intrinsics as `refine` says, and the model's
-    `cameras` carry the result.
+    image's initial camera; every bundle adjustment refines the intrinsics as `refine` says, the final
+    rounds take back observations dropped under the earlier intrinsics, and the model's `cameras`
+    carry the result.
     Raises DegenerateConfigurationError if no pair can start.
     """
     num_images = len(tracks.image_names)
