@@ -19,7 +19,15 @@ from estimation.config import CameraConfig, ReconstructionConfig
 from estimation.errors import InputError
 from estimation.geometry.projection import Camera
 from estimation.io.export import transforms_dict, write_colmap_text, write_json, write_ply
-from estimation.io.images import ExifFocal, ImageSet, exif_focal, find_calibration, list_images, load_rgb
+from estimation.io.images import (
+    ExifFocal,
+    ImageSet,
+    exif_focal,
+    find_calibration,
+    find_distortion,
+    list_images,
+    load_rgb,
+)
 from estimation.io.matchfile import find_match_files, load_match_tracks
 from estimation.mapper.incremental import ReprojectionSummary, SparseModel, reconstruct_models
 from estimation.types import ProgressCallback, Tracks
@@ -135,25 +143,35 @@ def extract_tracks(
     return FeatureTracks(result.tracks, source, details)
 
 
-def resolve_camera_model(camera: CameraConfig, calibrated: bool) -> str:
-    """`auto` is pinhole with a calibration file, simple-radial (COLMAP's default) without."""
+def resolve_camera_model(camera: CameraConfig, calibrated: bool, distortion_known: bool = False) -> str:
+    """`auto` is pinhole with a calibration file (opencv when a distortion.json comes with it),
+    simple-radial (COLMAP's default) without."""
     if camera.model != "auto":
         return camera.model
-    return "pinhole" if calibrated else "simple-radial"
+    if calibrated:
+        return "opencv" if distortion_known else "pinhole"
+    return "simple-radial"
 
 
-def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraConfig) -> InitialIntrinsics:
+def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraConfig,
+                       distortion: dict[str, float] | None = None) -> InitialIntrinsics:
     """The cameras to start from: the calibration file's K (held fixed, distortion refined if the
-    model has any); else each photo's EXIF focal length, else focal_prior_factor * max(w, h) with a
-    warning (focal length and distortion refined). The principal point is K's, or the image centre."""
-    model = resolve_camera_model(config, K is not None)
+    model has any, unless `distortion` gives it: then everything is held); else each photo's EXIF focal
+    length, else focal_prior_factor * max(w, h) with a warning (focal length and distortion refined).
+    The principal point is K's, or the image centre."""
+    model = resolve_camera_model(config, K is not None, distortion is not None)
     per_image = not config.single_camera
+    if config.refine_principal_point and model not in ("pinhole", "opencv"):
+        raise InputError(f"refining the principal point needs the pinhole or opencv camera model, "
+                         f"not {model}")
     if K is not None:
-        camera = Camera.from_K(K).as_model(model)
+        camera = Camera.from_K(K, "opencv", **(distortion or {})).as_model(model)
         return InitialIntrinsics(
-            cameras=[camera] * len(images), source="calibration file",
+            cameras=[camera] * len(images),
+            source="calibration file" + (" and distortion.json" if distortion is not None else ""),
             focal_sources=["calibration file"] * len(images),
-            refine=IntrinsicsRefinement(focal=False, distortion=True, per_image=per_image), warnings=[],
+            refine=IntrinsicsRefinement(focal=False, distortion=distortion is None, per_image=per_image),
+            warnings=[],
         )
     prior_px = config.focal_prior_factor * max(images.width, images.height)
     fov = (config.min_field_of_view_deg, config.max_field_of_view_deg)
@@ -184,7 +202,8 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
         cameras = [camera_of(float(np.median(found)) if found else prior_px)] * len(images)
     source = "prior" if not found else "exif" if not missing else "exif and prior"
     return InitialIntrinsics(cameras=cameras, source=source, focal_sources=focal_sources,
-                             refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image),
+                             refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image,
+                                                         principal_point=config.refine_principal_point),
                              warnings=warnings)
 
 
@@ -205,7 +224,7 @@ def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: Spars
     report = {
         "K": cameras[0].K.tolist(), "width": images.width, "height": images.height,
         "model": cameras[0].model, "source": initial.source,
-        "refined": {"focal_length": initial.refine.focal,
+        "refined": {"focal_length": initial.refine.focal, "principal_point": initial.refine.principal_point,
                     "distortion": initial.refine.distortion and cameras[0].model != "pinhole"},
         "single_camera": not initial.refine.per_image,
         "pixel_convention": "centre of the top-left pixel at (0, 0) (OpenCV); COLMAP files add 0.5",
@@ -347,7 +366,8 @@ def reconstruct(
     report_input("loading images", 0.0)
     with _timed(seconds, "input"):
         images = list_images(images_dir)
-        initial = initial_intrinsics(images, find_calibration(images_dir, config.calibration), config.camera)
+        initial = initial_intrinsics(images, find_calibration(images_dir, config.calibration), config.camera,
+                                     find_distortion(images_dir, config.calibration))
     report_input("loading images", 1.0)
 
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]

@@ -203,6 +203,10 @@ class CameraConfig(BaseModel):
     )
     single_camera: bool = Field(True, description="One camera shared by all images (False: one per image).")
     use_exif: bool = Field(True, description="First focal length from the photos' EXIF when present.")
+    refine_principal_point: bool = Field(
+        False, description="Also refine cx, cy when there is no calibration file (pinhole and opencv models "
+        "only). Off by default, as in COLMAP: few views rarely determine it."
+    )
     focal_prior_factor: float = Field(
         1.2, gt=0, description="Focal length = this * max(width, height) when neither calibration nor EXIF "
         "gives one (COLMAP's prior)."

@@ -9,8 +9,8 @@ GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt; pi is `geometry.projec
 - Intrinsics refined (`IntrinsicsRefinement`): each observation is a GeneralSFMFactor2 on (pose, point,
   calibration), the calibration a variable of the graph, one shared by every camera or one per camera:
   Cal3Bundler (f, k1, k2) for simple-radial and radial, Cal3DS2 (fx, fy, s, u0, v0, k1, k2, p1, p2)
-  for pinhole and opencv. What the model or the request holds fixed (always the principal point and
-  skew, as COLMAP does by default) is held by a near-hard prior on that component only.
+  for pinhole and opencv. What the model or the request holds fixed (the skew always, the principal
+  point unless asked, as COLMAP does by default) is held by a near-hard prior on that component only.
 The gauge (7 DoF: rotation, translation, scale) is fixed by near-hard priors: a PriorFactorPose3 on each
 fixed camera and, when only one camera is fixed, a RangeFactorPose3 holding the distance between the
 centres of the first fixed camera and the scale-reference camera at its initial value.
@@ -56,14 +56,15 @@ _ORDERING_TYPES = {"colamd": "COLAMD", "metis": "METIS", "natural": "NATURAL"}
 
 @dataclass(frozen=True)
 class IntrinsicsRefinement:
-    """Which intrinsics the BA refines; the principal point and skew always stay as given."""
+    """Which intrinsics the BA refines; the skew always stays as given."""
 
-    focal: bool = False        # fx, fy (f for simple-radial and radial)
-    distortion: bool = False   # the coefficients the camera model has (none for pinhole)
-    per_image: bool = False    # one calibration variable per camera instead of one shared by all
+    focal: bool = False            # fx, fy (f for simple-radial and radial)
+    distortion: bool = False       # the coefficients the camera model has (none for pinhole)
+    per_image: bool = False        # one calibration variable per camera instead of one shared by all
+    principal_point: bool = False  # cx, cy: pinhole and opencv only (GTSAM's Cal3Bundler holds it fixed)
 
     def refines(self, model: str) -> bool:
-        return self.focal or (self.distortion and model != "pinhole")
+        return self.focal or self.principal_point or (self.distortion and model != "pinhole")
 
 
 @dataclass(frozen=True)
@@ -232,14 +233,14 @@ def camera_to_gtsam(camera: Camera) -> gtsam.Cal3Bundler | gtsam.Cal3DS2:
 
 
 def camera_from_gtsam(calibration: gtsam.Cal3Bundler | gtsam.Cal3DS2, like: Camera) -> Camera:
-    """`like` (model, principal point, skew) with the focal lengths and coefficients of `calibration`
+    """`like` (model, skew) with the focal lengths, principal point and coefficients of `calibration`
     (those the model lacks, held near zero by a prior, are set to exactly zero)."""
     bundler = isinstance(calibration, gtsam.Cal3Bundler)
     coefficients = {"k1": calibration.k1(), "k2": calibration.k2(),
                     "p1": 0.0 if bundler else calibration.p1(), "p2": 0.0 if bundler else calibration.p2()}
     kept = {name: value for name, value in coefficients.items() if name in DISTORTION_PARAMETERS[like.model]}
     return Camera(like.model, fx=calibration.fx(), fy=calibration.fx() if bundler else calibration.fy(),
-                  cx=like.cx, cy=like.cy, skew=like.skew, **kept)
+                  cx=calibration.px(), cy=calibration.py(), skew=like.skew, **kept)
 
 
 def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
@@ -247,8 +248,9 @@ def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
     distortion = refine.distortion and model != "pinhole"
     if _uses_bundler(model):   # (f, k1, k2)
         return np.array([refine.focal, distortion, distortion and model == "radial"])
-    return np.array([refine.focal, refine.focal, False, False, False,   # fx fy s u0 v0, then k1 k2 p1 p2
-                     *([distortion and model == "opencv"] * 4)])
+    opencv = distortion and model == "opencv"       # fx fy s, u0 v0, k1 k2 p1 p2
+    return np.array([refine.focal, refine.focal, False, refine.principal_point, refine.principal_point,
+                     opencv, opencv, opencv, opencv])
 
 
 def _calibrated_factors(
@@ -381,6 +383,9 @@ def bundle_adjust(
     uv = np.asarray(uv, float)
     fixed_cameras = [int(c) for c in fixed_cameras]
     _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
+    if refine.principal_point and _uses_bundler(cameras[0].model):
+        raise InputError(f"bundle_adjust: the principal point can be refined for the pinhole and opencv "
+                         f"models only, not {cameras[0].model}")
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
 
     num_cameras = len(poses)

@@ -158,3 +158,27 @@ def plot_top_view(
     axes.set_ylabel("z (first camera's forward)")
     axes.set_title(f"{len(poses)} cameras and {len(points)} points, seen from above")
     return _save(figure, path)
+
+
+def plot_checkerboard_corners(
+    images: Sequence[np.ndarray],
+    corners: Sequence[np.ndarray | None],
+    titles: Sequence[str],
+    path: Path,
+    columns: int = 4,
+) -> Path:
+    """Each photo with its detected board corners (first corner marked), or 'not found', in a grid."""
+    rows = max(1, -(-len(images) // columns))
+    height, width = images[0].shape[:2]
+    figure = Figure(figsize=(3.2 * columns, 3.2 * rows * height / width + 0.4 * rows))
+    for k, (rgb, uv, title) in enumerate(zip(images, corners, titles, strict=True)):
+        axes = figure.add_subplot(rows, columns, k + 1)
+        axes.imshow(rgb)
+        if uv is not None:
+            axes.plot(uv[:, 0], uv[:, 1], "-", color="#fee08b", linewidth=0.6)
+            axes.scatter(uv[:, 0], uv[:, 1], s=4, c=INLIER_COLOR)
+            axes.scatter(uv[:1, 0], uv[:1, 1], s=20, c=OUTLIER_COLOR)
+        axes.set_title(title, fontsize=8, color="black" if uv is not None else OUTLIER_COLOR)
+        axes.set_axis_off()
+    figure.tight_layout()
+    return _save(figure, path)

@@ -7,6 +7,7 @@ height of a rotated photo swap), so pixels, K and every output refer to the upri
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -19,6 +20,9 @@ from estimation.errors import InputError
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 """Files with these suffixes (any case) are images; everything else in the folder is ignored."""
 CALIBRATION_FILE_NAME = "calibration.txt"
+DISTORTION_FILE_NAME = "distortion.json"
+"""Written by `sfmnerf calibrate` next to calibration.txt; read with it (the OPENCV model, held fixed)."""
+DISTORTION_COEFFICIENTS = ("k1", "k2", "p1", "p2")
 MIN_IMAGES = 2
 K_LAST_ROW_TOLERANCE = 1e-9
 SINGULAR_CONDITION = 1e12
@@ -152,6 +156,23 @@ def load_calibration(path: Path) -> np.ndarray:
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(f"{path}: cannot read the calibration file ({error})") from None
     return parse_calibration(text, str(path))
+
+
+def load_distortion(path: Path) -> dict[str, float]:
+    """k1 k2 p1 p2 from a distortion.json written by `sfmnerf calibrate` ({"camera": {"k1": ...}})."""
+    try:
+        camera = json.loads(Path(path).read_text())["camera"]
+        return {name: float(camera[name]) for name in DISTORTION_COEFFICIENTS}
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as error:
+        raise InputError(f"{path}: expected the distortion.json of `sfmnerf calibrate` with camera "
+                         f"k1 k2 p1 p2 ({type(error).__name__}: {error})") from None
+
+
+def find_distortion(folder: Path, override: Path | None = None) -> dict[str, float] | None:
+    """k1 k2 p1 p2 from distortion.json next to the calibration file in use, or None if there is none."""
+    calibration = Path(override) if override is not None else Path(folder) / CALIBRATION_FILE_NAME
+    path = calibration.parent / DISTORTION_FILE_NAME
+    return load_distortion(path) if calibration.is_file() and path.is_file() else None
 
 
 def find_calibration(folder: Path, override: Path | None = None) -> np.ndarray | None:

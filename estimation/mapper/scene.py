@@ -351,9 +351,9 @@ class Scene:
     def bundle_adjust(
         self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None
     ) -> BundleAdjustmentResult:
-        """Global BA (variable_images None: first image fixed, scale by the second; refines the intrinsics
-        as `refine` says) or local BA of the points seen by `variable_images`, with the other images that
-        see them held fixed (intrinsics fixed).
+        """Global BA (variable_images None: first image fixed, scale by the second) or local BA of the
+        points seen by `variable_images`, with the other images that see them held fixed; both refine the
+        intrinsics as `refine` says (as COLMAP's local BA does) and the scene adopts them.
 
         Returns the adjustment's result (costs, RMS, iterations); the scene holds the adjusted values.
         """
@@ -367,7 +367,6 @@ class Scene:
         fixed, scale_reference = [0], 1
         refine = self.refine or IntrinsicsRefinement()
         if variable_images is not None:
-            refine = IntrinsicsRefinement()
             local_points = np.unique(self.obs_point[used[np.isin(images[used], variable_images)]])
             used = used[np.isin(self.obs_point[used], local_points)]
             outside = np.setdiff1d(np.unique(images[used]), variable_images)

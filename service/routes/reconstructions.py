@@ -85,10 +85,11 @@ def _store_inputs(
         source = sanitize_filename(calibration.filename or CALIBRATION_NAME, "calibration")
     elif K:
         text, source = _k_from_numbers(K), "K"
-    else:
-        raise invalid("calibration: missing; upload calibration.txt (the 3x3 K) or give K as 9 numbers")
-    _parse_k(text, source)
-    inside(folder, CALIBRATION_NAME).write_text(text)
+    else:   # no calibration: the reconstruction takes the focal length from EXIF or a prior, and refines it
+        text = None
+    if text is not None:
+        _parse_k(text, source)
+        inside(folder, CALIBRATION_NAME).write_text(text)
 
     if features == "matches" and not matches:
         raise invalid("matches: features='matches' needs the matching<i>.txt files")
@@ -128,7 +129,8 @@ def create_reconstruction(
         File(description="Optional matching<i>.txt files (image ids are the images' numeric names)."),
     ] = None,
     calibration: Annotated[
-        UploadFile | None, File(description="calibration.txt: the 3x3 K, row by row.")
+        UploadFile | None, File(description="calibration.txt: the 3x3 K, row by row. Without it (or K) the "
+                                "camera is calibrated from the photos' EXIF or a prior, and refined.")
     ] = None,
     K: Annotated[
         str | None,

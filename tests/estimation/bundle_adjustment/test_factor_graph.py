@@ -5,9 +5,11 @@ import numpy as np
 import pytest
 
 from estimation.bundle_adjustment.factor_graph import (
+    IntrinsicsRefinement,
     bundle_adjust,
     camera_pose_from_gtsam,
     camera_pose_to_gtsam,
+    camera_to_gtsam,
     huber_cost,
     reprojection_residuals,
     rms,
@@ -15,7 +17,8 @@ from estimation.bundle_adjustment.factor_graph import (
 from estimation.config import BundleAdjustmentConfig
 from estimation.errors import InputError
 from estimation.geometry.alignment import align_similarity, aligned_pose_errors
-from estimation.synthetic import make_scene
+from estimation.geometry.projection import Camera
+from estimation.synthetic import make_scene, project
 from estimation.types import CameraPose
 
 
@@ -243,3 +246,77 @@ def test_bad_input_raises_input_error_naming_the_argument(change, message):
     }
     with pytest.raises(InputError, match=message):
         bundle_adjust(**change(arguments))
+
+
+# --- intrinsics -----------------------------------------------------------------------------------
+
+TRUE_RADIAL = Camera("radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.15, k2=0.02)
+
+
+def prior_camera(model, width=800, height=600):
+    """COLMAP's prior: focal 1.2 max(w, h), no distortion, principal point at the centre."""
+    focal = 1.2 * max(width, height)
+    return Camera(model, fx=focal, fy=focal, cx=400.0, cy=300.0)
+
+
+@pytest.mark.parametrize("model", ["simple-radial", "radial", "opencv"])
+def test_gtsam_calibrations_project_like_the_projection_module(model):
+    camera = TRUE_RADIAL.as_model(model)
+    scene = make_scene(num_cameras=2, num_points=30, seed=1, camera=camera)
+    pose = scene.poses[1]
+    gtsam_camera = (gtsam.PinholeCameraCal3Bundler if model != "opencv" else gtsam.PinholeCameraCal3DS2)(
+        camera_pose_to_gtsam(pose), camera_to_gtsam(camera))
+    ours = project(camera, pose, scene.points)
+    np.testing.assert_allclose([gtsam_camera.project(p) for p in scene.points], ours, atol=1e-8)
+
+
+@pytest.mark.parametrize(("model", "truth"), [("radial", TRUE_RADIAL),
+                                              ("simple-radial", TRUE_RADIAL.as_model("simple-radial"))])
+def test_shared_focal_and_distortion_are_recovered_from_the_prior(model, truth):
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(0))
+    result = bundle_adjust(prior_camera(model), poses, points, *observations(scene), BundleAdjustmentConfig(),
+                           refine=IntrinsicsRefinement(focal=True, distortion=True))
+    camera = result.cameras[0]
+    assert all(c is camera for c in result.cameras)                 # one shared calibration
+    assert camera.fx == pytest.approx(truth.fx, rel=0.005)
+    assert camera.k1 == pytest.approx(truth.k1, rel=0.10)
+    assert (camera.cx, camera.cy) == (400.0, 300.0)                 # the principal point is held
+    assert result.final_rms_px < 0.75                               # ~ the noise: sqrt(2) * 0.5 px
+    errors = aligned_pose_errors(result.poses, scene.poses)
+    assert errors.rotation_deg.max() < 0.1
+
+
+def test_per_image_calibrations_are_refined_separately():
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.3, seed=4, camera=TRUE_RADIAL)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(1))
+    start = [prior_camera("radial")] * 8
+    result = bundle_adjust(start, poses, points, *observations(scene), BundleAdjustmentConfig(),
+                           refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=True))
+    focals = np.array([c.fx for c in result.cameras])
+    assert len(set(focals.tolist())) == 8                            # eight calibration variables
+    np.testing.assert_allclose(focals, TRUE_RADIAL.fx, rtol=0.02)
+
+
+def test_fixed_intrinsics_stay_as_given_and_distorted_pixels_are_undistorted_first():
+    scene = make_scene(num_cameras=5, num_points=200, noise_px=0.0, seed=5, camera=TRUE_RADIAL)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    result = bundle_adjust(TRUE_RADIAL, poses, points, *observations(scene), BundleAdjustmentConfig())
+    assert result.cameras == [TRUE_RADIAL] * 5
+    assert result.final_rms_px < 1e-4
+    assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 1e-4
+
+
+def test_the_principal_point_is_refined_on_request_for_the_opencv_model():
+    truth = Camera("opencv", fx=600.0, fy=605.0, cx=390.0, cy=310.0, k1=-0.1, k2=0.01, p1=1e-3, p2=-1e-3)
+    scene = make_scene(num_cameras=10, num_points=500, noise_px=0.3, seed=6, camera=truth)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3))
+    refine = IntrinsicsRefinement(focal=True, distortion=True, principal_point=True)
+    result = bundle_adjust(prior_camera("opencv"), poses, points, *observations(scene),
+                           BundleAdjustmentConfig(), refine=refine)
+    camera = result.cameras[0]
+    assert np.hypot(camera.cx - truth.cx, camera.cy - truth.cy) < 3.0     # started 10.8 px away
+    assert camera.fx == pytest.approx(truth.fx, rel=0.01) and camera.fy == pytest.approx(truth.fy, rel=0.01)
+    with pytest.raises(InputError, match="principal point can be refined for the pinhole and opencv"):
+        bundle_adjust(prior_camera("radial"), poses, points, *observations(scene), BundleAdjustmentConfig(),
+                      refine=refine)

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
+from PIL import ExifTags, Image
 
 from estimation.errors import InputError
-from estimation.io.images import find_calibration, list_images, load_calibration, load_rgb
+from estimation.io.images import exif_focal, find_calibration, list_images, load_calibration, load_rgb
 
 UNITY_K = np.array([
     [531.122155322710, 0.0, 407.192550839899],
@@ -108,3 +108,63 @@ def test_a_folder_without_calibration_has_none_but_a_named_missing_file_is_an_in
     expected = f"{tmp_path / 'other.txt'}: calibration file not found"
     with pytest.raises(InputError, match=re.escape(expected)):
         find_calibration(tmp_path, tmp_path / "other.txt")
+
+
+# --- EXIF -----------------------------------------------------------------------------------------
+
+PLAUSIBLE_FOV = (2.0, 150.0)
+
+
+def save_jpeg_with_exif(path: Path, exif_tags: dict, orientation: int | None = None, width: int = 60,
+                        height: int = 40) -> Path:
+    """A JPEG whose EXIF sub-IFD holds `exif_tags` (and IFD0 the orientation, when given)."""
+    pixels = np.zeros((height, width, 3), np.uint8)
+    pixels[: height // 2, : width // 2] = 255           # a white top-left quadrant shows the rotation
+    exif = Image.Exif()
+    if orientation is not None:
+        exif[ExifTags.Base.Orientation] = orientation
+    exif.get_ifd(ExifTags.IFD.Exif).update(exif_tags)
+    Image.fromarray(pixels).save(path, exif=exif)
+    return path
+
+
+def test_exif_35mm_equivalent_focal_length_is_converted_on_the_frame_diagonal(tmp_path):
+    path = save_jpeg_with_exif(tmp_path / "a.jpg", {ExifTags.Base.FocalLengthIn35mmFilm: 28})
+    focal = exif_focal(path, PLAUSIBLE_FOV)
+    assert focal.source == "FocalLengthIn35mmFilm" and focal.problem is None
+    assert focal.focal_px == pytest.approx(28 / np.hypot(36, 24) * np.hypot(60, 40))
+
+
+def test_exif_focal_length_in_mm_uses_the_focal_plane_resolution(tmp_path):
+    # 4.2 mm lens, 1000 pixels per cm on the sensor (unit 3 = cm), file not resized: 420 px.
+    tags = {ExifTags.Base.FocalLength: 4.2, ExifTags.Base.FocalPlaneXResolution: 1000.0,
+            ExifTags.Base.FocalPlaneResolutionUnit: 3}
+    focal = exif_focal(save_jpeg_with_exif(tmp_path / "a.jpg", tags, width=600, height=400), PLAUSIBLE_FOV)
+    assert focal.source == "FocalLength+FocalPlaneXResolution"
+    assert focal.focal_px == pytest.approx(420.0)
+    # the same photo downsized to 300 px wide (ExifImageWidth keeps the original 600): 210 px
+    tags[ExifTags.Base.ExifImageWidth] = 600
+    focal = exif_focal(save_jpeg_with_exif(tmp_path / "b.jpg", tags, width=300, height=200), PLAUSIBLE_FOV)
+    assert focal.focal_px == pytest.approx(210.0)
+
+
+@pytest.mark.parametrize(("tags", "problem"), [
+    ({ExifTags.Base.FocalLengthIn35mmFilm: 0}, "is not a positive focal length"),
+    ({ExifTags.Base.FocalLengthIn35mmFilm: 1}, "absurd field of view of 174 deg"),
+    ({ExifTags.Base.FocalLengthIn35mmFilm: 5000}, "absurd field of view of 0.4"),
+    ({}, "no EXIF focal length"),
+])
+def test_exif_that_lies_or_is_missing_gives_no_focal_and_says_why(tmp_path, tags, problem):
+    focal = exif_focal(save_jpeg_with_exif(tmp_path / "a.jpg", tags), PLAUSIBLE_FOV)
+    assert focal.focal_px is None
+    assert re.search(problem, focal.problem)
+
+
+def test_exif_orientation_is_applied_to_the_size_and_the_pixels(tmp_path):
+    save_jpeg_with_exif(tmp_path / "1.jpg", {}, orientation=6)       # 6: stored image turned 90 deg clockwise
+    save_jpeg_with_exif(tmp_path / "2.jpg", {}, orientation=6)
+    images = list_images(tmp_path)
+    assert (images.width, images.height) == (40, 60)
+    rgb = load_rgb(images.paths[0])
+    assert rgb.shape == (60, 40, 3)
+    assert rgb[5, -5].mean() > 200 and rgb[5, 5].mean() < 50       # the white quadrant is now top-right

@@ -5,9 +5,11 @@ import dataclasses
 import numpy as np
 import pytest
 
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.alignment import align_similarity, aligned_pose_errors
+from estimation.geometry.projection import Camera
 from estimation.mapper.incremental import SparseModel, reconstruct_models, run_incremental
 from estimation.synthetic import make_object_scene, make_scene, observe, rotation_about_axis
 from estimation.types import CameraPose, Tracks
@@ -274,3 +276,21 @@ def test_when_the_first_initial_pair_candidate_is_degenerate_the_next_one_starts
     assert model.stats.initial_pair not in {("1.png", "2.png")}
     assert sorted(model.poses) == [0, 1, 2, 3, 4]
     assert aligned_pose_errors([model.poses[m] for m in range(5)], poses).rotation_deg.max() < 0.5
+
+
+def test_unknown_focal_length_and_radial_distortion_are_recovered_from_the_prior():
+    """A shared simple-radial camera started at COLMAP's prior 1.2 max(w, h) = 960 px (truth 600 px)."""
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
+    prior = Camera("simple-radial", fx=960.0, fy=960.0, cx=400.0, cy=300.0)
+    refine = IntrinsicsRefinement(focal=True, distortion=True)
+    model = run_incremental(scene.tracks, prior, CONFIG, refine=refine)
+    assert len(model.poses) == 8
+    camera = model.cameras[0]
+    assert all(c == camera for c in model.cameras)
+    assert camera.fx == pytest.approx(truth.fx, rel=0.005)
+    assert camera.k1 == pytest.approx(truth.k1, rel=0.10)
+    assert pose_errors(model, scene).rotation_deg.max() < 0.2
+    # the observations dropped while the focal length was wrong are taken back, as measured pixels
+    assert len(model.obs_uv) > 0.95 * len(scene.tracks.uv)
+    assert np.isin(model.obs_uv[:, 0], scene.tracks.uv[:, 0]).all()

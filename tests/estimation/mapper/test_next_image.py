@@ -9,7 +9,8 @@ def test_spread_points_outscore_as_many_clustered_points():
     rng = np.random.default_rng(0)
     spread = rng.uniform([0, 0], [640, 480], (100, 2))
     clustered = rng.uniform([0, 0], [60, 40], (100, 2))
-    scores = visibility_pyramid_scores(np.repeat([0, 1], 100), np.concatenate([spread, clustered]), 3, 640, 480)
+    uv = np.concatenate([spread, clustered])
+    scores = visibility_pyramid_scores(np.repeat([0, 1], 100), uv, 3, 640, 480)
     assert scores[0] > 2 * scores[1] > 0
     assert scores[2] == 0                                  # no visible point, no score
 
