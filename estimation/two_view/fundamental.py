@@ -87,11 +87,9 @@ def sampson_residual(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndar
 
     F may be batched (B, 3, 3); the result is then (B, N).
     """
-    x1 = np.hstack([uv1, np.ones((len(uv1), 1))])
-    x2 = np.hstack([uv2, np.ones((len(uv2), 1))])
-    Fx1 = x1 @ np.swapaxes(F, -1, -2)       # (..., N, 3)
-    Ftx2 = x2 @ F
-    algebraic = (Fx1 * x2).sum(axis=-1)
+    Fx1 = uv1 @ np.swapaxes(F[..., :, :2], -1, -2) + F[..., None, :, 2]     # (..., N, 3): F [u1 v1 1]^T
+    Ftx2 = uv2 @ F[..., :2, :] + F[..., None, 2, :]                          # F^T [u2 v2 1]^T
+    algebraic = (Fx1[..., :2] * uv2).sum(axis=-1) + Fx1[..., 2]
     gradient_sq = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
     return algebraic / np.sqrt(np.maximum(gradient_sq, 1e-300))
 
