@@ -217,7 +217,7 @@ def test_a_link_out_of_the_dataset_is_refused(small_blender, tmp_path):
     (tmp_path / "elsewhere.png").write_bytes((small_blender / "train/r_1.png").read_bytes())
     (small_blender / "train/r_1.png").unlink()
     (small_blender / "train/r_1.png").symlink_to(tmp_path / "elsewhere.png")
-    with pytest.raises(DatasetError, match=r"frames\[1\]: file_path '\./train/r_1' points outside"):
+    with pytest.raises(DatasetError, match=r"frames\[1\]: file_path '\./train/r_1\.png' points outside"):
         load_dataset(small_blender)
 
 
