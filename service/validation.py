@@ -101,7 +101,8 @@ def _npy_header(
 
 
 def _check_dataset(arguments: dict[str, Any], settings: ServiceSettings) -> None:
-    """load_dataset on the extracted upload (or a reconstruction's output): every file and pose checked."""
+    """load_dataset on the extracted upload (or a reconstruction's output): every file and pose checked,
+    every file it names inside `within` (the job folder)."""
     from PIL import Image
 
     from neural.data import load_dataset
@@ -109,7 +110,7 @@ def _check_dataset(arguments: dict[str, Any], settings: ServiceSettings) -> None
 
     field = arguments["field"]
     try:
-        load_dataset(Path(arguments["path"]))
+        load_dataset(Path(arguments["path"]), within=Path(arguments["within"]))
     except DatasetError as error:
         if isinstance(error.__cause__, (Image.DecompressionBombError, Image.DecompressionBombWarning)):
             raise too_large(f"{field}: {error} (SFMNERF_MAX_IMAGE_PIXELS)") from None

@@ -88,9 +88,11 @@ def _save_dataset(upload: UploadFile, job_id: str, settings: ServiceSettings) ->
     return str(root.relative_to(folder))
 
 
-def _check_dataset(path: Path, field: str, settings: ServiceSettings) -> None:
-    """load_dataset in a validation process: 422 naming the frame or file, 413 for a limit."""
-    check_isolated("dataset", {"path": str(path), "field": field}, settings)
+def _check_dataset(job_id: str, path: Path, field: str, settings: ServiceSettings) -> None:
+    """load_dataset in a validation process, reading only inside the job's folder: 422 naming the frame
+    or file, 413 for a limit."""
+    within = str(job_dir(settings, job_id))
+    check_isolated("dataset", {"path": str(path), "field": field, "within": within}, settings)
 
 
 def _check_device(device: str, settings: ServiceSettings) -> None:
@@ -161,11 +163,13 @@ def create_nerf(
                 f"reconstruction {reconstruction_id} is {source.state}; a NeRF trains on a succeeded one",
             )
         source_job_id = reconstruction_id
-        _check_dataset(output_dir(settings, reconstruction_id), "reconstruction_id", settings)
+        _check_dataset(
+            reconstruction_id, output_dir(settings, reconstruction_id), "reconstruction_id", settings
+        )
     with removed_on_failure(job_dir(settings, job_id)):
         if dataset is not None:
             params["dataset"] = _save_dataset(dataset, job_id, settings)
-            _check_dataset(job_dir(settings, job_id) / params["dataset"], "dataset", settings)
+            _check_dataset(job_id, job_dir(settings, job_id) / params["dataset"], "dataset", settings)
         job = store.create(
             JobKind.nerf,
             params,

@@ -221,12 +221,16 @@ def test_a_link_out_of_the_dataset_is_refused(small_blender, tmp_path):
         load_dataset(small_blender)
 
 
-def test_a_reconstruction_frame_pointing_outside_is_refused(tmp_path):
-    write_reconstruction(tmp_path / "rec")
-    (tmp_path / "other.png").write_bytes((tmp_path / "rec/images/3.png").read_bytes())
-    edit_json(tmp_path / "rec/transforms.json", lambda m: m["frames"][2].update(file_path="../other.png"))
-    with pytest.raises(DatasetError, match=r"frames\[2\]: file_path '\.\./other\.png' points outside"):
-        load_dataset(tmp_path / "rec")
+def test_a_reconstruction_frame_outside_the_given_bound_is_refused(tmp_path):
+    """A local reconstruction may name images anywhere; with `within` (the service) they must stay inside."""
+    write_reconstruction(tmp_path / "job" / "output")
+    (tmp_path / "other.png").write_bytes((tmp_path / "job/output/images/3.png").read_bytes())
+    edit_json(
+        tmp_path / "job/output/transforms.json", lambda m: m["frames"][2].update(file_path="../../other.png")
+    )
+    assert load_dataset(tmp_path / "job/output").images.shape[0] == 5
+    with pytest.raises(DatasetError, match=r"frames\[2\]: file_path '\.\./\.\./other\.png' points outside"):
+        load_dataset(tmp_path / "job/output", within=tmp_path / "job")
 
 
 def test_npz_missing_array_and_unknown_paths(tmp_path):
