@@ -285,7 +285,12 @@ def test_a_client_sees_none_of_another_clients_jobs_on_any_path_of_the_schema(cl
                 assert response.status_code == 404, f"{method} {url}: {response.status_code} {response.text}"
                 assert response.json()["detail"] == f"job {jobs[kind]} not found"
                 walked += 1
-        assert walked >= 14
+        assert walked >= 16
+        for path, operations in schema["paths"].items():  # and without a token, every path but health: 401
+            url = path.format(job_id=jobs[JobKind.nerf], step=1, name="a.png")
+            for method in operations:
+                expected = 200 if path in ("/healthz", "/readyz") else 401
+                assert client.request(method, url).status_code == expected, f"{method} {url}"
         for who in (alice, admin):  # the owner and the admin still see it (the deletes above were refused)
             assert client.get(f"/v1/jobs/{jobs[JobKind.nerf]}", headers=who).status_code == 200
         assert client.get("/v1/jobs", headers=bob).json()["total"] == 0
