@@ -198,6 +198,18 @@ def clients_settings(tmp_path):
     return make_settings(tmp_path / "data", api_token=ADMIN, clients_file=clients_file)
 
 
+@pytest.mark.parametrize(
+    "line", ["alice:plaintext-token", f"admin:sha256:{'0' * 64}", f"alice:sha256:{'0' * 63}"]
+)
+def test_a_clients_file_holds_only_named_sha256_digests(tmp_path, line):
+    from service.auth import read_clients_file
+
+    path = tmp_path / "clients.txt"
+    path.write_text(f"bob:sha256:{'1' * 64}\n{line}\n")
+    with pytest.raises(ValueError, match=r"clients\.txt:2"):
+        read_clients_file(path)
+
+
 def test_a_request_without_a_token_is_refused_before_its_body_is_read(clients_settings):
     """A 300 MB upload without a token: 401 and the body never received (ASGI receive never called)."""
     app = create_app(clients_settings)
