@@ -15,10 +15,10 @@ import numpy as np
 
 from estimation.config import ReconstructionConfig
 from estimation.errors import InputError
-from estimation.export import transforms_dict, write_colmap_text, write_json, write_ply
-from estimation.images import ImageSet, find_calibration, list_images, load_rgb
-from estimation.matchfile import find_match_files, load_match_tracks
-from estimation.pipeline import ReprojectionSummary, SparseModel, run_incremental
+from estimation.io.export import transforms_dict, write_colmap_text, write_json, write_ply
+from estimation.io.images import ImageSet, find_calibration, list_images, load_rgb
+from estimation.io.matchfile import find_match_files, load_match_tracks
+from estimation.mapper.incremental import ReprojectionSummary, SparseModel, run_incremental
 from estimation.types import ProgressCallback, Tracks
 
 SPARSE_DIR = "sparse"
@@ -91,7 +91,7 @@ def extract_tracks(
         details = {"rows": parsed.num_rows, "merged_rows": parsed.num_merged_rows,
                    "rejected_links": parsed.num_rejected_links}
         return FeatureTracks(parsed.tracks, source, details)
-    from estimation.sift import sift_tracks  # OpenCV is only needed here
+    from estimation.features.sift import sift_tracks  # OpenCV is only needed here
 
     result = sift_tracks(images, config.sift, ransac=config.ransac, progress=report)
     details = {
@@ -167,7 +167,7 @@ def write_outputs(out_dir: Path, images: ImageSet, K: np.ndarray, model: SparseM
 
 def write_figures(out_dir: Path, images: ImageSet, model: SparseModel) -> dict[str, Path]:
     """The initial pair's matches and triangulation, and the top view of everything, as PNGs."""
-    from estimation import figures  # matplotlib is only needed here
+    from estimation.io import figures  # matplotlib is only needed here
 
     folder = out_dir / FIGURES_DIR
     pair = model.initial_pair_diagnostics

@@ -120,7 +120,7 @@ def _check_dataset(arguments: dict[str, Any], settings: ServiceSettings) -> None
 def _check_reconstruction_inputs(arguments: dict[str, Any], settings: ServiceSettings) -> None:
     """Every image decoded and every match file parsed against the image ids and size."""
     from estimation.errors import InputError
-    from estimation.matchfile import parse_match_file
+    from estimation.io.matchfile import parse_match_file
 
     folder = Path(arguments["folder"])
     for name in arguments["images"]:

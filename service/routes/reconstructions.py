@@ -41,7 +41,7 @@ REJECTED = {
 
 def _parse_k(text: str, source: str) -> Any:
     from estimation.errors import InputError
-    from estimation.images import parse_calibration
+    from estimation.io.images import parse_calibration
 
     try:
         return parse_calibration(text, source)

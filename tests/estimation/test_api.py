@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 from estimation import InputError, ReconstructionConfig, reconstruct
-from estimation.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_ply
+from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_ply
 from estimation.synthetic import project
 
 pytestmark = pytest.mark.slow

@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from estimation.export import transforms_dict, write_ply
+from estimation.io.export import transforms_dict, write_ply
 from estimation.synthetic import make_scene, project
 from estimation.types import CameraPose
 from neural.data import load_dataset

@@ -18,9 +18,9 @@ import numpy as np
 
 from estimation.config import RansacConfig, SiftConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.fundamental import ransac_fundamental
-from estimation.images import ImageSet, load_rgb
-from estimation.track_building import assemble_tracks
+from estimation.features.track_building import assemble_tracks
+from estimation.io.images import ImageSet, load_rgb
+from estimation.two_view.fundamental import ransac_fundamental
 from estimation.types import ProgressCallback, Tracks
 
 DETECTION_SHARE = 0.4

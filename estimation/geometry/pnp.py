@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.linalg import null_vector
-from estimation.ransac import random_samples, required_iterations
+from estimation.geometry.linalg import null_vector
+from estimation.geometry.ransac import random_samples, required_iterations
 from estimation.types import CameraPose
 
 MIN_CORRESPONDENCES = 6

@@ -8,8 +8,8 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.linalg import null_vector
-from estimation.ransac import random_samples, required_iterations
+from estimation.geometry.linalg import null_vector
+from estimation.geometry.ransac import random_samples, required_iterations
 
 MIN_CORRESPONDENCES = 8
 HYPOTHESES_PER_BATCH = 64

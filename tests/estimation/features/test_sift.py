@@ -8,9 +8,7 @@ import pytest
 
 from estimation.config import RansacConfig, SiftConfig
 from estimation.errors import InputError
-from estimation.images import list_images, load_rgb
-from estimation.matchfile import load_match_tracks
-from estimation.sift import (
+from estimation.features.sift import (
     MIN_VERIFIED_MATCHES,
     DescriptorMatches,
     candidate_pairs,
@@ -20,6 +18,8 @@ from estimation.sift import (
     sift_tracks,
     verify_matches,
 )
+from estimation.io.images import list_images, load_rgb
+from estimation.io.matchfile import load_match_tracks
 from estimation.synthetic import make_scene
 
 

@@ -3,8 +3,7 @@
 import numpy as np
 import pytest
 
-from estimation.synthetic import make_scene
-from estimation.triangulation import (
+from estimation.geometry.triangulation import (
     Observations,
     mean_reprojection_px,
     observations_for_pair,
@@ -13,6 +12,7 @@ from estimation.triangulation import (
     triangulate_nonlinear,
     triangulation_angle_deg,
 )
+from estimation.synthetic import make_scene
 from estimation.types import CameraPose
 
 

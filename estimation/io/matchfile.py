@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from estimation.errors import InputError
-from estimation.images import ImageSet
-from estimation.track_building import assemble_tracks
+from estimation.features.track_building import assemble_tracks
+from estimation.io.images import ImageSet
 from estimation.types import Tracks
 
 MATCH_FILE_PATTERN = re.compile(r"^matching(\d+)\.txt$")

@@ -4,8 +4,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation.alignment import align_similarity, aligned_pose_errors
-from estimation.bundle_adjustment import (
+from estimation.bundle_adjustment.factor_graph import (
     bundle_adjust,
     camera_pose_from_gtsam,
     camera_pose_to_gtsam,
@@ -15,6 +14,7 @@ from estimation.bundle_adjustment import (
 )
 from estimation.config import BundleAdjustmentConfig
 from estimation.errors import InputError
+from estimation.geometry.alignment import align_similarity, aligned_pose_errors
 from estimation.synthetic import make_scene
 from estimation.types import CameraPose
 

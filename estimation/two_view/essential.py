@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from estimation.errors import DegenerateConfigurationError
-from estimation.triangulation import observations_for_pair, triangulate_linear
+from estimation.geometry.triangulation import observations_for_pair, triangulate_linear
 from estimation.types import CameraPose
 
 W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from estimation.alignment import rotation_angle_deg
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.pnp import pnp_linear, pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.alignment import rotation_angle_deg
+from estimation.geometry.pnp import pnp_linear, pnp_nonlinear, pnp_ransac, reprojection_errors
 from estimation.synthetic import make_scene, rotation_about_axis
 from estimation.types import CameraPose
 

@@ -5,10 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from estimation.alignment import align_similarity, aligned_pose_errors
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
-from estimation.pipeline import SparseModel, run_incremental
+from estimation.geometry.alignment import align_similarity, aligned_pose_errors
+from estimation.mapper.incremental import SparseModel, run_incremental
 from estimation.synthetic import make_scene, observe, rotation_about_axis
 from estimation.types import CameraPose, Tracks
 

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from estimation.errors import InputError
-from estimation.images import find_calibration, list_images, load_calibration, load_rgb
+from estimation.io.images import find_calibration, list_images, load_calibration, load_rgb
 
 UNITY_K = np.array([
     [531.122155322710, 0.0, 407.192550839899],

@@ -3,18 +3,18 @@
 import numpy as np
 import pytest
 
-from estimation.alignment import relative_pose
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.fundamental import (
+from estimation.geometry.alignment import relative_pose
+from estimation.geometry.ransac import required_iterations
+from estimation.synthetic import make_scene
+from estimation.two_view.fundamental import (
     HYPOTHESES_PER_BATCH,
     eight_point,
     hartley_normalization,
     ransac_fundamental,
     sampson_distance,
 )
-from estimation.ransac import required_iterations
-from estimation.synthetic import make_scene
 
 
 def true_fundamental(scene, i, j):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimation.track_building import assemble_tracks
+from estimation.features.track_building import assemble_tracks
 
 NAMES = ["a.png", "b.png", "c.png", "d.png"]
 

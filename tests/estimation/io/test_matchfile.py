@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from estimation.errors import InputError
-from estimation.images import ImageSet
-from estimation.matchfile import find_match_files, load_match_tracks, parse_match_file, tracks_from_rows
+from estimation.io.images import ImageSet
+from estimation.io.matchfile import find_match_files, load_match_tracks, parse_match_file, tracks_from_rows
 
 WIDTH, HEIGHT = 800, 600
 IDS = {1, 2, 3, 4, 5}

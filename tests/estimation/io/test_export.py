@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from estimation.export import (
+from estimation.io.export import (
     PIXEL_CENTER_SHIFT,
     opencv_pose_to_opengl_c2w,
     opengl_c2w_to_opencv_pose,

@@ -3,17 +3,17 @@
 import numpy as np
 import pytest
 
-from estimation.alignment import relative_pose, rotation_angle_deg
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.essential import (
+from estimation.geometry.alignment import relative_pose, rotation_angle_deg
+from estimation.synthetic import make_scene
+from estimation.two_view.essential import (
     choose_relative_pose,
     essential_from_fundamental,
     in_front_of_both,
     pose_candidates,
 )
-from estimation.fundamental import eight_point, ransac_fundamental
-from estimation.synthetic import make_scene
+from estimation.two_view.fundamental import eight_point, ransac_fundamental
 from estimation.types import CameraPose
 
 

@@ -23,8 +23,8 @@ import numpy as np
 
 from estimation.config import BundleAdjustmentConfig
 from estimation.errors import InputError
-from estimation.triangulation import Observations
-from estimation.triangulation import reprojection_residuals as observation_residuals
+from estimation.geometry.triangulation import Observations
+from estimation.geometry.triangulation import reprojection_residuals as observation_residuals
 from estimation.types import CameraPose
 
 _LINEAR_SOLVERS = {

@@ -18,11 +18,8 @@ from scipy import sparse
 
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
-from estimation.essential import choose_relative_pose, essential_from_fundamental
-from estimation.fundamental import MIN_CORRESPONDENCES as MIN_F_CORRESPONDENCES
-from estimation.fundamental import FundamentalResult, ransac_fundamental
-from estimation.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
-from estimation.triangulation import (
+from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.triangulation import (
     Observations,
     observations_for_pair,
     reprojection_residuals,
@@ -30,6 +27,9 @@ from estimation.triangulation import (
     triangulate_nonlinear,
     triangulation_angle_deg,
 )
+from estimation.two_view.essential import choose_relative_pose, essential_from_fundamental
+from estimation.two_view.fundamental import MIN_CORRESPONDENCES as MIN_F_CORRESPONDENCES
+from estimation.two_view.fundamental import FundamentalResult, ransac_fundamental
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
 ROBUST_TRIANGULATION_ROUNDS = 3
@@ -274,7 +274,7 @@ class _Model:
     def bundle_adjust(self, config: ReconstructionConfig, window: list[int] | None
                       ) -> tuple[float, float, int]:
         """Global BA (window None: first camera fixed, scale by the second) or local BA over `window`."""
-        from estimation.bundle_adjustment import bundle_adjust
+        from estimation.bundle_adjustment.factor_graph import bundle_adjust
 
         used = self.used_observations()
         if window is not None:
