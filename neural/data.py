@@ -78,8 +78,12 @@ class Dataset:
         return indices
 
 
-def load_dataset(path: Path | str, white_background: bool = True) -> Dataset:
-    """Blender folder (transforms_{train,val,test}.json), tiny-NeRF .npz, or reconstruction folder."""
+def load_dataset(path: Path | str, white_background: bool = True, within: Path | None = None) -> Dataset:
+    """Blender folder (transforms_{train,val,test}.json), tiny-NeRF .npz, or reconstruction folder.
+
+    A Blender dataset's files must lie inside its folder; a reconstruction's inside `within` when given
+    (the service: the reconstruction's job folder).
+    """
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder")
@@ -90,7 +94,7 @@ def load_dataset(path: Path | str, white_background: bool = True) -> Dataset:
     if any((path / f"transforms_{split}.json").is_file() for split in SPLITS):
         return load_blender(path, white_background)
     if (path / "transforms.json").is_file():
-        return load_reconstruction(path, white_background)
+        return load_reconstruction(path, white_background, within)
     raise DatasetError(
         f"{path}: not a dataset folder (expected transforms_train.json / transforms_val.json, "
         "or transforms.json from `sfmnerf reconstruct`)"
@@ -152,6 +156,9 @@ def load_image(path: Path, white_background: bool) -> np.ndarray:
         with Image.open(path) as image:
             has_alpha = image.mode in ("RGBA", "LA") or (image.mode == "P" and "transparency" in image.info)
             pixels = np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as error:
+        # Above Pillow's MAX_IMAGE_PIXELS (a warning becomes this error where warnings are errors).
+        raise DatasetError(f"{path}: more pixels than the limit {Image.MAX_IMAGE_PIXELS}") from error
     except OSError as error:
         raise DatasetError(f"{path}: cannot read image ({error})") from None
     if not has_alpha:
@@ -170,12 +177,26 @@ def check_same_size(image: np.ndarray, name: str, first: np.ndarray, first_name:
         )
 
 
-def image_path(root: Path, file_path: str) -> Path:
-    """A frame's file_path relative to root; Blender's have no extension (then .png)."""
-    candidate = root / file_path
+def confined_path(root: Path, file_path: Any, where: str, within: Path | None) -> Path:
+    """root / file_path resolved (links followed); DatasetError naming `where` if it leaves `within`.
+
+    The message is the same whether the target exists or not, so a dataset cannot probe the file system.
+    `within` None: no bound (a local reconstruction's images may live anywhere).
+    """
+    if not isinstance(file_path, str) or not file_path:
+        raise DatasetError(f"{where}: file_path must be a non-empty string")
+    candidate = (root / file_path).resolve()
+    if within is not None and not candidate.is_relative_to(within.resolve()):
+        raise DatasetError(f"{where}: file_path {file_path!r} points outside the dataset folder; refused")
+    return candidate
+
+
+def image_path(root: Path, file_path: str, where: str, within: Path | None) -> Path:
+    """A frame's file_path relative to root, bounded by `within`; Blender's have no extension (then .png)."""
+    candidate = confined_path(root, file_path, where, within)
     if candidate.suffix.lower() in (".png", ".jpg", ".jpeg") or candidate.is_file():
         return candidate
-    return candidate.with_name(candidate.name + ".png")
+    return confined_path(root, f"{file_path}.png", where, within)
 
 
 def synthetic_dataset(
@@ -237,7 +258,7 @@ def load_blender(root: Path, white_background: bool = True) -> Dataset:
             poses.append(
                 check_rigid_pose(require(frame, "transform_matrix", where), f"{where} ({file_path})")
             )
-            images.append(load_image(image_path(root, file_path), white_background))
+            images.append(load_image(image_path(root, file_path, where, within=root), white_background))
             names.append(str(file_path))
             check_same_size(images[-1], names[-1], images[0], names[0])
         splits[split] = np.arange(start, len(images))
@@ -421,7 +442,9 @@ def near_far_from_points(poses: np.ndarray, points: np.ndarray) -> tuple[float, 
     return float(low * DEPTH_MARGIN), float(high / DEPTH_MARGIN)
 
 
-def load_reconstruction(root: Path, white_background: bool = True) -> Dataset:
+def load_reconstruction(
+    root: Path, white_background: bool = True, within: Path | None = None
+) -> Dataset:
     """transforms.json (fl_x, fl_y, cx, cy, w, h, frames[file_path, transform_matrix]) + images + points."""
     json_path = root / "transforms.json"
     meta = read_json(json_path)
@@ -437,7 +460,7 @@ def load_reconstruction(root: Path, white_background: bool = True) -> Dataset:
         where = f"{json_path} frames[{index}]"
         file_path = require(frame, "file_path", where)
         poses.append(check_rigid_pose(require(frame, "transform_matrix", where), f"{where} ({file_path})"))
-        image = load_image(image_path(root, file_path), white_background)
+        image = load_image(image_path(root, file_path, where, within), white_background)
         if image.shape[:2] != (height, width):
             raise DatasetError(
                 f"{root / file_path}: image size {image.shape[1]}x{image.shape[0]} differs from "
