@@ -21,8 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
-from neural.occupancy import OccupancyGrid, PackedSamples
-from neural.rendering import composite_packed, packed_transmittance, packed_weights
+from neural.occupancy import OccupancyGrid, render_packed_samples
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
 SH_C0 = 0.28209479177387814
@@ -187,32 +186,17 @@ class FastModel(RadianceModel):
         generator: torch.Generator | None = None,
     ) -> RayBundleOutput:
         """Packed volume rendering of the occupied samples of each ray (see module docstring)."""
-        num_rays = origins.shape[0]
-        jitter = torch.rand(num_rays, generator=generator, device=origins.device) if train else None
-        samples = self.occupancy.march(origins, directions, near, far, self.step_size, jitter)
-        samples = self._drop_occluded(samples, num_rays)
-        sigma = self.density_at(samples.positions)
-        weights, _ = packed_weights(sigma, samples.deltas, samples.ray_indices, num_rays)
-        # Colour only where it can matter; the rest keep a zero colour (their weight is below threshold).
-        visible = (weights.detach() > self.config.color_weight_threshold).nonzero(as_tuple=True)[0]
-        rgb = sigma.new_zeros((sigma.shape[0], 3)).index_copy(
-            0, visible, self.color_at(samples.positions[visible], directions[samples.ray_indices[visible]])
-        )
-        colour, depth, opacity = composite_packed(
-            weights, rgb, samples.t, samples.ray_indices, num_rays, background
-        )
+        jitter = torch.rand(origins.shape[0], generator=generator, device=origins.device) if train else None
+        samples = self.occupancy.sample(
+            origins, directions, near, far, self.step_size, jitter, self.density_at,
+            self.config.transmittance_threshold,
+        )  # fmt: skip
+        out = render_packed_samples(
+            samples, directions, self.density_at, self.color_at, background,
+            self.config.color_weight_threshold,
+        )  # fmt: skip
         extra_loss = self._regularizer() if train else None
-        return RayBundleOutput(rgb=colour, depth=depth, opacity=opacity, extra_loss=extra_loss)
-
-    def _drop_occluded(self, samples: PackedSamples, num_rays: int) -> PackedSamples:
-        """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold."""
-        if self.config.transmittance_threshold <= 0 or samples.t.numel() == 0:
-            return samples
-        with torch.no_grad():
-            optical_depth = self.density_at(samples.positions) * samples.deltas
-            transmittance = packed_transmittance(optical_depth, samples.ray_indices, num_rays)
-            keep = (transmittance > self.config.transmittance_threshold).nonzero(as_tuple=True)[0]
-        return PackedSamples(*(field[keep] for field in samples))
+        return RayBundleOutput(rgb=out.rgb, depth=out.depth, opacity=out.opacity, extra_loss=extra_loss)
 
     def _regularizer(self) -> Tensor | None:
         terms = []
@@ -239,15 +223,15 @@ class FastModel(RadianceModel):
     def update_occupancy(self) -> None:
         """A cell is occupied iff 1 - exp(-max sigma over its 8 vertices * step) exceeds the threshold.
 
-        sigma is monotonic in the interpolated raw density, so the max over a cell's vertices bounds every
-        sample inside it: no skipped sample can be denser than the threshold.
+        The occupancy cells are the grid's voxels and sigma is monotonic in the interpolated raw density, so
+        the max over a cell's vertices bounds every sample inside it: no skipped sample can be denser than
+        the threshold.
         """
-        self.occupancy.set_occupied(self._cell_alpha() > self.config.occupancy_alpha_threshold)
+        self.occupancy.update(self.density_at, self.step_size, self.config.occupancy_alpha_threshold)
 
     def _cell_alpha(self) -> Tensor:
         """Upper bound of one sample step's opacity in each cell: from the max sigma of its 8 vertices."""
-        cell_max = F.max_pool3d(self.activate_density(self.density), kernel_size=2, stride=1)[0, 0]
-        return -torch.expm1(-cell_max * self.step_size)
+        return -torch.expm1(-self.occupancy.density_bound(self.density_at) * self.step_size)
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""
