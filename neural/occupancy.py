@@ -120,36 +120,30 @@ class OccupancyGrid(torch.nn.Module):
         return low, high
 
     @torch.no_grad()
-    def density_bound(self, density_fn: DensityFn, subdivisions: int = 1) -> Tensor:
-        """max sigma over the vertices of a lattice of `subdivisions` steps per cell, per cell; (X,Y,Z).
-
-        The max bounds sigma everywhere in the cell whenever sigma is a monotonic function of a field that is
-        multilinear between the lattice vertices (a trilinearly interpolated grid, or a VM factorization, on
-        the same lattice); otherwise it is a sampled estimate (dilate the result to be safe).
-        """
-        lattice = [n * subdivisions + 1 for n in self.resolution]
+    def vertex_density(self, density_fn: DensityFn) -> Tensor:
+        """sigma at the (X+1, Y+1, Z+1) vertices of the cells, from a density callback."""
+        lattice = [n + 1 for n in self.resolution]
         axes = [
             torch.linspace(float(low), float(high), n, device=self.box_min.device)
             for low, high, n in zip(self.box_min, self.box_max, lattice, strict=True)
         ]
         vertices = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
-        sigma = torch.cat([density_fn(chunk) for chunk in vertices.split(UPDATE_CHUNK)]).reshape(lattice)
-        kernel = subdivisions + 1
-        return F.max_pool3d(sigma[None, None], kernel_size=kernel, stride=subdivisions)[0, 0]
+        return torch.cat([density_fn(chunk) for chunk in vertices.split(UPDATE_CHUNK)]).reshape(lattice)
 
+    @torch.no_grad()
     def update(
-        self,
-        density_fn: DensityFn,
-        step_size: float,
-        alpha_threshold: float,
-        subdivisions: int = 1,
-        dilation: int = 0,
+        self, density: Tensor | DensityFn, step_size: float, alpha_threshold: float, dilation: int = 0
     ) -> Tensor:
-        """Occupied iff 1 - exp(-bound sigma * step) > alpha_threshold, dilated by `dilation` cells.
+        """Occupied iff the cell's opacity bound exceeds alpha_threshold, dilated by `dilation` cells.
 
-        Returns the per-cell opacity bound of one sample step, (X,Y,Z) (see density_bound).
+        density: sigma at the cell vertices (X+1, Y+1, Z+1), or a callback sigma(x) evaluated there. The
+        max over a cell's vertices bounds sigma everywhere inside it whenever sigma is a monotonic function
+        of a field that is multilinear in the cell (a trilinearly interpolated grid, or a VM factorization,
+        on the cells' lattice): then no skipped sample can reach the threshold. For other fields the vertex
+        values are a sampled estimate; dilate to be safe. Returns the per-cell bound (see cell_alpha_bound).
         """
-        alpha = -torch.expm1(-self.density_bound(density_fn, subdivisions) * step_size)
+        vertex_sigma = density if isinstance(density, Tensor) else self.vertex_density(density)
+        alpha = cell_alpha_bound(vertex_sigma, step_size)
         occupied = (alpha > alpha_threshold).float()[None, None]
         if dilation > 0:
             occupied = F.max_pool3d(occupied, kernel_size=2 * dilation + 1, stride=1, padding=dilation)
@@ -277,6 +271,12 @@ def render_packed_samples(
         weights, rgb, samples.t, samples.ray_indices, num_rays, background
     )
     return PackedRender(colour, depth, opacity, sigma, weights)
+
+
+def cell_alpha_bound(vertex_sigma: Tensor, step_size: float) -> Tensor:
+    """1 - exp(-max sigma over each cell's 8 vertices * step): one sample step's opacity bound; (X,Y,Z)."""
+    cell_max = F.max_pool3d(vertex_sigma[None, None], kernel_size=2, stride=1)[0, 0]
+    return -torch.expm1(-cell_max * step_size)
 
 
 def _lookup(grid: Tensor, positions: Tensor, box_min: Tensor, box_max: Tensor, inside_only: bool) -> Tensor:

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
-from neural.occupancy import OccupancyGrid, render_packed_samples
+from neural.occupancy import OccupancyGrid, cell_alpha_bound, render_packed_samples
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
 SH_C0 = 0.28209479177387814
@@ -227,11 +227,12 @@ class FastModel(RadianceModel):
         the max over a cell's vertices bounds every sample inside it: no skipped sample can be denser than
         the threshold.
         """
-        self.occupancy.update(self.density_at, self.step_size, self.config.occupancy_alpha_threshold)
+        vertex_sigma = self.activate_density(self.density)[0, 0]
+        self.occupancy.update(vertex_sigma, self.step_size, self.config.occupancy_alpha_threshold)
 
     def _cell_alpha(self) -> Tensor:
         """Upper bound of one sample step's opacity in each cell: from the max sigma of its 8 vertices."""
-        return -torch.expm1(-self.occupancy.density_bound(self.density_at) * self.step_size)
+        return cell_alpha_bound(self.activate_density(self.density)[0, 0], self.step_size)
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""

@@ -57,7 +57,6 @@ class TensorVMConfig(BaseModel):
     init_std: float = Field(0.1, gt=0, description="standard deviation of the initial factors")
     step_ratio: float = Field(0.5, gt=0, description="sample spacing along rays, in voxels")
     initial_alpha: float = Field(1e-4, gt=0, lt=1, description="opacity of one sample step at f_sigma = 0")
-    occupancy_max_cells: int = Field(128, gt=1, description="occupancy cells per axis, at most")
     occupancy_warmup_steps: int = Field(40, ge=0, description="steps during which every cell counts occupied")
     occupancy_update_every: int = Field(16, gt=0, description="steps between occupancy-grid updates")
     occupancy_alpha_threshold: float = Field(1e-3, gt=0, lt=1, description="cells below this are empty")
@@ -122,7 +121,7 @@ class TensorVMModel(RadianceModel):
         self.appearance = vm_factors(shape, self.config.color_components, self.config.init_std)
         num_sh = (self.config.sh_degree + 1) ** 2
         self.basis = torch.nn.Linear(3 * self.config.color_components, 3 * num_sh, bias=False)
-        self.occupancy = OccupancyGrid(box_min, box_max, self._occupancy_resolution(shape))
+        self.occupancy = OccupancyGrid(box_min, box_max, cells_of(shape))
         initial_sigma = -math.log(1.0 - self.config.initial_alpha) / (self.config.step_ratio * voxel_size)
         self.density_shift = math.log(initial_sigma)
 
@@ -137,11 +136,6 @@ class TensorVMModel(RadianceModel):
         (_, _, x, y), (_, _, _, z) = self.density[0].shape, self.density[1].shape
         return int(x), int(y), int(z)
 
-    def _occupancy_resolution(self, shape: tuple[int, int, int]) -> tuple[int, int, int]:
-        cells = [n - 1 for n in shape]
-        factor = math.ceil(max(cells) / self.config.occupancy_max_cells)
-        return tuple(max(1, math.ceil(c / factor)) for c in cells)  # type: ignore[return-value]
-
     def _coordinates(self, positions: Tensor) -> Tensor:
         """Lattice coordinates in [-1,1] of world points (N,3), through map_positions."""
         return (self.map_positions(positions) - self.box_min) / (self.box_max - self.box_min) * 2.0 - 1.0
@@ -149,6 +143,16 @@ class TensorVMModel(RadianceModel):
     def density_at(self, positions: Tensor) -> Tensor:
         """sigma(x) = exp(f_sigma(x) + shift), f_sigma the sum of the density products; (N,)."""
         raw = vm_products(self.density, self._coordinates(positions)).sum(-1)
+        return torch.exp((raw + self.density_shift).clamp_max(MAX_LOG_DENSITY))
+
+    def lattice_density(self) -> Tensor:
+        """sigma at every lattice vertex, (X,Y,Z): the products as outer products (no interpolation)."""
+        planes, lines = self.density[:3], self.density[3:]
+        raw = (
+            torch.einsum("rxy,rz->xyz", planes[0][0], lines[0][0, :, :, 0])
+            + torch.einsum("rxz,ry->xyz", planes[1][0], lines[1][0, :, :, 0])
+            + torch.einsum("ryz,rx->xyz", planes[2][0], lines[2][0, :, :, 0])
+        )
         return torch.exp((raw + self.density_shift).clamp_max(MAX_LOG_DENSITY))
 
     def color_at(self, positions: Tensor, directions: Tensor) -> Tensor:
@@ -202,14 +206,13 @@ class TensorVMModel(RadianceModel):
 
     @torch.no_grad()
     def update_occupancy(self) -> Tensor:
-        """Occupancy from the density at the cell vertices, dilated by one cell; per-cell opacity bound.
+        """Occupancy of the lattice's cells from the density at their vertices; per-cell opacity bound.
 
-        When the occupancy cells are the lattice's cells the vertex max bounds the cell (the field is
-        trilinear there); when they are coarser it is an estimate, and the dilation keeps it conservative
-        in practice.
+        Inside a cell each product (bilinear plane times linear line) is trilinear, so the field is too and
+        the max over the cell's vertices bounds every sample in it: the skipping is conservative.
         """
         return self.occupancy.update(
-            self.density_at, self.step_size, self.config.occupancy_alpha_threshold, dilation=1
+            self.lattice_density(), self.step_size, self.config.occupancy_alpha_threshold
         )
 
     @torch.no_grad()
@@ -238,7 +241,7 @@ class TensorVMModel(RadianceModel):
                 )
         self.box_min, self.box_max = box_min, box_max
         self.voxel_size = torch.tensor(voxel_size, dtype=torch.float32, device=box_min.device)
-        self.occupancy.reset(box_min, box_max, self._occupancy_resolution(shape))
+        self.occupancy.reset(box_min, box_max, cells_of(shape))
 
     def _load_from_state_dict(
         self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any
@@ -258,6 +261,11 @@ class TensorVMModel(RadianceModel):
             {"params": [*self.density, *self.appearance], "lr": lr, "name": "factors"},
             {"params": list(self.basis.parameters()), "lr": lr * self.config.basis_lr_scale, "name": "basis"},
         ]
+
+
+def cells_of(shape: tuple[int, int, int]) -> tuple[int, int, int]:
+    """Cells per axis of a lattice of `shape` vertices."""
+    return shape[0] - 1, shape[1] - 1, shape[2] - 1
 
 
 def resample_factor(
