@@ -22,6 +22,7 @@ from torch import Tensor
 
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
 from neural.occupancy import OccupancyGrid, cell_alpha_bound, render_packed_samples
+from neural.rendering import packed_distortion
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
 SH_C0 = 0.28209479177387814
@@ -65,6 +66,7 @@ class FastModelConfig(BaseModel):
     )
     tv_density_weight: float = Field(0.0, ge=0, description="total-variation weight on the density grid")
     tv_color_weight: float = Field(0.0, ge=0, description="total-variation weight on the colour grid")
+    distortion_weight: float = Field(0.0, ge=0, description="mip-NeRF 360 distortion loss weight")
     color_lr_scale: float = Field(
         1 / 3, gt=0, description="learning rate of the colour grid relative to the trainer's (density) lr"
     )
@@ -196,6 +198,11 @@ class FastModel(RadianceModel):
             self.config.color_weight_threshold,
         )  # fmt: skip
         extra_loss = self._regularizer() if train else None
+        if train and self.config.distortion_weight > 0:
+            distortion = self.config.distortion_weight * packed_distortion(
+                out.weights, samples.t, samples.deltas, samples.ray_indices, origins.shape[0]
+            )
+            extra_loss = distortion if extra_loss is None else extra_loss + distortion
         return RayBundleOutput(rgb=out.rgb, depth=out.depth, opacity=out.opacity, extra_loss=extra_loss)
 
     def _regularizer(self) -> Tensor | None:
