@@ -211,7 +211,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--tune", action="store_true", help="train on 70 train views, evaluate on 10 others")
-    parser.add_argument("--configs", nargs="+", default=["today", "new"], help=f"of {', '.join(CONFIGS)}")
+    parser.add_argument("--configs", nargs="*", default=["today", "new"], help=f"of {', '.join(CONFIGS)}")
     parser.add_argument(
         "--variant", action="append", default=[], metavar="NAME=JSON",
         help="an extra configuration: NAME={TrainConfig fields as JSON}",
