@@ -11,9 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 ModelName = Literal["vanilla", "fast", "tensorf"]
 
 #: Settings a model may choose itself (its class attribute `train_defaults`) when the user leaves them unset.
-MODEL_DEFAULTABLE = (
-    "steps", "batch_rays", "lr", "lr_decay", "lr_decay_steps", "precrop_steps", "pixel_jitter",
-)  # fmt: skip
+MODEL_DEFAULTABLE = ("steps", "batch_rays", "lr", "lr_decay", "lr_decay_steps", "precrop_steps")
 #: Fallbacks when neither the user nor the model sets them.
 GENERIC_DEFAULTS: dict[str, Any] = {
     "steps": 2000,
@@ -22,7 +20,6 @@ GENERIC_DEFAULTS: dict[str, Any] = {
     "lr_decay": 0.1,
     "lr_decay_steps": 250_000,
     "precrop_steps": 0,
-    "pixel_jitter": False,
 }
 
 
@@ -47,11 +44,6 @@ class TrainConfig(BaseModel):
     lr_decay_steps: int | None = Field(None, ge=1, description="The steps over which lr falls by lr_decay.")
     precrop_steps: int | None = Field(
         None, ge=0, description="Sample rays from the central crop of each image for this many first steps."
-    )
-    pixel_jitter: bool | None = Field(
-        None,
-        description="Training rays through random points of their pixels rather than the pixel centres "
-        "(the pixel's colour is the mean over its area).",
     )
     precrop_fraction: float = Field(0.5, gt=0, le=1, description="Side of the central crop / image side.")
     checkpoint_every: int = Field(500, ge=1, description="Save a checkpoint every this many steps.")

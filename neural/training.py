@@ -79,16 +79,9 @@ class RayBatchSampler:
         self.device = device
 
     def sample(
-        self,
-        num_rays: int,
-        generator: torch.Generator,
-        crop_fraction: float | None = None,
-        pixel_jitter: bool = False,
+        self, num_rays: int, generator: torch.Generator, crop_fraction: float | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """origins (R,3), directions (R,3), target colours (R,3) of random pixels.
-
-        pixel_jitter: each ray passes through a uniformly random point of its pixel, not its centre.
-        """
+        """origins (R,3), directions (R,3), target colours (R,3) of random pixels."""
         image = torch.randint(self.num_images, (num_rays,), generator=generator, device=self.device)
         if crop_fraction is None:
             u0, v0, crop_w, crop_h = 0, 0, self.width, self.height
@@ -98,12 +91,8 @@ class RayBatchSampler:
             u0, v0 = (self.width - crop_w) // 2, (self.height - crop_h) // 2
         u = u0 + torch.randint(crop_w, (num_rays,), generator=generator, device=self.device)
         v = v0 + torch.randint(crop_h, (num_rays,), generator=generator, device=self.device)
-        pixel = self.images[image, v, u]
-        if pixel_jitter:  # pixel_rays aims at u + 0.5: offsets in [-0.5, 0.5) cover the pixel
-            u = u + torch.rand(num_rays, generator=generator, device=self.device) - 0.5
-            v = v + torch.rand(num_rays, generator=generator, device=self.device) - 0.5
         rays = pixel_rays(self.poses[image], u, v, *self.intrinsics)
-        return rays.origins, rays.directions, pixel
+        return rays.origins, rays.directions, self.images[image, v, u]
 
 
 def downscale(image: np.ndarray, factor: int) -> np.ndarray:
@@ -336,9 +325,7 @@ class Trainer:
             self.optimizer = build_optimizer(self.model, config)
         lr = set_learning_rate(self.optimizer, learning_rate_factor(self.step, config))
         crop = config.precrop_fraction if self.step < config.precrop_steps else None
-        origins, directions, target = self.sampler.sample(
-            config.batch_rays, self.generator, crop, config.pixel_jitter
-        )
+        origins, directions, target = self.sampler.sample(config.batch_rays, self.generator, crop)
         out = self.model.render_rays(
             origins, directions, self.dataset.near, self.dataset.far, self.background, train=True,
             generator=self.generator,

@@ -101,26 +101,6 @@ def test_precrop_samples_only_the_central_pixels(tiny_npz):
     assert distance_to_centre_colours(anywhere).max() > 0.01
 
 
-def test_pixel_jitter_aims_rays_at_random_points_inside_their_pixel_with_the_pixels_colour(tiny_npz):
-    dataset = load_dataset(tiny_npz)
-    sampler = RayBatchSampler(dataset, dataset.split("train")[:1], torch.device("cpu"))
-    centred = sampler.sample(2000, torch.Generator().manual_seed(1))
-    jittered = sampler.sample(2000, torch.Generator().manual_seed(1), pixel_jitter=True)
-    assert torch.equal(centred[2], jittered[2])  # same pixels, same target colours
-
-    def pixel_coordinates(directions):  # back into the image: u = fx x / -z + cx (camera axes, OpenGL)
-        camera = directions @ sampler.poses[0, :3, :3]
-        u = dataset.fx * camera[:, 0] / -camera[:, 2] + dataset.cx
-        v = dataset.fy * camera[:, 1] / camera[:, 2] + dataset.cy
-        return torch.stack([u, v], -1)
-
-    centre, jitter = pixel_coordinates(centred[1]), pixel_coordinates(jittered[1])
-    assert torch.allclose(centre - torch.floor(centre), torch.full_like(centre, 0.5), atol=1e-3)
-    assert torch.equal(torch.floor(jitter + 1e-6), torch.floor(centre))  # inside the same pixel ...
-    offsets = (jitter - torch.floor(jitter)).flatten()
-    assert offsets.min() < 0.05 and offsets.max() > 0.95  # ... anywhere in it
-
-
 def test_progress_and_metrics_callbacks_are_called(tiny_npz, tmp_path):
     fractions, records = [], []
     config = tiny_config(steps=2)
