@@ -37,7 +37,7 @@ class FastModelConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     initial_voxels: int = Field(32**3, gt=0, description="grid size (total voxels) at the start")
-    final_voxels: int = Field(96**3, gt=0, description="grid size after the last upsampling")
+    final_voxels: int = Field(128**3, gt=0, description="grid size after the last upsampling")
     upsample_steps: list[int] = Field(
         default_factory=lambda: [60, 200, 400],
         description="steps at which the grids are upsampled (geometric voxel counts) and refitted to the "
