@@ -6,6 +6,10 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+#: The radiance models by name (neural.models.MODEL_REGISTRY holds their classes); kept here, free of torch,
+#: so that the CLI and the API can offer them without importing torch.
+ModelName = Literal["vanilla", "fast", "tensorf"]
+
 #: Settings a model may choose itself (its class attribute `train_defaults`) when the user leaves them unset.
 MODEL_DEFAULTABLE = ("steps", "batch_rays", "lr", "lr_decay", "lr_decay_steps", "precrop_steps")
 #: Fallbacks when neither the user nor the model sets them.
@@ -24,7 +28,7 @@ class TrainConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    model: Literal["vanilla", "fast"] = Field("fast", description="Which radiance model to train.")
+    model: ModelName = Field("fast", description="Which radiance model to train.")
     model_options: dict[str, Any] = Field(
         default_factory=dict, description="Overrides of the model's own config (build_model keywords)."
     )

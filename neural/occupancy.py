@@ -5,16 +5,29 @@ inside it may make a sample's opacity exceed a threshold. It starts fully occupi
 recomputed from the model's density during training, so it is learned from the images alone (no masks).
 Samples are taken at a fixed spacing along each ray inside the box and kept only in occupied cells; the
 result is *packed*: one flat list of samples, sorted by ray and then by distance.
+
+The grid is a density estimator shared by every model (as nerfacc's): a model hands it a density callback
+`sigma(x)` of world points, to `update` the cells from and to drop occluded samples in `sample`, and renders
+the samples with `render_packed_samples`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from neural.rendering import composite_packed, packed_transmittance, packed_weights
+
+#: sigma(x) >= 0 at world points (N,3) -> (N,).
+DensityFn = Callable[[Tensor], Tensor]
+#: c(x, d) in [0,1] at world points (N,3) seen along unit directions (N,3) -> (N,3).
+ColorFn = Callable[[Tensor, Tensor], Tensor]
+#: Points per density-callback call when the grid is updated (bounds the memory of an update).
+UPDATE_CHUNK = 2**18
 #: Cells per side of the blocks that the first level of ray marching strides through.
 COARSE_FACTOR = 4
 
@@ -106,6 +119,37 @@ class OccupancyGrid(torch.nn.Module):
         high = self.box_min + (cells.amax(dim=0).float() + 1.0) * cell_size
         return low, high
 
+    @torch.no_grad()
+    def vertex_density(self, density_fn: DensityFn) -> Tensor:
+        """sigma at the (X+1, Y+1, Z+1) vertices of the cells, from a density callback."""
+        lattice = [n + 1 for n in self.resolution]
+        axes = [
+            torch.linspace(float(low), float(high), n, device=self.box_min.device)
+            for low, high, n in zip(self.box_min, self.box_max, lattice, strict=True)
+        ]
+        vertices = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        return torch.cat([density_fn(chunk) for chunk in vertices.split(UPDATE_CHUNK)]).reshape(lattice)
+
+    @torch.no_grad()
+    def update(
+        self, density: Tensor | DensityFn, step_size: float, alpha_threshold: float, dilation: int = 0
+    ) -> Tensor:
+        """Occupied iff the cell's opacity bound exceeds alpha_threshold, dilated by `dilation` cells.
+
+        density: sigma at the cell vertices (X+1, Y+1, Z+1), or a callback sigma(x) evaluated there. The
+        max over a cell's vertices bounds sigma everywhere inside it whenever sigma is a monotonic function
+        of a field that is multilinear in the cell (a trilinearly interpolated grid, or a VM factorization,
+        on the cells' lattice): then no skipped sample can reach the threshold. For other fields the vertex
+        values are a sampled estimate; dilate to be safe. Returns the per-cell bound (see cell_alpha_bound).
+        """
+        vertex_sigma = density if isinstance(density, Tensor) else self.vertex_density(density)
+        alpha = cell_alpha_bound(vertex_sigma, step_size)
+        occupied = (alpha > alpha_threshold).float()[None, None]
+        if dilation > 0:
+            occupied = F.max_pool3d(occupied, kernel_size=2 * dilation + 1, stride=1, padding=dilation)
+        self.set_occupied(occupied[0, 0] > 0)
+        return alpha
+
     def query(self, positions: Tensor) -> Tensor:
         """Occupied (N,) bool for world points (N,3); points outside the box are never occupied."""
         return _lookup(self.occupied, positions, self.box_min, self.box_max, inside_only=True)
@@ -169,6 +213,70 @@ class OccupancyGrid(torch.nn.Module):
         keep = _lookup(self.occupied, positions, self.box_min, self.box_max, inside_only=False)
         ray_index, t, positions = ray_index[keep], t[keep], positions[keep]
         return PackedSamples(ray_index, t, torch.full_like(t, step_size), positions)
+
+
+    def sample(
+        self,
+        origins: Tensor,
+        directions: Tensor,
+        near: float,
+        far: float,
+        step_size: float,
+        jitter: Tensor | None,
+        density_fn: DensityFn,
+        transmittance_threshold: float,
+    ) -> PackedSamples:
+        """`march`, then early ray termination: drop the samples behind transmittance_threshold (no grad)."""
+        samples = self.march(origins, directions, near, far, step_size, jitter)
+        if transmittance_threshold <= 0 or samples.t.numel() == 0:
+            return samples
+        with torch.no_grad():
+            optical_depth = density_fn(samples.positions) * samples.deltas
+            transmittance = packed_transmittance(optical_depth, samples.ray_indices, origins.shape[0])
+            keep = (transmittance > transmittance_threshold).nonzero(as_tuple=True)[0]
+        return PackedSamples(*(field[keep] for field in samples))
+
+
+class PackedRender(NamedTuple):
+    """Per ray colour (R,3), depth (R,), opacity (R,); per sample sigma (N,) and weights (N,)."""
+
+    rgb: Tensor
+    depth: Tensor
+    opacity: Tensor
+    sigma: Tensor
+    weights: Tensor
+
+
+def render_packed_samples(
+    samples: PackedSamples,
+    directions: Tensor,
+    density_fn: DensityFn,
+    color_fn: ColorFn,
+    background: Tensor,
+    color_weight_threshold: float,
+) -> PackedRender:
+    """Volume rendering of packed samples; colour only where the weight exceeds color_weight_threshold.
+
+    Samples below the threshold keep a zero colour: their weight makes them negligible, and skipping them
+    saves most colour lookups (behind surfaces and in the thin air in front of them).
+    """
+    num_rays = directions.shape[0]
+    sigma = density_fn(samples.positions)
+    weights, _ = packed_weights(sigma, samples.deltas, samples.ray_indices, num_rays)
+    visible = (weights.detach() > color_weight_threshold).nonzero(as_tuple=True)[0]
+    rgb = sigma.new_zeros((sigma.shape[0], 3)).index_copy(
+        0, visible, color_fn(samples.positions[visible], directions[samples.ray_indices[visible]])
+    )
+    colour, depth, opacity = composite_packed(
+        weights, rgb, samples.t, samples.ray_indices, num_rays, background
+    )
+    return PackedRender(colour, depth, opacity, sigma, weights)
+
+
+def cell_alpha_bound(vertex_sigma: Tensor, step_size: float) -> Tensor:
+    """1 - exp(-max sigma over each cell's 8 vertices * step): one sample step's opacity bound; (X,Y,Z)."""
+    cell_max = F.max_pool3d(vertex_sigma[None, None], kernel_size=2, stride=1)[0, 0]
+    return -torch.expm1(-cell_max * step_size)
 
 
 def _lookup(grid: Tensor, positions: Tensor, box_min: Tensor, box_max: Tensor, inside_only: bool) -> Tensor:

@@ -62,19 +62,42 @@ class PackedRenderOutput(NamedTuple):
 
 
 def packed_transmittance(optical_depth: Tensor, ray_indices: Tensor, num_rays: int) -> Tensor:
-    """T_i = exp(-sum_{j<i, same ray} sigma_j delta_j) for packed samples sorted by ray; (N,).
-
-    The segmented exclusive sum is a global cumulative sum minus its value at each ray's first sample,
-    taken in float64 so long packed lists keep the precision of a per-ray sum.
-    """
+    """T_i = exp(-sum_{j<i, same ray} sigma_j delta_j) for packed samples sorted by ray; (N,)."""
     if optical_depth.numel() == 0:
         return optical_depth.new_ones((0,))
-    cumulative = torch.cumsum(optical_depth.double(), dim=0)
-    exclusive = cumulative - optical_depth.double()
+    return torch.exp(-segmented_exclusive_sum(optical_depth, ray_indices, num_rays))
+
+
+def segmented_exclusive_sum(values: Tensor, ray_indices: Tensor, num_rays: int) -> Tensor:
+    """S_i = sum_{j<i, same ray} v_j for packed samples sorted by ray; (N,), in the dtype of values.
+
+    A global cumulative sum minus its value at each ray's first sample, taken in float64 so long packed
+    lists keep the precision of a per-ray sum.
+    """
+    if values.numel() == 0:
+        return values.clone()
+    cumulative = torch.cumsum(values.double(), dim=0)
+    exclusive = cumulative - values.double()
     counts = torch.bincount(ray_indices, minlength=num_rays)
-    ray_start = (torch.cumsum(counts, dim=0) - counts).clamp_max(optical_depth.numel() - 1)
-    within_ray = exclusive - exclusive[ray_start][ray_indices]
-    return torch.exp(-within_ray).to(optical_depth.dtype)
+    ray_start = (torch.cumsum(counts, dim=0) - counts).clamp_max(values.numel() - 1)
+    return (exclusive - exclusive[ray_start][ray_indices]).to(values.dtype)
+
+
+def packed_distortion(
+    weights: Tensor, t: Tensor, deltas: Tensor, ray_indices: Tensor, num_rays: int
+) -> Tensor:
+    """Mean over rays of mip-NeRF 360's distortion loss (eq. 15) of packed samples sorted by ray then t.
+
+    L = sum_{i,j} w_i w_j |t_i - t_j| + 1/3 sum_i w_i^2 delta_i, in O(N) as
+    2 sum_i w_i (t_i W_i - S_i) with W_i = sum_{j<i} w_j and S_i = sum_{j<i} w_j t_j (same ray).
+    """
+    if weights.numel() == 0:
+        return weights.sum()
+    before = segmented_exclusive_sum(weights, ray_indices, num_rays)
+    weighted_t_before = segmented_exclusive_sum(weights * t, ray_indices, num_rays)
+    between = 2.0 * weights * (t * before - weighted_t_before)
+    within = weights.square() * deltas / 3.0
+    return (between + within).sum() / num_rays
 
 
 def packed_weights(

@@ -1,20 +1,22 @@
-"""Radiance models by name: "vanilla" (the NeRF paper's MLP) and "fast" (a learned grid for CPUs)."""
+"""Radiance models by name: "vanilla" (the NeRF paper's MLP), "fast" (a dense learned grid for CPUs) and
+"tensorf" (a vector-matrix factorized grid)."""
 
 from __future__ import annotations
 
 import importlib
-from typing import Any, Literal
+from typing import Any
 
 from pydantic import BaseModel
 
+from neural.config import ModelName
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
 
-ModelName = Literal["vanilla", "fast"]
 #: name -> (module, model class, config class); modules are imported on demand, so the package works
 #: (and imports quickly) whichever models are present.
 MODEL_REGISTRY: dict[str, tuple[str, str, str]] = {
     "vanilla": ("neural.models.vanilla", "VanillaModel", "VanillaModelConfig"),
     "fast": ("neural.models.fast", "FastModel", "FastModelConfig"),
+    "tensorf": ("neural.models.tensorf", "TensorVMModel", "TensorVMConfig"),
 }
 MODEL_NAMES: tuple[str, ...] = tuple(MODEL_REGISTRY)
 

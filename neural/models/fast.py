@@ -21,8 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
-from neural.occupancy import OccupancyGrid, PackedSamples
-from neural.rendering import composite_packed, packed_transmittance, packed_weights
+from neural.occupancy import OccupancyGrid, cell_alpha_bound, render_packed_samples
+from neural.rendering import packed_distortion
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
 SH_C0 = 0.28209479177387814
@@ -66,6 +66,7 @@ class FastModelConfig(BaseModel):
     )
     tv_density_weight: float = Field(0.0, ge=0, description="total-variation weight on the density grid")
     tv_color_weight: float = Field(0.0, ge=0, description="total-variation weight on the colour grid")
+    distortion_weight: float = Field(0.0, ge=0, description="mip-NeRF 360 distortion loss weight")
     color_lr_scale: float = Field(
         1 / 3, gt=0, description="learning rate of the colour grid relative to the trainer's (density) lr"
     )
@@ -187,32 +188,22 @@ class FastModel(RadianceModel):
         generator: torch.Generator | None = None,
     ) -> RayBundleOutput:
         """Packed volume rendering of the occupied samples of each ray (see module docstring)."""
-        num_rays = origins.shape[0]
-        jitter = torch.rand(num_rays, generator=generator, device=origins.device) if train else None
-        samples = self.occupancy.march(origins, directions, near, far, self.step_size, jitter)
-        samples = self._drop_occluded(samples, num_rays)
-        sigma = self.density_at(samples.positions)
-        weights, _ = packed_weights(sigma, samples.deltas, samples.ray_indices, num_rays)
-        # Colour only where it can matter; the rest keep a zero colour (their weight is below threshold).
-        visible = (weights.detach() > self.config.color_weight_threshold).nonzero(as_tuple=True)[0]
-        rgb = sigma.new_zeros((sigma.shape[0], 3)).index_copy(
-            0, visible, self.color_at(samples.positions[visible], directions[samples.ray_indices[visible]])
-        )
-        colour, depth, opacity = composite_packed(
-            weights, rgb, samples.t, samples.ray_indices, num_rays, background
-        )
+        jitter = torch.rand(origins.shape[0], generator=generator, device=origins.device) if train else None
+        samples = self.occupancy.sample(
+            origins, directions, near, far, self.step_size, jitter, self.density_at,
+            self.config.transmittance_threshold,
+        )  # fmt: skip
+        out = render_packed_samples(
+            samples, directions, self.density_at, self.color_at, background,
+            self.config.color_weight_threshold,
+        )  # fmt: skip
         extra_loss = self._regularizer() if train else None
-        return RayBundleOutput(rgb=colour, depth=depth, opacity=opacity, extra_loss=extra_loss)
-
-    def _drop_occluded(self, samples: PackedSamples, num_rays: int) -> PackedSamples:
-        """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold."""
-        if self.config.transmittance_threshold <= 0 or samples.t.numel() == 0:
-            return samples
-        with torch.no_grad():
-            optical_depth = self.density_at(samples.positions) * samples.deltas
-            transmittance = packed_transmittance(optical_depth, samples.ray_indices, num_rays)
-            keep = (transmittance > self.config.transmittance_threshold).nonzero(as_tuple=True)[0]
-        return PackedSamples(*(field[keep] for field in samples))
+        if train and self.config.distortion_weight > 0:
+            distortion = self.config.distortion_weight * packed_distortion(
+                out.weights, samples.t, samples.deltas, samples.ray_indices, origins.shape[0]
+            )
+            extra_loss = distortion if extra_loss is None else extra_loss + distortion
+        return RayBundleOutput(rgb=out.rgb, depth=out.depth, opacity=out.opacity, extra_loss=extra_loss)
 
     def _regularizer(self) -> Tensor | None:
         terms = []
@@ -239,15 +230,16 @@ class FastModel(RadianceModel):
     def update_occupancy(self) -> None:
         """A cell is occupied iff 1 - exp(-max sigma over its 8 vertices * step) exceeds the threshold.
 
-        sigma is monotonic in the interpolated raw density, so the max over a cell's vertices bounds every
-        sample inside it: no skipped sample can be denser than the threshold.
+        The occupancy cells are the grid's voxels and sigma is monotonic in the interpolated raw density, so
+        the max over a cell's vertices bounds every sample inside it: no skipped sample can be denser than
+        the threshold.
         """
-        self.occupancy.set_occupied(self._cell_alpha() > self.config.occupancy_alpha_threshold)
+        vertex_sigma = self.activate_density(self.density)[0, 0]
+        self.occupancy.update(vertex_sigma, self.step_size, self.config.occupancy_alpha_threshold)
 
     def _cell_alpha(self) -> Tensor:
         """Upper bound of one sample step's opacity in each cell: from the max sigma of its 8 vertices."""
-        cell_max = F.max_pool3d(self.activate_density(self.density), kernel_size=2, stride=1)[0, 0]
-        return -torch.expm1(-cell_max * self.step_size)
+        return cell_alpha_bound(self.activate_density(self.density)[0, 0], self.step_size)
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""

@@ -9,9 +9,11 @@ import json
 import math
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, get_args
 
 import click
+
+from neural.config import ModelName
 
 if TYPE_CHECKING:
     from neural.inference import Camera
@@ -27,7 +29,7 @@ def nerf() -> None:
 @nerf.command("train")
 @click.argument("data", type=click.Path(exists=True, path_type=Path))
 @click.option("--out", "run_dir", required=True, type=click.Path(path_type=Path), help="Run folder to write.")
-@click.option("--model", type=click.Choice(["vanilla", "fast"]), default=None, help="Default: fast.")
+@click.option("--model", type=click.Choice(list(get_args(ModelName))), default=None, help="Default: fast.")
 @click.option("--steps", type=int, default=None, help="Optimisation steps (default: the model's).")
 @click.option("--minutes", type=float, default=None, help="Train for this long instead of a step count.")
 @click.option("--batch-rays", type=int, default=None, help="Rays per step (default: the model's).")

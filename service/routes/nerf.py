@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
+from neural.config import ModelName
 from service import webhooks
 from service.db import JobKind, JobState, new_job_id
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
@@ -129,7 +130,7 @@ def create_nerf(
         str | None,
         Form(max_length=64, description="Train on this finished reconstruction instead of an upload."),
     ] = None,
-    model: Annotated[Literal["vanilla", "fast"], Form()] = "fast",
+    model: Annotated[ModelName, Form()] = "fast",
     steps: Annotated[int | None, Form(ge=1, le=10_000_000, examples=[2000])] = None,
     minutes: Annotated[float | None, Form(gt=0, le=100_000, examples=[10.0])] = None,
     batch_rays: Annotated[int | None, Form(ge=1, le=1_000_000, examples=[1024])] = None,
