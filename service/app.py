@@ -15,6 +15,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service import openapi
 from service.db import JobState, JobStore
 from service.deps import SettingsDep, StoreDep, require_token
 from service.executor import make_executor
@@ -100,6 +101,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         description="Photographs to 3D: Structure from Motion reconstructions and Neural Radiance Field "
         "training as jobs, with their artifacts and renders.",
         lifespan=lifespan,
+        generate_unique_id_function=openapi.operation_id,
     )
     app.state.settings = settings
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
@@ -154,4 +156,5 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     for router in (jobs.router, reconstructions.router, nerf.router):
         app.include_router(router, dependencies=[Depends(require_token)])
+    openapi.install(app)
     return app
