@@ -20,7 +20,8 @@ from service.db import JobState, JobStore
 from service.deps import SettingsDep, StoreDep, require_token
 from service.executor import make_executor
 from service.models import HealthOut, InfoOut, ReadyOut
-from service.routes import jobs, nerf, reconstructions
+from service.routes import jobs, nerf, previews, reconstructions, scenes, web
+from service.scenes import SceneRunner, SceneSupervisor
 from service.settings import ServiceSettings
 from service.uploads import UploadRejected
 
@@ -88,10 +89,13 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         store = JobStore(settings.resolved_database_url)
         executor = make_executor(settings, store)
         app.state.store, app.state.executor = store, executor
+        scene_supervisor = SceneSupervisor(SceneRunner(store, executor, settings))
         executor.start()
+        scene_supervisor.start()
         try:
             yield
         finally:
+            scene_supervisor.stop()
             executor.stop()
             store.dispose()
 
@@ -154,7 +158,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             limits=current.limits(),
         )
 
-    for router in (jobs.router, reconstructions.router, nerf.router):
+    for router in (jobs.router, reconstructions.router, nerf.router, previews.router, scenes.router):
         app.include_router(router, dependencies=[Depends(require_token)])
+    web.mount(app)
     openapi.install(app)
     return app
