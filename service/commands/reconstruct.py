@@ -28,13 +28,8 @@ class StageProgressBars:
         if stage != self.stage or self.bar is None:
             self.close()
             self.stage = stage
-            self.bar = tqdm(
-                total=PERCENT,
-                initial=percent,
-                desc=f"{text:<{DESCRIPTION_WIDTH}}",
-                bar_format="{desc} {bar} {n:5.1f}% [{elapsed}]",
-                leave=True,
-            )
+            self.bar = tqdm(total=PERCENT, initial=percent, desc=f"{text:<{DESCRIPTION_WIDTH}}",
+                            bar_format="{desc} {bar} {n:5.1f}% [{elapsed}]", leave=True)
         else:
             self.bar.set_description_str(f"{text:<{DESCRIPTION_WIDTH}}", refresh=False)
             self.bar.update(max(percent - self.bar.n, 0.0))
@@ -53,26 +48,12 @@ class StageProgressBars:
 
 @click.command()
 @click.argument("images_dir", type=click.Path(path_type=Path))
-@click.option(
-    "--out",
-    "out_dir",
-    required=True,
-    type=click.Path(path_type=Path, file_okay=False),
-    help="Output folder (created): sparse/, points.ply, transforms.json, report.json, figures/.",
-)
-@click.option(
-    "--calibration",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="3x3 K file; default: calibration.txt in IMAGES_DIR.",
-)
-@click.option(
-    "--features",
-    type=click.Choice(["auto", "matches", "sift"]),
-    default="auto",
-    show_default=True,
-    help="auto: the folder's matching{i}.txt files when present, else SIFT.",
-)
+@click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
+              help="Output folder (created): sparse/, points.ply, transforms.json, report.json, figures/.")
+@click.option("--calibration", type=click.Path(path_type=Path), default=None,
+              help="3x3 K file; default: calibration.txt in IMAGES_DIR.")
+@click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True,
+              help="auto: the folder's matching{i}.txt files when present, else SIFT.")
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
@@ -96,7 +77,5 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
     )
     for entry in report["unregistered"]:
         click.echo(f"not registered: {entry['image']} ({entry['reason']})")
-    click.echo(
-        f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "
-        f"in {report['seconds_total']:.1f} s"
-    )
+    click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "
+               f"in {report['seconds_total']:.1f} s")
