@@ -7,6 +7,7 @@ and OUT/held_out (renders of the held-out views and metrics.json); one progress 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import click
@@ -72,9 +73,15 @@ def scene(
     except (ValueError, ValidationError) as error:
         raise click.ClickException(f"options: {error}") from None
 
+    seconds: dict[str, float] = {}
+
     def stage_bar(name: str) -> tuple[tqdm, object]:
         bar = tqdm(total=100, desc=name, bar_format=STAGE_BAR_FORMAT)
+        seconds[name] = time.perf_counter()
         return bar, lambda _text, fraction: bar.update(round(100 * min(max(fraction, 0.0), 1.0), 1) - bar.n)
+
+    def stage_done(name: str) -> None:
+        seconds[name] = time.perf_counter() - seconds[name]
 
     try:
         bar, progress = stage_bar("reconstruction")
@@ -83,12 +90,14 @@ def scene(
                 photos_dir, out_dir / "reconstruction",
                 ReconstructionConfig(features=features, calibration=calibration), progress=progress,
             )  # fmt: skip
+        stage_done("reconstruction")
         problem = registration_problem(result.report, scene_options.min_registered_images)
         if problem:
             raise click.ClickException(f"reconstruction: {problem}; it is in {out_dir / 'reconstruction'}")
         bar, progress = stage_bar("nerf")
         with bar:
             trained = train(out_dir / "reconstruction", out_dir / "nerf", config, progress=progress)
+        stage_done("nerf")
         bar, progress = stage_bar("views")
         with bar:
             camera = json.loads((out_dir / "nerf" / "config.json").read_text())["camera"]
@@ -101,6 +110,7 @@ def scene(
             held_out = evaluate(out_dir / "nerf", dataset, "val", out_dir=out_dir / "held_out")
             (out_dir / "held_out" / EVALUATION_FILE).write_text(json.dumps(held_out.to_dict(), indent=2))
             progress("held-out views", 1.0)
+        stage_done("views")
     except (InputError, DatasetError, CheckpointError) as error:
         raise click.ClickException(str(error)) from None
     click.echo(
@@ -108,3 +118,4 @@ def scene(
         f"NeRF {trained.step} steps in {trained.seconds:.0f} s; orbit {video}; held-out views "
         f"{len(held_out.per_image)}, mean PSNR {held_out.mean_psnr:.2f} dB, SSIM {held_out.mean_ssim:.3f}"
     )
+    click.echo("seconds per stage: " + ", ".join(f"{name} {value:.1f}" for name, value in seconds.items()))

@@ -172,7 +172,9 @@ function uploadPage(main) {
   const model = h("select", { name: "model" }, ["fast", "vanilla"].map((v) => h("option", { value: v }, v)));
   const minutes = h("input", { name: "minutes", type: "number", step: "any", min: 0, placeholder: "default" });
   const steps = h("input", { name: "steps", type: "number", min: 1, placeholder: "or steps" });
-  const nerfRow = h("div", { class: "row" }, field("NeRF model", model), field("Training minutes", minutes), field("or steps", steps));
+  const frames = h("input", { name: "orbit_frames", type: "number", min: 1, placeholder: "36" });
+  const nerfRow = h("div", { class: "row" }, field("NeRF model", model), field("Training minutes", minutes),
+    field("or steps", steps), field("Orbit video frames", frames));
   what.addEventListener("change", () => { nerfRow.hidden = what.value !== "scene"; });
   const submit = h("button", { type: "submit", id: "submit" }, "Start");
 
@@ -187,7 +189,9 @@ function uploadPage(main) {
     set("K", K.value.trim()); set("features", features.value);
     set("ransac_threshold_px", ransac.value); set("ba_max_iterations", ba.value);
     const scene = what.value === "scene";
-    if (scene) { set("model", model.value); set("minutes", minutes.value); set("steps", steps.value); }
+    if (scene) {
+      set("model", model.value); set("minutes", minutes.value); set("steps", steps.value); set("orbit_frames", frames.value);
+    }
     if (!scene && chosen.zip) { showError("a zip of photos starts a scene; for a reconstruction drop the photos themselves"); return; }
     submit.disabled = true;
     try {
@@ -275,7 +279,7 @@ function drawCurve(canvas, metrics) {
     g.stroke();
     if (dots) points.forEach(([s, v]) => g.fillRect(x(s) - 2, y(v) - 2, 4, 4));
   };
-  line(train, "#2f6fdb", false); line(val, "#e07b00", true);
+  line(train, "#2f6fdb", train.length < 30); line(val, "#e07b00", true);
   g.fillStyle = "#2f6fdb"; g.fillText("training PSNR", pad + 8, 14); g.fillStyle = "#e07b00"; g.fillText("validation PSNR", pad + 100, 14);
 }
 
@@ -341,8 +345,8 @@ function nerfPanel(page, jobId) {
       video.replaceChildren(h("img", { src: await blobUrl(`/v1/nerf/${jobId}/video`), alt: "orbit video", id: `video-${jobId}` }));
       return false;
     } catch (error) {
-      if (/^GET \S+: 404/.test(error.message)) return false; // no video queued yet
-      if (/: 409 .*(queued|running)/.test(error.message)) return true;
+      // 404: none queued yet (a scene queues one when its NeRF is trained); 409: one is being rendered.
+      if (/^GET \S+: 404/.test(error.message) || /: 409 .*(queued|running)/.test(error.message)) return true;
       video.replaceChildren(h("p", { class: "muted" }, error.message));
       return false;
     }
@@ -446,7 +450,7 @@ function scenePage(main, page, sceneId) {
     if (views.state === "succeeded" && !shown.has("v")) {
       shown.add("v");
       const renders = h("div", { class: "grid renders", id: "held-out" });
-      body.append(h("div", { class: "panel" }, h("h2", {}, "Held-out views (render | photo)"), renders));
+      body.append(h("div", { class: "panel" }, h("h2", {}, "Held-out views, rendered"), renders));
       section(renders, async () => {
         for (const view of scene.held_out) {
           renders.append(h("figure", {}, h("img", { src: await blobUrl(view.url), alt: view.image }),

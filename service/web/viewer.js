@@ -155,6 +155,7 @@ export function showReconstruction(container, { points, cameras, intrinsics, reg
   container.dataset.cameras = String(cameras.length);
   container.dataset.points = String(points.count);
   container.dataset.ready = "true";
+  performance.mark("sfmnerf:view3d-ready"); // drawn, controls attached: benchmarks read it as interactive
   return {
     dispose() {
       observer.disconnect();

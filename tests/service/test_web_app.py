@@ -18,7 +18,7 @@ CHROMIUM = (
     "/usr/bin/chromium"  # Debian's package (scripts/test.sh installs it); Playwright's download is not used
 )
 ARTIFACTS = Path(os.environ.get("SFMNERF_TEST_ARTIFACTS", ROOT / "test-artifacts"))
-JOB_SECONDS = 180
+SCENE_SECONDS = 400
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +67,7 @@ def drop_files(page: Page, selector: str, paths: list[Path]) -> None:
 
 
 @pytest.mark.slow
-def test_a_reconstruction_uploaded_through_the_page_shows_its_cameras_and_points(page, server, shared_data):
+def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_views(page, server, shared_data):
     hall = shared_data / "unity_hall"
     page.goto("/#/new")
     drop_files(
@@ -76,23 +76,46 @@ def test_a_reconstruction_uploaded_through_the_page_shows_its_cameras_and_points
         sorted(hall.glob("*.png")) + sorted(hall.glob("matching*.txt")) + [hall / "calibration.txt"],
     )
     assert "5 photo(s), 4 match file(s), calibration: calibration.txt" in page.inner_text("#upload")
-    page.select_option("#what", "reconstruction")
+    page.select_option("#what", "scene")
+    page.fill("input[name=steps]", "10")
+    page.fill("input[name=orbit_frames]", "2")
     page.click("#submit")
 
-    page.wait_for_selector("#job[data-state=succeeded]", timeout=JOB_SECONDS * 1000)
+    page.wait_for_selector("#scene[data-state=succeeded]", timeout=SCENE_SECONDS * 1000)
+    scene = httpx.get(f"{server}/v1/scenes/{page.url.rsplit('/', 1)[-1]}").json()
+    reconstruction_id, nerf_id = scene["stages"][0]["job_ids"][0], scene["stages"][1]["job_ids"][0]
+    points = httpx.get(f"{server}/v1/jobs/{reconstruction_id}").json()["result"]["points"]
     view = page.wait_for_selector("#view3d[data-ready=true]", timeout=60_000)
-    job_id = page.url.rsplit("/", 1)[-1]
-    job = httpx.get(f"{server}/v1/jobs/{job_id}").json()
-    assert view.get_attribute("data-cameras") == "5"
-    assert view.get_attribute("data-points") == str(job["result"]["points"])
-    page.wait_for_selector("#reconstruction-" + job_id + " figure img")
-    assert "finished: succeeded" in page.inner_text(f"#log-{job_id}")
+    assert view.get_attribute("data-cameras") == "5" and view.get_attribute("data-points") == str(points)
+    novel = page.wait_for_selector(f"#novel-{nerf_id}[data-renders='1']", timeout=60_000)
+    novel.scroll_into_view_if_needed()
+    box = novel.bounding_box()
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(box["x"] + box["width"] / 2 + 40, box["y"] + box["height"] / 2, steps=4)
+    page.mouse.up()
+    page.wait_for_function(f"document.getElementById('novel-{nerf_id}').dataset.renders >= 2", timeout=60_000)
+    page.wait_for_selector(f"#video-{nerf_id}", timeout=60_000)
+    assert len(page.query_selector_all("#held-out img")) == 5
+    assert page.query_selector(f"#psnr-{nerf_id}") is not None
+    page.wait_for_selector(f"#nerf-{nerf_id} tbody tr")  # the checkpoint list
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=ARTIFACTS / "web_app_scene.png", full_page=True)
+
+    page.goto(f"/#/jobs/{reconstruction_id}")  # the reconstruction's own job page
+    page.wait_for_selector("#job[data-state=succeeded]")
+    view = page.wait_for_selector("#view3d[data-ready=true]", timeout=60_000)
+    assert view.get_attribute("data-cameras") == "5" and view.get_attribute("data-points") == str(points)
+    page.wait_for_selector(f"#reconstruction-{reconstruction_id} figure img")
+    assert "finished: succeeded" in page.inner_text(f"#log-{reconstruction_id}")
     page.screenshot(path=ARTIFACTS / "web_app_reconstruction_job.png", full_page=True)
 
     page.goto("/#/")
-    row = page.wait_for_selector(f"#jobs tr[data-id='{job_id}']")
-    assert row.get_attribute("data-state") == "succeeded"
+    assert (
+        page.wait_for_selector(f"#scenes tr[data-id='{scene['id']}']").get_attribute("data-state")
+        == "succeeded"
+    )
+    assert page.wait_for_selector(f"#jobs tr[data-id='{nerf_id}']").get_attribute("data-state") == "succeeded"
     assert page.errors == []
 
 
