@@ -7,8 +7,14 @@
 2. Upload -> finished Unity Hall through the API (POST, then polling every 50 ms) against
    `sfmnerf reconstruct` on the same input (a fresh process each time, as the API's job is), median of N runs,
    API and CLI runs interleaved.
+3. A Unity Hall scene (POST /v1/scenes): seconds from the upload to the first orbit frame on disk and to the
+   end, and each stage's seconds (its child jobs, first start to last end), against `sfmnerf scene` with the
+   same options (its own per-stage timing, a fresh process).
+4. The web app's job page of a reconstruction with a 10,000-point cloud in headless Chromium (Debian's
+   /usr/bin/chromium, SwiftShader WebGL): first contentful paint, and the moment the 3D view is drawn with
+   its controls attached (the page's `sfmnerf:view3d-ready` mark), median of N fresh page loads.
 
-    python benchmarks/bench_service.py [--runs 3] [--clients 50]
+    python benchmarks/bench_service.py [--runs 3] [--clients 50] [--scene-steps 200] [--page-loads 5]
 
 The load generator shares the machine with the server and the job: numbers are for this machine and load.
 """
@@ -17,12 +23,15 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from datetime import datetime
 from pathlib import Path
 
 import httpx
@@ -31,12 +40,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run as a script from anywhere: the tests' server helpers
 
+from service.db import JobKind, JobState, JobStore  # noqa: E402
 from tests.service.conftest import unity_hall_files  # noqa: E402
 from tests.service.servers import free_port, start_server  # noqa: E402
 
 UNITY_HALL = ROOT.parent / "shared" / "data" / "unity_hall"
 POLL_SECONDS = 0.05
 JOB_TIMEOUT_SECONDS = 600.0
+CHROMIUM = "/usr/bin/chromium"
 
 
 def wait_finished(client: httpx.Client, job_id: str) -> dict:
@@ -121,12 +132,99 @@ def cli_run(out_dir: Path) -> float:
     return time.perf_counter() - start
 
 
+def scene_run(client: httpx.Client, files: list, data_dir: Path, options: dict) -> dict:
+    """A scene through the API: seconds to the first orbit frame on disk, to the end, and per stage."""
+    start = time.perf_counter()
+    scene_id = client.post("/v1/scenes", files=files, data=options).json()["id"]
+    first_frame = None
+    while (scene := client.get(f"/v1/scenes/{scene_id}").json())["state"] == "running":
+        views = scene["stages"][2]["job_ids"]
+        if (
+            first_frame is None
+            and views
+            and (data_dir / "jobs" / views[0] / "output" / "orbit_000.png").exists()
+        ):
+            first_frame = time.perf_counter() - start
+        assert time.perf_counter() - start < JOB_TIMEOUT_SECONDS, scene
+        time.sleep(POLL_SECONDS)
+    total = time.perf_counter() - start
+    assert scene["state"] == "succeeded", scene
+    stages = {}
+    for stage in scene["stages"]:
+        jobs = [client.get(f"/v1/jobs/{job_id}").json() for job_id in stage["job_ids"]]
+        began = min(datetime.fromisoformat(job["started_at"]) for job in jobs)
+        ended = max(datetime.fromisoformat(job["finished_at"]) for job in jobs)
+        stages[stage["name"]] = (ended - began).total_seconds()
+    return {"first_frame": first_frame, "total": total, "stages": stages, "scene": scene}
+
+
+def cli_scene_run(out_dir: Path, options: dict) -> dict:
+    """`sfmnerf scene` with the same options in a fresh process; its wall time and per-stage seconds."""
+    start = time.perf_counter()
+    run = subprocess.run(
+        [sys.executable, "-c", "from service.cli import main; main()", "scene", str(UNITY_HALL), "--out",
+         str(out_dir), "--steps", options["steps"], "--orbit-frames", options["orbit_frames"]],
+        cwd=ROOT, check=True, capture_output=True, text=True,
+    )  # fmt: skip
+    total = time.perf_counter() - start
+    line = next(x for x in run.stdout.splitlines() if x.startswith("seconds per stage: "))
+    stages = {name: float(value) for name, value in (p.split() for p in line.split(": ", 1)[1].split(", "))}
+    return {"total": total, "stages": stages}
+
+
+def page_job_with_points(data_dir: Path, reconstruction_id: str, count: int) -> str:
+    """A succeeded reconstruction job like `reconstruction_id`, its cloud resampled to `count` points."""
+    from estimation.io.export import read_ply, write_ply
+
+    store = JobStore(f"sqlite:///{data_dir / 'sfmnerf.sqlite'}")
+    job = store.create(JobKind.reconstruction, {})
+    attempt = store.claim(job.id, worker="benchmark")
+    shutil.copytree(data_dir / "jobs" / reconstruction_id / "output", data_dir / "jobs" / job.id / "output")
+    output = data_dir / "jobs" / job.id / "output"
+    points, colors = read_ply(output / "points.ply")
+    rng = np.random.default_rng(0)
+    picked = rng.integers(0, len(points), count)
+    spread = 0.01 * np.linalg.norm(points.std(axis=0))
+    write_ply(output / "points.ply", points[picked] + rng.normal(0, spread, (count, 3)), colors[picked])
+    report = json.loads((output / "report.json").read_text())
+    (output / "report.json").write_text(json.dumps({**report, "points": count}))
+    store.finish(job.id, attempt, JobState.succeeded, result={"points": count})
+    store.dispose()
+    return job.id
+
+
+def page_timings(base_url: str, job_id: str, loads: int) -> list[tuple[float, float]]:
+    """(first contentful paint ms, 3D view ready ms) of fresh loads of the job page."""
+    from playwright.sync_api import sync_playwright
+
+    timings = []
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=["--enable-unsafe-swiftshader"])
+        for _ in range(loads):
+            context = browser.new_context(viewport={"width": 1200, "height": 900})
+            page = context.new_page()
+            page.goto(f"{base_url}/#/jobs/{job_id}")
+            page.wait_for_selector("#view3d[data-ready=true]", timeout=120_000)
+            timings.append(tuple(page.evaluate(
+                "['first-contentful-paint', 'sfmnerf:view3d-ready']"
+                ".map((name) => performance.getEntriesByName(name)[0].startTime)"
+            )))  # fmt: skip
+            context.close()
+        browser.close()
+    return timings
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--runs", type=int, default=3, help="API and CLI runs for the overhead ratio.")
     parser.add_argument("--clients", type=int, default=50, help="Concurrent clients polling the job.")
     parser.add_argument("--sequential", type=int, default=1000, help="Requests for the per-request cost.")
+    parser.add_argument("--scene-steps", type=int, default=200, help="NeRF steps of the scene runs.")
+    parser.add_argument("--orbit-frames", type=int, default=12, help="Orbit frames of the scene runs.")
+    parser.add_argument("--page-loads", type=int, default=5, help="Fresh loads of the job page.")
+    parser.add_argument("--page-points", type=int, default=10_000, help="Points in the page's cloud.")
     args = parser.parse_args()
+    scene_options = {"steps": str(args.scene_steps), "orbit_frames": str(args.orbit_frames)}
     files = unity_hall_files(UNITY_HALL)
     with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
         port = free_port()
@@ -142,6 +240,12 @@ def main() -> None:
                 for run in range(args.runs):  # interleaved, so both see the same machine load
                     api_times.append(api_run(client, files))
                     cli_times.append(cli_run(Path(tmp) / f"cli{run}"))
+                api_scene = scene_run(client, files, Path(tmp) / "data", scene_options)
+                cli_scene = cli_scene_run(Path(tmp) / "cli-scene", scene_options)
+                page_job = page_job_with_points(
+                    Path(tmp) / "data", api_scene["scene"]["stages"][0]["job_ids"][0], args.page_points
+                )
+                paints = page_timings(base_url, page_job, args.page_loads)
         finally:
             server.terminate()
             server.wait(timeout=30)
@@ -173,6 +277,24 @@ def main() -> None:
         f"{', '.join(f'{t:.2f}' for t in cli_times)} |"
     )
     print(f"| overhead ratio API / CLI | {api_median / cli_median:.2f} | |")
+
+    print()
+    print(f"Unity Hall scene ({args.scene_steps} NeRF steps, fast model, {args.orbit_frames} orbit frames): "
+          f"API vs `sfmnerf scene`")  # fmt: skip
+    print("| | API s | CLI s |")
+    print("|---|---:|---:|")
+    for stage in ("reconstruction", "nerf", "views"):
+        print(f"| {stage} | {api_scene['stages'][stage]:.1f} | {cli_scene['stages'][stage]:.1f} |")
+    print(f"| upload -> first orbit frame on disk | {api_scene['first_frame']:.1f} | |")
+    print(f"| upload -> scene finished (wall) | {api_scene['total']:.1f} | {cli_scene['total']:.1f} |")
+    print(f"| overhead ratio API / CLI (wall) | {api_scene['total'] / cli_scene['total']:.2f} | |")
+    print()
+    fcp, ready = (np.median([t[i] for t in paints]) for i in (0, 1))
+    loads = f"median of {args.page_loads} loads"
+    print(f"Job page with a {args.page_points}-point cloud, headless Chromium, {loads}")
+    print("| first contentful paint ms | 3D view drawn and interactive ms | loads ms |")
+    print("|---:|---:|---|")
+    print(f"| {fcp:.0f} | {ready:.0f} | {', '.join(f'{a:.0f}/{b:.0f}' for a, b in paints)} |")
 
 
 if __name__ == "__main__":

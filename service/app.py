@@ -15,12 +15,14 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service import openapi
 from service.auth import AuthMiddleware
 from service.db import JobState, JobStore
 from service.deps import SettingsDep, StoreDep, current_client, visible_job
 from service.executor import make_executor
 from service.models import HealthOut, InfoOut, ReadyOut
-from service.routes import jobs, nerf, reconstructions
+from service.routes import jobs, nerf, previews, reconstructions, scenes, web
+from service.scenes import SceneRunner, SceneSupervisor
 from service.settings import ServiceSettings
 from service.uploads import UploadRejected, sweep_orphan_folders
 
@@ -97,10 +99,13 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         sweep_orphan_folders(settings.jobs_dir, store)
         executor = make_executor(settings, store)
         app.state.store, app.state.executor = store, executor
+        scene_supervisor = SceneSupervisor(SceneRunner(store, executor, settings))
         executor.start()
+        scene_supervisor.start()
         try:
             yield
         finally:
+            scene_supervisor.stop()
             executor.stop()
             store.dispose()
 
@@ -110,6 +115,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         description="Photographs to 3D: Structure from Motion reconstructions and Neural Radiance Field "
         "training as jobs, with their artifacts and renders.",
         lifespan=lifespan,
+        generate_unique_id_function=openapi.operation_id,
         **({"docs_url": None, "redoc_url": None, "openapi_url": None} if settings.docs == "off" else {}),
     )
     app.state.settings = settings
@@ -165,6 +171,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             limits=current.limits(),
         )
 
-    for router in (jobs.router, reconstructions.router, nerf.router):
+    for router in (jobs.router, reconstructions.router, nerf.router, previews.router, scenes.router):
         app.include_router(router, dependencies=[Depends(visible_job)])
+    web.mount(app)
+    openapi.install(app)
     return app

@@ -21,7 +21,9 @@ from service.settings import ServiceSettings
 
 ADMIN = "admin"
 CLIENT_LINE = re.compile(r"^(?P<name>[A-Za-z0-9._-]{1,64}):sha256:(?P<digest>[0-9a-fA-F]{64})$")
-PUBLIC_PATHS = frozenset({"/healthz", "/readyz"})
+# The web app's page and assets hold no data; the page sends the token with every API request.
+PUBLIC_PATHS = frozenset({"/healthz", "/readyz", "/"})
+PUBLIC_PREFIXES = ("/static/",)
 DOCS_PATHS = frozenset({"/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json"})
 STATE_KEY = "client"
 
@@ -106,7 +108,8 @@ class AuthMiddleware:
             await self.app(scope, receive, send)
             return
         client: Client | None = ANONYMOUS
-        if self.authenticator.enabled and scope["path"] not in self.public:
+        path = scope["path"]
+        if self.authenticator.enabled and path not in self.public and not path.startswith(PUBLIC_PREFIXES):
             token = bearer_token(scope)
             client = self.authenticator.identify(token) if token else None
             if client is None:

@@ -5,6 +5,7 @@ import click
 from service.commands.calibrate import calibrate
 from service.commands.nerf import nerf
 from service.commands.reconstruct import reconstruct
+from service.commands.scene import scene
 from service.commands.serve import serve
 
 
@@ -18,3 +19,4 @@ main.add_command(reconstruct)
 main.add_command(nerf)
 main.add_command(serve)
 main.add_command(calibrate)
+main.add_command(scene)

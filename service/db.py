@@ -51,6 +51,7 @@ class JobKind(enum.StrEnum):
     reconstruction = "reconstruction"
     nerf = "nerf"
     video = "video"
+    evaluation = "evaluation"
 
 
 def utcnow() -> datetime:
@@ -114,6 +115,26 @@ class LogLine(Base):
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
     line: Mapped[str] = mapped_column(Text)
+
+
+class Scene(Base):
+    """Photos to novel views: a reconstruction, a NeRF on its poses, then an orbit video and held-out
+    renders, each a child job; `stage` names the step the scene is at, `log` its own events."""
+
+    __tablename__ = "scenes"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    state: Mapped[str] = mapped_column(String(16), index=True, default=JobState.running)
+    stage: Mapped[str] = mapped_column(String(32), default="reconstruction")
+    created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow, index=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, default=None)
+    error: Mapped[str | None] = mapped_column(Text, default=None)
+    params: Mapped[dict] = mapped_column(JSON, default=dict)
+    reconstruction_job_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    nerf_job_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    video_job_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    evaluation_job_id: Mapped[str | None] = mapped_column(String(32), default=None)
+    log: Mapped[list] = mapped_column(JSON, default=list)
 
 
 def _make_engine(url: str) -> Engine:
@@ -338,6 +359,44 @@ class JobStore:
                 .values(**values)
             )
             return result.rowcount == 1
+
+    # ---- scenes ---------------------------------------------------------------------------------------
+
+    def create_scene(self, scene: Scene) -> Scene:
+        with self._sessions.begin() as session:
+            session.add(scene)
+        return scene
+
+    def get_scene(self, scene_id: str) -> Scene | None:
+        with self._sessions() as session:
+            return session.get(Scene, scene_id)
+
+    def list_scenes(
+        self, *, state: str | None = None, limit: int = 50, offset: int = 0
+    ) -> tuple[list[Scene], int]:
+        query = select(Scene) if state is None else select(Scene).where(Scene.state == state)
+        with self._sessions() as session:
+            total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+            rows = session.scalars(
+                query.order_by(Scene.created_at.desc(), Scene.id).limit(limit).offset(offset)
+            ).all()
+        return list(rows), int(total)
+
+    def update_scene(self, scene_id: str, *, log: str | None = None, **values: Any) -> Scene | None:
+        """Sets the fields given and appends `log` to the scene's own log lines; the scene after."""
+        with self._sessions.begin() as session:
+            scene = session.get(Scene, scene_id, with_for_update=True)
+            if scene is None:
+                return None
+            for name, value in values.items():
+                setattr(scene, name, value)
+            if log is not None:
+                scene.log = [*scene.log, f"{utcnow():%Y-%m-%d %H:%M:%S} {log}"]
+            return scene
+
+    def delete_scene(self, scene_id: str) -> bool:
+        with self._sessions.begin() as session:
+            return session.execute(delete(Scene).where(Scene.id == scene_id)).rowcount == 1
 
     # ---- logs -----------------------------------------------------------------------------------------
 

@@ -194,6 +194,34 @@ def run_video(context: JobContext) -> dict[str, Any]:
     }
 
 
+EVALUATION_FILE = "metrics.json"
+
+
+def run_evaluation(context: JobContext) -> dict[str, Any]:
+    """neural.evaluate of the source NeRF job's latest checkpoint on its data's held-out split (params:
+    split, max_side): output/<image>.png per view and output/metrics.json (PSNR, SSIM per view and mean)."""
+    import json
+
+    from neural import evaluate, load_dataset
+    from service.scenes import downscaled
+
+    nerf_job = context.store.get(context.job.source_job_id)
+    if nerf_job is None:
+        raise ValueError(f"the NeRF job {context.job.source_job_id} was deleted")
+    shutil.rmtree(context.output_dir, ignore_errors=True)
+    context.progress("rendering held-out views", 0.0)
+    white = nerf_job.params.get("train_config", {}).get("white_background", True)
+    dataset = load_dataset(nerf_dataset_path(context.settings, nerf_job), white_background=white)
+    result = evaluate(
+        output_dir(context.settings, nerf_job.id),
+        downscaled(dataset, context.job.params["max_side"]),
+        context.job.params["split"],
+        out_dir=context.output_dir,
+    )
+    (context.output_dir / EVALUATION_FILE).write_text(json.dumps(result.to_dict()))
+    return {"views": len(result.per_image), "mean_psnr": result.mean_psnr, "mean_ssim": result.mean_ssim}
+
+
 def _summary(result: Any) -> dict[str, Any]:
     """The scalar fields of a result dataclass (server paths left out: the API serves the files)."""
     fields = {name: getattr(result, name) for name in getattr(result, "__dataclass_fields__", {})}
@@ -211,6 +239,7 @@ JOB_FUNCTIONS: dict[str, Callable[[JobContext], dict[str, Any]]] = {
     JobKind.reconstruction: run_reconstruction,
     JobKind.nerf: run_nerf,
     JobKind.video: run_video,
+    JobKind.evaluation: run_evaluation,
 }
 
 

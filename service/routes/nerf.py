@@ -18,6 +18,7 @@ from service.db import JobKind, JobState, new_job_id
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
 from service.jobs import finite_or_none, job_dir, output_dir
 from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
+from service.openapi import file_response
 from service.routes.jobs import NOT_FOUND, accepted
 from service.routes.reconstructions import REJECTED
 from service.settings import ServiceSettings
@@ -33,7 +34,7 @@ from service.validation import check_isolated, check_npz_headers
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
 NO_CHECKPOINT = {409: {"model": ErrorOut, "description": "The job has no checkpoint yet."}}
-PNG = {200: {"content": {"image/png": {}}, "description": "The rendered view."}}
+PNG = file_response("image/png", description="The rendered view.")
 DATASET_DIR = "input/dataset"
 _render_lock = threading.Lock()
 """One render at a time in the API process: a render holds a model and a full image of rays in memory."""
@@ -260,7 +261,7 @@ def get_checkpoints(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -
 @router.get(
     "/{job_id}/checkpoints/{step}",
     response_class=FileResponse,
-    responses=NOT_FOUND,
+    responses={**NOT_FOUND, **file_response("application/octet-stream", description="PyTorch file.")},
     summary="Download one checkpoint (a PyTorch file)",
 )
 def download_checkpoint(job_id: JobIdPath, step: int, store: StoreDep, settings: SettingsDep) -> FileResponse:
@@ -351,7 +352,7 @@ def queue_video(
     responses={
         **NOT_FOUND,
         409: {"model": ErrorOut, "description": "The video is not ready."},
-        200: {"content": {"image/gif": {}, "video/mp4": {}}},
+        **file_response("image/gif", "video/mp4", description="The video."),
     },
     summary="The latest finished orbit video",
 )

@@ -16,6 +16,7 @@ from service.db import JobKind, JobState, new_job_id
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
 from service.jobs import input_dir, job_dir, output_dir
 from service.models import ErrorOut, JobOut, ReconstructionOut
+from service.openapi import file_response
 from service.routes.jobs import NOT_FOUND, accepted
 from service.uploads import (
     UploadRejected,
@@ -236,7 +237,11 @@ def _file(path: Path, media_type: str, filename: str | None = None) -> FileRespo
 @router.get(
     "/{job_id}/points.ply",
     response_class=FileResponse,
-    responses={**NOT_FOUND, **NOT_READY},
+    responses={
+        **NOT_FOUND,
+        **NOT_READY,
+        **file_response("application/octet-stream", description="PLY file."),
+    },
     summary="The sparse point cloud (PLY)",
 )
 def get_points(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> FileResponse:
@@ -257,7 +262,7 @@ def get_transforms(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) ->
 @router.get(
     "/{job_id}/colmap.zip",
     response_class=FileResponse,
-    responses={**NOT_FOUND, **NOT_READY},
+    responses={**NOT_FOUND, **NOT_READY, **file_response("application/zip", description="Zip archive.")},
     summary="The model in COLMAP text format (cameras.txt, images.txt, points3D.txt), zipped",
 )
 def get_colmap(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> FileResponse:
@@ -279,7 +284,7 @@ def get_colmap(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> Fil
 @router.get(
     "/{job_id}/figures/{name}",
     response_class=FileResponse,
-    responses={**NOT_FOUND, **NOT_READY},
+    responses={**NOT_FOUND, **NOT_READY, **file_response("image/png", description="PNG image.")},
     summary="A figure (PNG) of the reconstruction",
 )
 def get_figure(job_id: JobIdPath, name: str, store: StoreDep, settings: SettingsDep) -> FileResponse:

@@ -1,0 +1,121 @@
+"""`sfmnerf scene PHOTOS_DIR --out OUT`: photos to novel views in one process, the flow of POST /v1/scenes.
+
+OUT/reconstruction (as `sfmnerf reconstruct`), OUT/nerf (the run folder), OUT/orbit (frames and orbit.gif)
+and OUT/held_out (renders of the held-out views and metrics.json); one progress bar per stage.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+
+STAGE_BAR_FORMAT = "{desc:<15} {bar} {n:5.1f}% [{elapsed}]"
+
+
+@click.command()
+@click.argument("photos_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder: reconstruction/, nerf/, orbit/, held_out/.",
+)
+@click.option("--minutes", type=float, default=None, help="NeRF training time (default: the model's steps).")
+@click.option("--steps", type=int, default=None, help="NeRF steps instead of --minutes.")
+@click.option("--model", type=click.Choice(["vanilla", "fast"]), default="fast", show_default=True)
+@click.option(
+    "--calibration",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="3x3 K file; default: calibration.txt in PHOTOS_DIR.",
+)
+@click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True)
+@click.option("--options", default=None, help="More NeRF TrainConfig fields as a JSON object.")
+@click.option("--min-registered-images", type=int, default=None, help="Fewest registered images (default 3).")
+@click.option("--orbit-frames", type=int, default=None, help="Frames of the orbit video (default 36).")
+@click.option("--max-side", type=int, default=None,
+              help="Long side of the orbit and held-out renders (default 200).")  # fmt: skip
+def scene(
+    photos_dir: Path,
+    out_dir: Path,
+    minutes: float | None,
+    steps: int | None,
+    model: str,
+    calibration: Path | None,
+    features: str,
+    options: str | None,
+    min_registered_images: int | None,
+    orbit_frames: int | None,
+    max_side: int | None,
+) -> None:
+    """Reconstruct the photos in PHOTOS_DIR, train a NeRF on the poses, render an orbit and held-out views."""
+    from pydantic import ValidationError
+    from tqdm import tqdm
+
+    from estimation import InputError, ReconstructionConfig, reconstruct
+    from neural import TrainConfig, evaluate, load_dataset, render_orbit, train
+    from neural.errors import CheckpointError, DatasetError
+    from service.jobs import EVALUATION_FILE
+    from service.scenes import SceneOptions, downscaled, orbit_size, registration_problem
+
+    try:
+        extra = json.loads(options) if options else {}
+        config = TrainConfig.model_validate({**extra, "model": model, "steps": steps, "minutes": minutes})
+        given = {"min_registered_images": min_registered_images, "orbit_frames": orbit_frames,
+                 "orbit_max_side": max_side, "held_out_max_side": max_side}  # fmt: skip
+        scene_options = SceneOptions(
+            train_config=config.model_dump(mode="json"), **{k: v for k, v in given.items() if v is not None}
+        )
+    except (ValueError, ValidationError) as error:
+        raise click.ClickException(f"options: {error}") from None
+
+    seconds: dict[str, float] = {}
+
+    def stage_bar(name: str) -> tuple[tqdm, object]:
+        bar = tqdm(total=100, desc=name, bar_format=STAGE_BAR_FORMAT)
+        seconds[name] = time.perf_counter()
+        return bar, lambda _text, fraction: bar.update(round(100 * min(max(fraction, 0.0), 1.0), 1) - bar.n)
+
+    def stage_done(name: str) -> None:
+        seconds[name] = time.perf_counter() - seconds[name]
+
+    try:
+        bar, progress = stage_bar("reconstruction")
+        with bar:
+            result = reconstruct(
+                photos_dir, out_dir / "reconstruction",
+                ReconstructionConfig(features=features, calibration=calibration), progress=progress,
+            )  # fmt: skip
+        stage_done("reconstruction")
+        problem = registration_problem(result.report, scene_options.min_registered_images)
+        if problem:
+            raise click.ClickException(f"reconstruction: {problem}; it is in {out_dir / 'reconstruction'}")
+        bar, progress = stage_bar("nerf")
+        with bar:
+            trained = train(out_dir / "reconstruction", out_dir / "nerf", config, progress=progress)
+        stage_done("nerf")
+        bar, progress = stage_bar("views")
+        with bar:
+            camera = json.loads((out_dir / "nerf" / "config.json").read_text())["camera"]
+            width, height = orbit_size(camera["width"], camera["height"], scene_options.orbit_max_side)
+            video = render_orbit(
+                out_dir / "nerf", scene_options.orbit_frames, out_dir / "orbit", width, height,
+                progress=lambda _text, fraction: progress("orbit", fraction / 2),
+            )  # fmt: skip
+            dataset = downscaled(load_dataset(out_dir / "reconstruction"), scene_options.held_out_max_side)
+            held_out = evaluate(out_dir / "nerf", dataset, "val", out_dir=out_dir / "held_out")
+            (out_dir / "held_out" / EVALUATION_FILE).write_text(json.dumps(held_out.to_dict(), indent=2))
+            progress("held-out views", 1.0)
+        stage_done("views")
+    except (InputError, DatasetError, CheckpointError) as error:
+        raise click.ClickException(str(error)) from None
+    click.echo(
+        f"registered {result.report['images_registered']}/{result.report['images_total']} images; "
+        f"NeRF {trained.step} steps in {trained.seconds:.0f} s; orbit {video}; held-out views "
+        f"{len(held_out.per_image)}, mean PSNR {held_out.mean_psnr:.2f} dB, SSIM {held_out.mean_ssim:.3f}"
+    )
+    click.echo("seconds per stage: " + ", ".join(f"{name} {value:.1f}" for name, value in seconds.items()))

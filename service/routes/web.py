@@ -1,0 +1,24 @@
+"""The web app at `/`: a single page (service/web/: HTML, JS, CSS, vendored three.js) on the /v1 API.
+
+The page and its assets need no token (they hold no data); the page sends the token it keeps in the
+browser's localStorage with every API request.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+
+WEB_DIR = Path(__file__).resolve().parents[1] / "web"
+
+
+def mount(app: FastAPI) -> None:
+    """Serves index.html at `/` and the assets under `/static/`."""
+    app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(WEB_DIR / "index.html", media_type="text/html")

@@ -1,0 +1,242 @@
+"""Scenes: one request from photos to novel views (reconstruction -> NeRF -> orbit and held-out renders),
+its progress and links, failure at the stage that failed, cancel, retry from that stage, delete; and the
+`sfmnerf scene` command doing the same in one process."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+from fastapi.testclient import TestClient
+from PIL import Image
+
+from service.app import create_app
+from service.cli import main as cli
+from service.scenes import orbit_size, registration_problem
+from tests.service.conftest import JOB_TIMEOUT_SECONDS, make_settings, unity_hall_files
+
+QUICK_NERF = {
+    "steps": "10",
+    "batch_rays": "256",
+    "options": json.dumps({"checkpoint_every": 10, "val_every": 10, "log_every": 5}),
+    "orbit_frames": "2",
+    "orbit_max_side": "48",
+    "held_out_max_side": "40",
+}
+
+
+def wait_for_scene(
+    client: TestClient, scene_id: str, until=None, timeout: float = 2 * JOB_TIMEOUT_SECONDS
+) -> dict:
+    deadline = time.monotonic() + timeout
+    while True:
+        scene = client.get(f"/v1/scenes/{scene_id}").json()
+        if until(scene) if until else scene["state"] != "running":
+            return scene
+        assert time.monotonic() < deadline, f"scene {scene_id} still {scene['state']}: {scene}"
+        time.sleep(0.3)
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, shared_data):
+    """One Unity Hall scene run to its end: (client, scene, settings)."""
+    settings = make_settings(tmp_path_factory.mktemp("scenes") / "data", job_threads=1)
+    with TestClient(create_app(settings)) as client:
+        response = client.post(
+            "/v1/scenes", files=unity_hall_files(shared_data / "unity_hall"), data=QUICK_NERF
+        )
+        assert response.status_code == 202, response.text
+        assert response.headers["Location"] == f"/v1/scenes/{response.json()['id']}"
+        yield client, wait_for_scene(client, response.json()["id"]), settings
+
+
+@pytest.mark.slow
+def test_a_scene_goes_from_photos_to_novel_views(finished):
+    client, scene, _ = finished
+    assert scene["state"] == "succeeded" and scene["stage"] == "done", scene
+    assert scene["progress"] == pytest.approx(1.0)
+    assert [(s["name"], s["state"]) for s in scene["stages"]] == [
+        ("reconstruction", "succeeded"), ("nerf", "succeeded"), ("views", "succeeded")
+    ]  # fmt: skip
+    assert [len(s["job_ids"]) for s in scene["stages"]] == [1, 1, 2]
+    assert any("registered 5 of 5 images" in line for line in scene["log"])
+
+
+@pytest.mark.slow
+def test_every_artifact_of_both_stages_is_linked_and_served(finished):
+    client, scene, _ = finished
+    links = scene["links"]
+    assert client.get(links["points.ply"]).content.startswith(b"ply\n")
+    assert len(client.get(links["reconstruction"]).json()["cameras"]) == 5
+    assert client.get(links["nerf"]).json()["latest_step"] == 10
+    gif = Image.open(io.BytesIO(client.get(links["video"]).content))
+    assert gif.n_frames == 2 and gif.size == orbit_size(800, 600, 48)
+    assert client.get(links["validation"]).headers["content-type"] == "image/png"
+    for name in ("reconstruction_logs", "nerf_logs", "video_logs", "evaluation_logs"):
+        assert client.get(links[name]).json()["lines"], name
+
+
+@pytest.mark.slow
+def test_held_out_views_are_rendered_and_scored(finished):
+    client, scene, _ = finished
+    # Unity Hall has 5 photos, fewer than the holdout interval: the views scored are the training views.
+    assert [view["image"] for view in scene["held_out"]] == ["1", "2", "3", "4", "5"]
+    assert all(math.isfinite(view["psnr"]) and 0 <= view["ssim"] <= 1 for view in scene["held_out"])
+    render = client.get(scene["held_out"][0]["url"])
+    assert Image.open(io.BytesIO(render.content)).size == (800 // 20, 600 // 20)
+    assert client.get(f"/v1/scenes/{scene['id']}/held-out/..%2Fmetrics.json").status_code == 404
+
+
+def test_scenes_are_listed_newest_first(finished):
+    client, scene, _ = finished
+    listed = client.get("/v1/scenes").json()
+    assert listed["total"] >= 1 and listed["items"][0]["id"] == scene["id"]
+    assert client.get("/v1/scenes/0123456789abcdef").status_code == 404
+
+
+@pytest.mark.slow
+def test_too_few_registered_images_fail_the_scene_at_the_reconstruction_and_keep_it(client, shared_data):
+    hall = shared_data / "unity_hall"
+    files = [("images", (name, (hall / name).read_bytes(), "image/png")) for name in ("1.png", "2.png")]
+    files.append(("calibration", ("calibration.txt", (hall / "calibration.txt").read_bytes(), "text/plain")))
+    response = client.post("/v1/scenes", files=files, data={"features": "sift"})
+    assert response.status_code == 202, response.text
+    scene = wait_for_scene(client, response.json()["id"])
+    assert scene["state"] == "failed" and scene["stage"] == "reconstruction"
+    assert "registered 2 of 2 images; a NeRF needs at least 3" in scene["error"]
+    assert [s["state"] for s in scene["stages"]] == ["succeeded", "pending", "pending"]
+    assert client.get(scene["links"]["points.ply"]).status_code == 200  # the reconstruction stays
+    retry = client.post(f"/v1/scenes/{scene['id']}/retry")
+    assert retry.status_code == 409 and "more photos" in retry.json()["detail"]
+
+
+def test_registration_problem_names_the_counts_and_the_unregistered_images():
+    report = {
+        "images_registered": 2,
+        "images_total": 3,
+        "unregistered": [{"image": "3.png", "reason": "few"}],
+    }
+    assert registration_problem(report, 2) is None
+    assert registration_problem(report, 3) == (
+        "the reconstruction registered 2 of 3 images; a NeRF needs at least 3 (not registered: 3.png: few)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("data", "files", "expected"),
+    [
+        ({}, [], "images: upload the photos"),
+        ({"options": "{not json"}, None, "options: not valid JSON"),
+        ({"options": json.dumps({"steps": 5, "minutes": 1})}, None, "give steps or minutes"),
+        ({}, [("images", ("1.png", b"not a png", "image/png"))], "1.png is not a complete PNG/JPEG"),
+    ],
+    ids=["no-photos", "bad-json", "conflicting-options", "bad-image"],
+)
+def test_bad_input_is_refused_before_any_job_starts(client, shared_data, data, files, expected):
+    files = unity_hall_files(shared_data / "unity_hall") if files is None else files
+    response = client.post("/v1/scenes", files=files or None, data=data)
+    assert response.status_code == 422 and expected in response.text, response.text
+    assert client.get("/v1/jobs").json()["total"] == 0 and client.get("/v1/scenes").json()["total"] == 0
+
+
+def test_a_zip_that_climbs_out_is_refused(client):
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as zf:
+        zf.writestr("../1.png", b"x")
+    response = client.post(
+        "/v1/scenes", files={"photos_zip": ("photos.zip", archive.getvalue(), "application/zip")}
+    )
+    assert response.status_code == 422 and "climbs out" in response.json()["detail"]
+
+
+def unity_hall_zip(folder: Path) -> bytes:
+    archive = io.BytesIO()
+    with zipfile.ZipFile(archive, "w") as zf:
+        for path in sorted(folder.iterdir()):
+            if path.suffix in (".png", ".txt"):
+                zf.write(path, f"unity_hall/{path.name}")
+    return archive.getvalue()
+
+
+@pytest.mark.slow
+def test_cancel_retry_from_the_stage_and_delete_act_on_the_whole_scene(client, settings, shared_data):
+    response = client.post(
+        "/v1/scenes",
+        files={"photos_zip": ("hall.zip", unity_hall_zip(shared_data / "unity_hall"), "application/zip")},
+        data={"minutes": "30", "batch_rays": "64"},
+    )
+    assert response.status_code == 202, response.text
+    scene_id = response.json()["id"]
+    training = wait_for_scene(client, scene_id, until=lambda s: s["stages"][1]["state"] == "running")
+    reconstruction_id, nerf_id = training["stages"][0]["job_ids"][0], training["stages"][1]["job_ids"][0]
+
+    cancelled = client.post(f"/v1/scenes/{scene_id}/cancel").json()
+    assert cancelled["state"] == "cancelled" and cancelled["stage"] == "nerf"
+    nerf_job = wait_for_job_state(client, nerf_id)
+    assert nerf_job["state"] == "cancelled"
+    assert client.post(f"/v1/scenes/{scene_id}/cancel").status_code == 409
+
+    retried = client.post(f"/v1/scenes/{scene_id}/retry")
+    assert retried.status_code == 202, retried.text
+    body = retried.json()
+    assert body["state"] == "running" and body["stage"] == "nerf"
+    assert body["stages"][0]["job_ids"] == [reconstruction_id]  # the reconstruction is not run again
+    new_nerf = body["stages"][1]["job_ids"][0]
+    assert new_nerf != nerf_id and client.get(f"/v1/jobs/{new_nerf}").json()["retry_of"] == nerf_id
+
+    assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204
+    assert client.get(f"/v1/scenes/{scene_id}").status_code == 404
+    for job_id in (reconstruction_id, nerf_id, new_nerf):
+        assert client.get(f"/v1/jobs/{job_id}").status_code == 404
+        assert not (settings.jobs_dir / job_id).exists()
+
+
+def wait_for_job_state(client: TestClient, job_id: str) -> dict:
+    deadline = time.monotonic() + 30
+    while (job := client.get(f"/v1/jobs/{job_id}").json())["state"] == "running":
+        assert time.monotonic() < deadline, job
+        time.sleep(0.2)
+    return job
+
+
+@pytest.mark.slow
+def test_the_scene_command_writes_every_stage_with_a_bar_each(tmp_path, shared_data):
+    out = tmp_path / "scene"
+    options = json.dumps({"batch_rays": 256, "checkpoint_every": 5, "val_every": 5})
+    result = CliRunner().invoke(
+        cli,
+        ["scene", str(shared_data / "unity_hall"), "--out", str(out), "--steps", "5", "--options", options,
+         "--orbit-frames", "2", "--max-side", "40"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    for stage in ("reconstruction", "nerf", "views"):
+        assert f"{stage} " in result.output
+    assert (out / "reconstruction" / "points.ply").is_file() and (out / "nerf" / "config.json").is_file()
+    assert Image.open(out / "orbit" / "orbit.gif").n_frames == 2
+    metrics = json.loads((out / "held_out" / "metrics.json").read_text())
+    assert len(metrics["per_image"]) == 5 and (out / "held_out" / "1.png").is_file()
+    assert "held-out views 5" in result.output
+
+
+@pytest.mark.slow
+def test_the_scene_command_stops_at_too_few_registered_images(tmp_path, shared_data):
+    result = CliRunner().invoke(
+        cli,
+        [
+            "scene",
+            str(shared_data / "unity_hall"),
+            "--out",
+            str(tmp_path / "o"),
+            "--min-registered-images",
+            "6",
+        ],
+    )
+    assert result.exit_code != 0
+    assert "registered 5 of 5 images; a NeRF needs at least 6" in result.output
+    assert (tmp_path / "o" / "reconstruction" / "report.json").is_file()
