@@ -136,6 +136,7 @@ def test_a_job_the_pipeline_rejects_ends_failed_with_its_message(client, shared_
     ]
     job_id = client.post("/v1/reconstructions", files=files, data={"features": "sift"}).json()["id"]
     job = wait_for_job(client, job_id)
-    assert job["state"] == "failed" and job["error"].startswith("degenerate initial pair"), job
+    assert job["state"] == "failed" and job["error"].startswith("no model could be started:"), job
+    assert "1.png: best pair 1.png|2.png" in job["error"] and "panoramic" in job["error"]
     assert client.get(f"/v1/reconstructions/{job_id}").json()["cameras"] == []
     assert client.get(f"/v1/reconstructions/{job_id}/points.ply").status_code == 409
