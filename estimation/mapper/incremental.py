@@ -20,7 +20,7 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
-from estimation.geometry.projection import Camera, as_camera, transfer_pixels
+from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared, transfer_pixels
 from estimation.geometry.triangulation import (
     Observations,
     observations_for_pair,
@@ -248,11 +248,10 @@ class _Model:
     (distortion and refined focal included) to that K; errors and the BA use the measured pixels.
     """
 
-    def __init__(self, tracks: Tracks, camera: Camera, refine: IntrinsicsRefinement) -> None:
-        self.tracks, self.K, self.refine = tracks, camera.pinhole().K, refine
+    def __init__(self, tracks: Tracks, cameras: list[Camera], refine: IntrinsicsRefinement) -> None:
+        self.tracks, self.K, self.refine = tracks, cameras[0].pinhole().K, refine
         self.observed_uv = tracks.uv
-        self.cameras = [camera] * len(tracks.image_names)
-        self.use_cameras(self.cameras)
+        self.use_cameras(cameras)
         self.poses: dict[int, CameraPose] = {}
         self.order: list[int] = []
         self.point_xyz = np.zeros((tracks.num_tracks, 3))
@@ -454,22 +453,25 @@ def _to_sparse_model(model: _Model, unregistered: dict[int, str], stats: Reconst
     )
 
 
-def run_incremental(tracks: Tracks, K: Camera | np.ndarray, config: ReconstructionConfig,
+def run_incremental(tracks: Tracks, K: CameraInput, config: ReconstructionConfig,
                     progress: ProgressCallback | None = None,
                     refine: IntrinsicsRefinement = IntrinsicsRefinement()) -> SparseModel:
     """Incremental SfM: initial pair by inliers and parallax, then PnP registration by most 2D-3D matches.
 
-    The geometry works in the pixel coordinates of `tracks`; `K` (a 3x3 K or a Camera) is every
-    image's initial camera; every bundle adjustment refines the intrinsics as `refine` says, the final
-    rounds take back observations dropped under the earlier intrinsics, and the model's `cameras`
-    carry the result.
+    The geometry works in the pixel coordinates of `tracks`; `K` (a 3x3 K or a Camera shared by every
+    image, or a list of Cameras, one per image) holds the initial intrinsics; every bundle adjustment
+    refines them as `refine` says, the final rounds take back observations dropped under the earlier
+    intrinsics, and the model's `cameras` carry the result.
     Raises DegenerateConfigurationError if no pair can start.
     """
     num_images = len(tracks.image_names)
     if num_images < 2:
         raise InputError(f"Structure from Motion needs at least 2 images, got {num_images}")
     timer = _Timer()
-    model = _Model(tracks, as_camera(K), refine)
+    cameras = [as_camera(K)] * num_images if is_shared(K) else [as_camera(camera) for camera in K]
+    if len(cameras) != num_images:
+        raise InputError(f"got {len(cameras)} cameras for {num_images} images (need one per image)")
+    model = _Model(tracks, cameras, refine)
     filter_limits = (config.filter.max_reprojection_px, config.filter.min_triangulation_angle_deg)
 
     with timer.stage("pair geometry"):
