@@ -294,3 +294,15 @@ def test_unknown_focal_length_and_radial_distortion_are_recovered_from_the_prior
     # the observations dropped while the focal length was wrong are taken back, as measured pixels
     assert len(model.obs_uv) > 0.95 * len(scene.tracks.uv)
     assert np.isin(model.obs_uv[:, 0], scene.tracks.uv[:, 0]).all()
+
+
+def test_per_image_cameras_are_refined_one_by_one():
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.3, seed=5, camera=truth, visibility=0.8)
+    priors = [Camera("simple-radial", fx=720.0, fy=720.0, cx=400.0, cy=300.0)] * 8
+    refine = IntrinsicsRefinement(focal=True, distortion=True, per_image=True)
+    model = run_incremental(scene.tracks, priors, CONFIG, refine=refine)
+    assert len(model.poses) == 8
+    focals = np.array([camera.fx for camera in model.cameras])
+    assert len(set(focals.tolist())) == 8
+    np.testing.assert_allclose(focals, truth.fx, rtol=0.03)
