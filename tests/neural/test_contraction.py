@@ -1,4 +1,4 @@
-"""mip-NeRF 360's contraction (max norm): identity inside the unit cube, everything else into the shell < 2."""
+"""mip-NeRF 360's contraction (max norm): identity inside the unit cube, all else into the shell below 2."""
 
 import torch
 
