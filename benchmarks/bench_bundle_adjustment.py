@@ -1,8 +1,8 @@
 """Bundle adjustment, one problem solved side by side by three solvers; prints a table.
 
-- ours:  estimation.bundle_adjustment.bundle_adjust (GTSAM Levenberg-Marquardt), timed from the arrays
-         (graph construction and result extraction included), once per --linear-solvers entry: by default
-         the config's default (multifrontal Cholesky, points eliminated first) and pcg_block_jacobi
+- ours:  estimation.bundle_adjustment.factor_graph.bundle_adjust (GTSAM Levenberg-Marquardt), timed from
+         the arrays (graph construction and result extraction included), once per --linear-solvers entry:
+         by default the config's default (multifrontal Cholesky, points eliminated first) and pcg_block_jacobi
          (GTSAM's conjugate gradient, block-Jacobi preconditioner: inexact steps);
 - ceres: Ceres through pyceres, with COLMAP's C++ reprojection cost (pycolmap.cost_functions,
          pycolmap 3.13: pose as quaternion + translation blocks), each of DENSE_SCHUR, SPARSE_SCHUR and
@@ -18,10 +18,10 @@ residual of each observation (GTSAM's robust noise model and Ceres' HuberLoss bo
 residual function returns the 2-vector scaled to sqrt(2 huber_k(||r||)) and uses loss="linear").
 The gauge is fixed the same way in all three: camera 0 held, and the scale held (ours: a range prior on
 the distance to camera 1; ceres and scipy: one translation coordinate of camera 1 held). Final costs
-are all evaluated by the same function (estimation.bundle_adjustment.huber_cost) on the returned poses
-and points. Every solver runs on one thread (GTSAM as built here has no TBB; Ceres num_threads=1; BLAS
-limited to one thread), so on a shared machine the process CPU seconds are the fairer figure and the
-verdicts use them; wall seconds are printed beside them.
+are all evaluated by the same function (estimation.bundle_adjustment.factor_graph.huber_cost) on the
+returned poses and points. Every solver runs on one thread (GTSAM as built here has no TBB; Ceres
+num_threads=1; BLAS limited to one thread), so on a shared machine the process CPU seconds are the fairer
+figure and the verdicts use them; wall seconds are printed beside them.
 
 Two times per solver, side by side (the issue's target reads "ours reaches the same final cost as Ceres
 (within 1 %) in at most 1.5x Ceres' time, and at least 5x faster than the scipy route brought to the
@@ -68,7 +68,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from estimation.bundle_adjustment import bundle_adjust, huber_cost, reprojection_residuals, rms  # noqa: E402
+from estimation.bundle_adjustment.factor_graph import bundle_adjust, huber_cost, reprojection_residuals, rms  # noqa: E402
 from estimation.config import BundleAdjustmentConfig  # noqa: E402
 from estimation.synthetic import make_scene  # noqa: E402
 from estimation.types import CameraPose  # noqa: E402
@@ -156,21 +156,23 @@ def synthetic_problem(
 
 def unity_hall_problem(data_dir: Path) -> Problem:
     """The Unity Hall reconstruction just before its global BA (inputs of the pipeline's first global BA)."""
-    import estimation.bundle_adjustment as bundle_adjustment_module
+    import estimation.bundle_adjustment.factor_graph as bundle_adjustment_module
     from estimation.api import extract_tracks
     from estimation.config import ReconstructionConfig
-    from estimation.images import find_calibration, list_images
-    from estimation.pipeline import run_incremental
+    from estimation.geometry.projection import as_camera, is_shared
+    from estimation.io.images import find_calibration, list_images
+    from estimation.mapper.incremental import run_incremental
 
     calls: list[dict] = []
     original = bundle_adjustment_module.bundle_adjust
 
     def recording(
-        K, poses, points, camera_index, point_index, uv, config, fixed_cameras=(0,), scale_reference=1
+        camera, poses, points, camera_index, point_index, uv, config, fixed_cameras=(0,), scale_reference=1,
+        **options,
     ):
         calls.append(
             {
-                "K": K,
+                "K": as_camera(camera if is_shared(camera) else camera[0]).K,
                 "poses": list(poses),
                 "points": np.array(points),
                 "camera_index": camera_index,
@@ -181,7 +183,8 @@ def unity_hall_problem(data_dir: Path) -> Problem:
             }
         )
         return original(
-            K, poses, points, camera_index, point_index, uv, config, fixed_cameras, scale_reference
+            camera, poses, points, camera_index, point_index, uv, config, fixed_cameras, scale_reference,
+            **options,
         )
 
     config = ReconstructionConfig(write_figures=False)

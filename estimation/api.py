@@ -4,6 +4,7 @@ and the REST service call; it orchestrates input, features, the incremental pipe
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Iterator
@@ -13,15 +14,27 @@ from pathlib import Path
 
 import numpy as np
 
-from estimation.config import ReconstructionConfig
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
+from estimation.config import CameraConfig, ReconstructionConfig
 from estimation.errors import InputError
-from estimation.export import transforms_dict, write_colmap_text, write_json, write_ply
-from estimation.images import ImageSet, find_calibration, list_images, load_rgb
-from estimation.matchfile import find_match_files, load_match_tracks
-from estimation.pipeline import ReprojectionSummary, SparseModel, run_incremental
+from estimation.geometry.projection import Camera
+from estimation.io.export import transforms_dict, write_colmap_text, write_json, write_ply
+from estimation.io.images import (
+    ExifFocal,
+    ImageSet,
+    exif_focal,
+    find_calibration,
+    find_distortion,
+    list_images,
+    load_rgb,
+)
+from estimation.io.matchfile import find_match_files, load_match_tracks
+from estimation.mapper.incremental import ReprojectionSummary, SparseModel, reconstruct_models
 from estimation.types import ProgressCallback, Tracks
 
 SPARSE_DIR = "sparse"
+MODELS_DIR = "models"
+"""With export_all_models, model k >= 2 (largest first) goes to OUT/models/<k>/ (the largest is OUT/)."""
 PLY_NAME = "points.ply"
 TRANSFORMS_NAME = "transforms.json"
 REPORT_NAME = "report.json"
@@ -38,17 +51,32 @@ PROGRESS_INPUT_END = 0.02
 PROGRESS_FEATURES_END = {"matches": 0.05, "sift": 0.35}
 PROGRESS_PIPELINE_END = 0.93
 
+logger = logging.getLogger(__name__)
+NO_EXIF = ExifFocal(None, "none", "no EXIF focal length")
+
+
+@dataclass(frozen=True)
+class InitialIntrinsics:
+    """Every image's camera before the reconstruction, where it came from, and what the BA refines."""
+
+    cameras: list[Camera]            # image index -> camera (the same object when shared)
+    source: str                      # "calibration file", "exif", "exif and prior" or "prior"
+    focal_sources: list[str]         # image index -> "calibration file", an EXIF tag, or "prior"
+    refine: IntrinsicsRefinement
+    warnings: list[str]
+
 
 @dataclass(frozen=True)
 class ReconstructionResult:
     """What `reconstruct` produced: intrinsics, the sparse model and the report written to out_dir."""
 
     out_dir: Path
-    K: np.ndarray
+    K: np.ndarray                    # the (first registered image's) refined K
     width: int
     height: int
-    model: SparseModel
+    model: SparseModel               # the largest model (the one written to out_dir)
     report: dict
+    models: tuple[SparseModel, ...] = ()   # every model, largest first (models[0] is `model`)
 
 
 @dataclass(frozen=True)
@@ -79,9 +107,11 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 
 
 def extract_tracks(
-    images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None
+    images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
+    K: np.ndarray | None = None,
 ) -> FeatureTracks:
-    """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`)."""
+    """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
+    pairs are verified with E when K is given, else with F."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -91,18 +121,90 @@ def extract_tracks(
         details = {"rows": parsed.num_rows, "merged_rows": parsed.num_merged_rows,
                    "rejected_links": parsed.num_rejected_links}
         return FeatureTracks(parsed.tracks, source, details)
-    from estimation.sift import sift_tracks  # OpenCV is only needed here
+    from estimation.features.sift import sift_tracks  # OpenCV is only needed here
 
-    result = sift_tracks(images, config.sift, ransac=config.ransac, progress=report)
+    result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
+                         progress=report)
     details = {
         "keypoints_per_image": dict(zip(images.names, result.keypoints_per_image, strict=True)),
         "matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                              for (i, j), n in result.matches_per_pair.items()},
         "verified_matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                                       for (i, j), n in result.verified_per_pair.items()},
+        "two_view_geometry_per_pair": {
+            f"{images.names[i]}|{images.names[j]}": {
+                "type": geometry.type.value, "inliers": geometry.num_inliers,
+                "h_e_inlier_ratio": round(geometry.h_e_inlier_ratio, 4),
+            }
+            for (i, j), geometry in result.two_view.items()
+        },
         "rejected_links": result.num_rejected_links,
     }
     return FeatureTracks(result.tracks, source, details)
+
+
+def resolve_camera_model(camera: CameraConfig, calibrated: bool, distortion_known: bool = False) -> str:
+    """`auto` is pinhole with a calibration file (opencv when a distortion.json comes with it),
+    simple-radial (COLMAP's default) without."""
+    if camera.model != "auto":
+        return camera.model
+    if calibrated:
+        return "opencv" if distortion_known else "pinhole"
+    return "simple-radial"
+
+
+def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraConfig,
+                       distortion: dict[str, float] | None = None) -> InitialIntrinsics:
+    """The cameras to start from: the calibration file's K (held fixed, distortion refined if the
+    model has any, unless `distortion` gives it: then everything is held); else each photo's EXIF focal
+    length, else focal_prior_factor * max(w, h) with a warning (focal length and distortion refined).
+    The principal point is K's, or the image centre."""
+    model = resolve_camera_model(config, K is not None, distortion is not None)
+    per_image = not config.single_camera
+    if config.refine_principal_point and model not in ("pinhole", "opencv"):
+        raise InputError(f"refining the principal point needs the pinhole or opencv camera model, "
+                         f"not {model}")
+    if K is not None:
+        camera = Camera.from_K(K, "opencv", **(distortion or {})).as_model(model)
+        return InitialIntrinsics(
+            cameras=[camera] * len(images),
+            source="calibration file" + (" and distortion.json" if distortion is not None else ""),
+            focal_sources=["calibration file"] * len(images),
+            refine=IntrinsicsRefinement(focal=False, distortion=distortion is None, per_image=per_image),
+            warnings=[],
+        )
+    prior_px = config.focal_prior_factor * max(images.width, images.height)
+    fov = (config.min_field_of_view_deg, config.max_field_of_view_deg)
+    exif = [exif_focal(path, fov) if config.use_exif else NO_EXIF for path in images.paths]
+    focals = [e.focal_px for e in exif]
+    found = [f for f in focals if f is not None]
+    focal_sources = [e.source if e.focal_px is not None else "prior" for e in exif]
+    warnings = [f"{name}: EXIF focal length ignored: {e.problem}"
+                for name, e in zip(images.names, exif, strict=True)
+                if e.problem not in (None, NO_EXIF.problem)]
+    missing = [name for name, f in zip(images.names, focals, strict=True) if f is None]
+    if not found:
+        warnings.append(f"no calibration file and no usable EXIF focal length: focal length prior "
+                        f"{config.focal_prior_factor:g} * max(width, height) = {prior_px:.1f} px, refined "
+                        "by the bundle adjustment")
+    elif missing:
+        start = f"the prior {prior_px:.1f} px" if per_image else "the median of the other photos' EXIF"
+        warnings.append(f"no usable EXIF focal length in {', '.join(missing)}: starting from {start}")
+    for warning in warnings:
+        logger.warning(warning)
+
+    def camera_of(focal: float) -> Camera:
+        return Camera(model, fx=focal, fy=focal, cx=(images.width - 1) / 2, cy=(images.height - 1) / 2)
+
+    if per_image:
+        cameras = [camera_of(f if f is not None else prior_px) for f in focals]
+    else:
+        cameras = [camera_of(float(np.median(found)) if found else prior_px)] * len(images)
+    source = "prior" if not found else "exif" if not missing else "exif and prior"
+    return InitialIntrinsics(cameras=cameras, source=source, focal_sources=focal_sources,
+                             refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image,
+                                                         principal_point=config.refine_principal_point),
+                             warnings=warnings)
 
 
 def _error_summary(summary: ReprojectionSummary) -> dict:
@@ -110,12 +212,60 @@ def _error_summary(summary: ReprojectionSummary) -> dict:
             "observations": int(summary.num_observations)}
 
 
+def _registered_cameras(model: SparseModel) -> list[Camera]:
+    """The refined camera of each registered image, in image order."""
+    return [model.cameras[i] for i in sorted(model.poses)]
+
+
+def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: SparseModel) -> dict:
+    """report.json's intrinsics: the refined camera(s) (OpenCV pixel convention), their source,
+    what was refined and the warnings."""
+    cameras = _registered_cameras(model)
+    report = {
+        "K": cameras[0].K.tolist(), "width": images.width, "height": images.height,
+        "model": cameras[0].model, "source": initial.source,
+        "refined": {"focal_length": initial.refine.focal, "principal_point": initial.refine.principal_point,
+                    "distortion": initial.refine.distortion and cameras[0].model != "pinhole"},
+        "single_camera": not initial.refine.per_image,
+        "pixel_convention": "centre of the top-left pixel at (0, 0) (OpenCV); COLMAP files add 0.5",
+        "warnings": list(initial.warnings),
+    }
+    if initial.refine.per_image:
+        report["cameras"] = {images.names[i]: {**model.cameras[i].to_dict(),
+                                               "initial_focal_px": float(initial.cameras[i].fx),
+                                               "focal_source": initial.focal_sources[i]}
+                             for i in sorted(model.poses)}
+    else:
+        report["camera"] = {**cameras[0].to_dict(), "initial_focal_px": float(initial.cameras[0].fx)}
+        report["focal_sources"] = dict(zip(images.names, initial.focal_sources, strict=True))
+    return report
+
+
+def model_summary(images: ImageSet, model: SparseModel) -> dict:
+    """One model in report.json's `models` list: its images, points and how it started and ended."""
+    num_points = int(len(model.points))
+    stats = model.stats
+    return {
+        "images_registered": len(model.poses),
+        "images": [images.names[i] for i in model.registration_order],
+        "points": num_points,
+        "mean_track_length": float(np.bincount(model.obs_point).mean()) if num_points else 0.0,
+        "initial_pair": list(stats.initial_pair),
+        "initial_pair_failures": dict(stats.initial_pair_failures),
+        "reprojection_error_px": _error_summary(stats.reprojection_after_ba),
+        "refinement_rounds": int(stats.refinement_rounds),
+        "relaxed_thresholds": bool(stats.relaxed_thresholds),
+        "final_ba_relative_cost_decrease": float(stats.final_cost_decrease),
+    }
+
+
 def build_report(
     images: ImageSet,
-    K: np.ndarray,
+    initial: InitialIntrinsics,
     features: FeatureTracks,
     model: SparseModel,
     seconds: dict[str, float],
+    models: tuple[SparseModel, ...] = (),
 ) -> dict:
     """The report.json content: counts, errors before/after BA, inliers per pair, timings, cameras."""
     stats = model.stats
@@ -133,16 +283,18 @@ def build_report(
             "before_ba": _error_summary(stats.reprojection_before_ba),
             "after_ba": _error_summary(stats.reprojection_after_ba),
         },
-        "ransac_inliers_per_pair": dict(stats.pair_inliers),
+        "shared_tracks_per_pair": dict(stats.pair_shared_tracks),
         "initial_pair": list(stats.initial_pair),
         "initial_pair_median_triangulation_angle_deg": float(stats.initial_pair_median_angle_deg),
         "registration_order": [images.names[i] for i in model.registration_order],
         "bundle_adjustment_iterations": int(stats.bundle_adjustment_iterations),
+        "models": [model_summary(images, each) for each in (models or (model,))],
         "seconds_per_stage": seconds,
         "seconds_total": float(sum(seconds.values())),
         "features": {"source": features.source, "tracks": features.tracks.num_tracks,
                      "observations": int(len(features.tracks.track_index)), **features.details},
-        "intrinsics": {"K": K.tolist(), "width": images.width, "height": images.height},
+        "intrinsics": intrinsics_report(images, initial, model),
+        "warnings": list(initial.warnings),
         "cameras": [
             {"image": images.names[i], "R": pose.R.tolist(), "t": pose.t.tolist(), "C": pose.center.tolist()}
             for i, pose in sorted(model.poses.items())
@@ -150,24 +302,29 @@ def build_report(
     }
 
 
-def write_outputs(out_dir: Path, images: ImageSet, K: np.ndarray, model: SparseModel) -> dict[str, Path]:
-    """COLMAP text model, coloured PLY and transforms.json (file paths relative to out_dir)."""
+def write_outputs(out_dir: Path, images: ImageSet, model: SparseModel, single_camera: bool
+                  ) -> dict[str, Path]:
+    """COLMAP text model, coloured PLY and transforms.json (file paths relative to out_dir), with the
+    refined camera (one shared, or one per image)."""
+    registered = _registered_cameras(model)
     write_colmap_text(
-        out_dir / SPARSE_DIR, K, images.width, images.height, images.names, model.poses, model.points,
-        model.point_colors, model.point_errors, model.obs_camera, model.obs_point, model.obs_uv,
+        out_dir / SPARSE_DIR, registered[0] if single_camera else model.cameras, images.width, images.height,
+        images.names, model.poses, model.points, model.point_colors, model.point_errors, model.obs_camera,
+        model.obs_point, model.obs_uv,
     )
     write_ply(out_dir / PLY_NAME, model.points, model.point_colors)
     frames = [(os.path.relpath(images.paths[i].resolve(), out_dir.resolve()), pose)
               for i, pose in sorted(model.poses.items())]
     write_json(out_dir / TRANSFORMS_NAME,
-               transforms_dict(K, images.width, images.height, frames, ply_file_path=PLY_NAME))
+               transforms_dict(registered[0], images.width, images.height, frames, ply_file_path=PLY_NAME,
+                               frame_cameras=None if single_camera else registered))
     return {"sparse": out_dir / SPARSE_DIR, "ply": out_dir / PLY_NAME,
             "transforms": out_dir / TRANSFORMS_NAME}
 
 
 def write_figures(out_dir: Path, images: ImageSet, model: SparseModel) -> dict[str, Path]:
     """The initial pair's matches and triangulation, and the top view of everything, as PNGs."""
-    from estimation import figures  # matplotlib is only needed here
+    from estimation.io import figures  # matplotlib is only needed here
 
     folder = out_dir / FIGURES_DIR
     pair = model.initial_pair_diagnostics
@@ -209,29 +366,43 @@ def reconstruct(
     report_input("loading images", 0.0)
     with _timed(seconds, "input"):
         images = list_images(images_dir)
-        K = find_calibration(images_dir, config.calibration)
+        initial = initial_intrinsics(images, find_calibration(images_dir, config.calibration), config.camera,
+                                     find_distortion(images_dir, config.calibration))
     report_input("loading images", 1.0)
 
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]
     with _timed(seconds, "features"):
-        features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end))
+        calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
+        features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end),
+                                  K=calibration_K)
+    index_of = {name: m for m, name in enumerate(images.names)}
+    pair_types = {tuple(sorted(index_of[name] for name in pair.split("|"))): geometry["type"]
+                  for pair, geometry in features.details.get("two_view_geometry_per_pair", {}).items()}
 
-    model = run_incremental(features.tracks, K, config,
-                            progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END))
+    camera = initial.cameras if initial.refine.per_image else initial.cameras[0]
+    models = tuple(reconstruct_models(features.tracks, camera, config,
+                                      progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
+                                      refine=initial.refine, pair_types=pair_types))
+    model = models[0]
     seconds.update({name: float(value) for name, value in model.stats.stage_seconds.items()})
 
     report_output = _scaled(progress, PROGRESS_PIPELINE_END, 1.0)
     report_output("writing outputs", 0.0)
     out_dir.mkdir(parents=True, exist_ok=True)
     with _timed(seconds, "export"):
-        outputs = write_outputs(out_dir, images, K, model)
+        outputs = write_outputs(out_dir, images, model, single_camera=not initial.refine.per_image)
+        if config.mapper.export_all_models:
+            for number, other in enumerate(models[1:], start=2):
+                written = write_outputs(out_dir / MODELS_DIR / str(number), images, other,
+                                        single_camera=not initial.refine.per_image)
+                outputs.update({f"model_{number}_{name}": path for name, path in written.items()})
     if config.write_figures:
         report_output("writing figures", 0.5)
         with _timed(seconds, "figures"):
             outputs.update(write_figures(out_dir, images, model))
-    report = build_report(images, K, features, model, seconds)
+    report = build_report(images, initial, features, model, seconds, models)
     report["outputs"] = {name: os.path.relpath(path, out_dir) for name, path in outputs.items()}
     write_json(out_dir / REPORT_NAME, report)
     report_output("finished", 1.0)
-    return ReconstructionResult(out_dir=out_dir, K=K, width=images.width, height=images.height,
-                                model=model, report=report)
+    return ReconstructionResult(out_dir=out_dir, K=_registered_cameras(model)[0].K, width=images.width,
+                                height=images.height, model=model, report=report, models=models)

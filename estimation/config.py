@@ -9,12 +9,16 @@ from pydantic import BaseModel, Field
 
 
 class RansacConfig(BaseModel):
-    """Robust estimation settings (fundamental matrix and PnP)."""
+    """Robust estimation settings of the RANSAC driver (estimation.geometry.ransac), for every estimator."""
 
     threshold_px: float = Field(1.0, gt=0, description="Inlier threshold in pixels (Sampson / reprojection).")
     pnp_threshold_px: float = Field(4.0, gt=0, description="PnP RANSAC inlier threshold in pixels.")
     confidence: float = Field(0.999, gt=0, lt=1, description="Chance of one outlier-free sample.")
+    min_iterations: int = Field(0, ge=0, description="Lower bound on the adaptive iteration count.")
     max_iterations: int = Field(5000, ge=1, description="Upper bound on the adaptive iteration count.")
+    local_refits: int = Field(
+        5, ge=0, description="LO-RANSAC: re-fits on the inliers of each new best model (0: none)."
+    )
     seed: int = Field(0, description="Seed of the random sampler, for repeatable runs.")
 
 
@@ -26,7 +30,7 @@ class BundleAdjustmentConfig(BaseModel):
     measurement_sigma_px: float = Field(1.0, gt=0, description="Std-dev of a pixel measurement.")
     relative_error_tol: float = Field(1e-6, gt=0, description="Stop when the cost changes less than this.")
     absolute_error_tol: float = Field(0.0, ge=0, description="Stop when the cost decreases less than this.")
-    local_window: int = Field(3, ge=2, description="Cameras optimised in the local BA after a registration.")
+    local_window: int = Field(6, ge=2, description="Cameras optimised in the local BA after a registration.")
     local_max_iterations: int = Field(
         10, ge=1, description="LM iterations of each local BA (the global BA at the end converges fully)."
     )
@@ -52,6 +56,10 @@ class BundleAdjustmentConfig(BaseModel):
     fixed_camera_sigma: float = Field(
         1e-6, gt=0, description="Std-dev (rad and world units) of the near-hard prior on a fixed camera."
     )
+    fixed_intrinsics_sigma: float = Field(
+        1e-6, gt=0, description="Std-dev (pixels or unitless) of the near-hard prior holding an intrinsic "
+        "parameter that is not refined (principal point, skew, coefficients the model lacks)."
+    )
     scale_sigma_relative: float = Field(
         1e-2, gt=0,
         description="Std-dev of the scale prior as a fraction of the reference distance. The pixels say "
@@ -64,16 +72,151 @@ class FilterConfig(BaseModel):
     """Which triangulated points are kept."""
 
     max_reprojection_px: float = Field(4.0, gt=0, description="Drop points whose error exceeds this.")
-    min_triangulation_angle_deg: float = Field(1.0, ge=0, description="Drop points seen at smaller angles.")
+    min_triangulation_angle_deg: float = Field(
+        1.5, ge=0, description="Drop points seen at smaller angles (COLMAP's filter_min_tri_angle)."
+    )
 
 
 class SiftConfig(BaseModel):
     """SIFT features and matching (used when no match files are given)."""
 
-    max_features: int = Field(8000, ge=100, description="Keypoints per image.")
+    max_features: int = Field(8192, ge=100, description="Feature budget: most keypoints kept per image.")
+    max_image_side: int = Field(
+        3200, ge=64, description="Detect on the image downscaled to this longest side; keypoints mapped back."
+    )
+    contrast_threshold: float = Field(
+        0.02, gt=0, description="OpenCV SIFT contrastThreshold (0.02 = COLMAP's peak threshold 0.02 / 3)."
+    )
     ratio: float = Field(0.8, gt=0, lt=1, description="Lowe's ratio test threshold.")
-    exhaustive_up_to: int = Field(30, ge=2, description="Match all pairs up to this many images.")
-    window: int = Field(10, ge=1, description="Otherwise match each image with its next `window` images.")
+    max_distance: float = Field(
+        0.7, gt=0, description="Largest descriptor distance of a match (RootSIFT: unit norm; COLMAP's 0.7)."
+    )
+    exhaustive_up_to: int = Field(
+        250, ge=2, description="Match all pairs up to this many images; beyond, retrieval + sequence pairs."
+    )
+    retrieval_neighbours: int = Field(30, ge=1, description="Most similar images (VLAD) matched per image.")
+    sequential_neighbours: int = Field(
+        10, ge=0, description="When the names are numbered, each image is also matched with its next ones."
+    )
+    vocabulary_size: int = Field(64, ge=2, description="k-means words of the VLAD vocabulary.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="Torch device of the descriptor matching (auto: CUDA when available)."
+    )
+
+
+class TwoViewConfig(BaseModel):
+    """Geometric verification of an image pair and its two-view geometry type (COLMAP's)."""
+
+    relative_pose: Literal["five-point", "eight-point"] = Field(
+        "five-point",
+        description="five-point: E by the minimal 5-point solver in RANSAC (needs K); eight-point: the "
+        "seed's normalized 8-point F in RANSAC, then E = K^T F K.",
+    )
+    max_error_px: float = Field(4.0, gt=0, description="Inlier threshold (Sampson / transfer error), pixels.")
+    min_inliers: int = Field(15, ge=8, description="Fewest inliers of a verified pair.")
+    min_e_f_inlier_ratio: float = Field(
+        0.95, gt=0, le=1, description="E is trusted (calibrated) when its inliers reach this share of F's."
+    )
+    max_h_inlier_ratio: float = Field(
+        0.8, gt=0, le=1, description="Planar or pure rotation when H explains over this share of E's inliers."
+    )
+    max_rotation_translation: float = Field(
+        0.02, gt=0,
+        description="A planar-or-panoramic pair is a pure rotation (panoramic) when the baseline over the "
+        "scene plane's distance, from H's singular values, is below this.",
+    )
+
+
+class MapperConfig(BaseModel):
+    """The incremental mapper: initial pair, registration, triangulation, refinement, several models."""
+
+    min_initial_pair_inliers: int = Field(
+        30, ge=8, description="Fewest well-conditioned points of an initial pair."
+    )
+    min_initial_pair_median_angle_deg: float = Field(
+        2.0, gt=0, description="An initial pair's median triangulation angle must reach this (no rotation)."
+    )
+    preferred_initial_pair_angle_deg: float = Field(
+        8.0, gt=0, description="Of a batch's passing candidates, those reaching this median angle win."
+    )
+    initial_pair_candidates: int = Field(
+        10, ge=1, description="Passing initial-pair candidates (most shared tracks first) compared when "
+        "none reaches preferred_initial_pair_angle_deg; failed ones are skipped until the graph has no pair.",
+    )
+    min_pnp_correspondences: int = Field(
+        6, ge=6, description="Fewest 2D-3D matches to try registering an image."
+    )
+    min_pnp_inliers: int = Field(
+        12, ge=6, description="Fewest absolute-pose inliers to accept a registration."
+    )
+    min_pnp_inlier_ratio: float = Field(
+        0.25, gt=0, le=1, description="Fewest absolute-pose inliers as a fraction of the 2D-3D matches."
+    )
+    absolute_pose: Literal["p3p", "dlt"] = Field(
+        "p3p", description="p3p: P3P in LO-RANSAC (EPnP local optimization); dlt: the 6-point linear PnP."
+    )
+    max_registration_trials: int = Field(
+        3, ge=1, description="Failed registrations before an image is given up."
+    )
+    relaxed_registration_factor: float = Field(
+        0.5, gt=0, lt=1, description="When registration stalls, the inlier minimums are multiplied by this "
+        "and the PnP threshold divided by it, once per model.",
+    )
+    triangulation_hypotheses: int = Field(
+        8, ge=1, description="Two-view hypotheses per track in the RANSAC multi-view triangulation."
+    )
+    retriangulation_min_ratio: float = Field(
+        0.2, ge=0, le=1, description="Image pairs with fewer triangulated shared tracks than this fraction "
+        "are re-triangulated (COLMAP's re_min_ratio).",
+    )
+    global_ba_growth: float = Field(
+        1.25, gt=1, description="Global refinement whenever the registered images grew by this factor."
+    )
+    refinement_max_rounds: int = Field(
+        5, ge=1, description="Rounds of BA, complete/merge, filter, retriangulate."
+    )
+    refinement_min_change: float = Field(
+        5e-4, ge=0, description="Refinement stops when fewer than this fraction of observations changed."
+    )
+    final_relative_error_tol: float = Field(
+        1e-9, gt=0, description="Relative cost decrease at which the final global BA stops (converged)."
+    )
+    min_model_images: int = Field(3, ge=2, description="Smaller models are discarded (2 for a 2-image set).")
+    max_models: int = Field(10, ge=1, description="Most models started from the images left unregistered.")
+    export_all_models: bool = Field(
+        False, description="Write every model (OUT/models/<k>/), not only the largest one into OUT/."
+    )
+
+
+class CameraConfig(BaseModel):
+    """The camera model, where its first focal length comes from, and what the bundle adjustment refines.
+
+    With a calibration file, its K is held fixed and only the model's distortion is refined; without
+    one, the focal length comes from the EXIF (else focal_prior_factor * max(width, height), with a
+    warning) and the focal length and distortion are refined. The principal point stays at the
+    calibration's, or at the image centre.
+    """
+
+    model: Literal["auto", "pinhole", "simple-radial", "radial", "opencv"] = Field(
+        "auto", description="Camera model (COLMAP's). auto: pinhole with a calibration file (K fixed, as "
+        "given), simple-radial (one focal length and k1, COLMAP's default) without one."
+    )
+    single_camera: bool = Field(True, description="One camera shared by all images (False: one per image).")
+    use_exif: bool = Field(True, description="First focal length from the photos' EXIF when present.")
+    refine_principal_point: bool = Field(
+        False, description="Also refine cx, cy when there is no calibration file (pinhole and opencv models "
+        "only). Off by default, as in COLMAP: few views rarely determine it."
+    )
+    focal_prior_factor: float = Field(
+        1.2, gt=0, description="Focal length = this * max(width, height) when neither calibration nor EXIF "
+        "gives one (COLMAP's prior)."
+    )
+    min_field_of_view_deg: float = Field(
+        2.0, gt=0, lt=180, description="EXIF focal lengths giving a narrower field of view are ignored."
+    )
+    max_field_of_view_deg: float = Field(
+        150.0, gt=0, lt=180, description="EXIF focal lengths giving a wider field of view are ignored."
+    )
 
 
 class ReconstructionConfig(BaseModel):
@@ -82,18 +225,15 @@ class ReconstructionConfig(BaseModel):
     features: Literal["auto", "matches", "sift"] = Field(
         "auto", description="auto: match files when the folder has them, else SIFT."
     )
-    calibration: Path | None = Field(None, description="3x3 K file; default: calibration.txt in the folder.")
+    calibration: Path | None = Field(
+        None, description="3x3 K file; default: calibration.txt in the folder, and without one the camera "
+        "is calibrated from EXIF or a prior and refined (see CameraConfig)."
+    )
+    camera: CameraConfig = CameraConfig()
     ransac: RansacConfig = RansacConfig()
     bundle_adjustment: BundleAdjustmentConfig = BundleAdjustmentConfig()
     filter: FilterConfig = FilterConfig()
     sift: SiftConfig = SiftConfig()
-    min_initial_pair_inliers: int = Field(30, ge=8, description="Fewest inliers for an initial pair.")
-    min_pnp_correspondences: int = Field(6, ge=6, description="Fewest 2D-3D matches to register an image.")
-    min_pnp_inliers: int = Field(12, ge=6, description="Fewest PnP RANSAC inliers to accept a registration.")
-    min_initial_pair_median_angle_deg: float = Field(
-        2.0, gt=0, description="Initial pair's median triangulation angle must reach this (rejects rotation)."
-    )
-    initial_pair_candidates: int = Field(
-        10, ge=1, description="Pairs with most F inliers whose parallax is checked for the initial pair."
-    )
+    two_view: TwoViewConfig = TwoViewConfig()
+    mapper: MapperConfig = MapperConfig()
     write_figures: bool = Field(True, description="Write the PNG figures into OUT/figures.")

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimation.geometry.projection import Camera
+from estimation.geometry.projection import project as project_with_camera
 from estimation.types import CameraPose, Tracks
 
 SCENE_HALF_SIZE = 2.0
@@ -29,6 +31,7 @@ class SyntheticScene:
     """Ground-truth cameras and points, and the (noisy, outlier-contaminated) tracks they produce."""
 
     K: np.ndarray                  # (3, 3)
+    camera: Camera                 # the true intrinsics (K and distortion) of every image
     width: int
     height: int
     poses: list[CameraPose]        # world-to-camera, one per image
@@ -61,11 +64,9 @@ def rotation_about_axis(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle_rad) * kx + (1 - np.cos(angle_rad)) * kx @ kx
 
 
-def project(K: np.ndarray, pose: CameraPose, points: np.ndarray) -> np.ndarray:
-    """Pixel projection u ~ K (R X + t) of points (N, 3) -> (N, 2)."""
-    x_cam = points @ pose.R.T + pose.t
-    x_img = x_cam @ K.T
-    return x_img[:, :2] / x_img[:, 2:3]
+def project(camera: Camera | np.ndarray, pose: CameraPose, points: np.ndarray) -> np.ndarray:
+    """Pixel projection of points (N, 3) -> (N, 2) by a Camera (or 3x3 K): u ~ K distort(R X + t)."""
+    return project_with_camera(camera, pose.R, pose.t, points).uv
 
 
 def _camera_poses(num_cameras: int, rng: np.random.Generator) -> list[CameraPose]:
@@ -86,7 +87,7 @@ def _camera_poses(num_cameras: int, rng: np.random.Generator) -> list[CameraPose
     return poses
 
 
-def _points_inside_all_images(K: np.ndarray, poses: list[CameraPose], width: int, height: int,
+def _points_inside_all_images(camera: Camera, poses: list[CameraPose], width: int, height: int,
                               num_points: int, rng: np.random.Generator) -> np.ndarray:
     """Uniform points in the cube, rejected unless in front of and inside the image of every camera."""
     kept = np.empty((0, 3))
@@ -94,7 +95,7 @@ def _points_inside_all_images(K: np.ndarray, poses: list[CameraPose], width: int
         candidates = rng.uniform(-SCENE_HALF_SIZE, SCENE_HALF_SIZE, (2 * num_points, 3))
         ok = np.ones(len(candidates), bool)
         for pose in poses:
-            uv = project(K, pose, candidates)
+            uv = project(camera, pose, candidates)
             ok &= (candidates @ pose.R.T + pose.t)[:, 2] > MIN_DEPTH
             ok &= (uv >= IMAGE_MARGIN_PX).all(axis=1)
             ok &= (uv[:, 0] < width - IMAGE_MARGIN_PX) & (uv[:, 1] < height - IMAGE_MARGIN_PX)
@@ -111,13 +112,13 @@ def _visible_mask(num_points: int, num_cameras: int, visibility: float, rng: np.
     return visible
 
 
-def observe(K: np.ndarray, poses: list[CameraPose], points: np.ndarray, colors: np.ndarray,
+def observe(camera: Camera | np.ndarray, poses: list[CameraPose], points: np.ndarray, colors: np.ndarray,
             visible: np.ndarray, noise_px: float, outlier_fraction: float, image_size: tuple[int, int],
             rng: np.random.Generator) -> tuple[Tracks, np.ndarray]:
-    """Tracks of `points` seen where `visible` (N, M): uv = pi(K (R X + t)) + N(0, noise_px^2), and a
+    """Tracks of `points` seen where `visible` (N, M): uv = pi(camera, R X + t) + N(0, noise_px^2), and a
     fraction of all observations replaced by uniform random pixels. Returns (tracks, inlier_mask (O,))."""
     track_index, image_index = np.nonzero(visible)          # sorted by track, then image
-    uv_all = np.stack([project(K, pose, points) for pose in poses], axis=1)   # (N, M, 2)
+    uv_all = np.stack([project(camera, pose, points) for pose in poses], axis=1)   # (N, M, 2)
     uv = uv_all[track_index, image_index] + rng.normal(0.0, noise_px, (track_index.size, 2))
     inlier_mask = np.ones(track_index.size, bool)
     outliers = rng.choice(track_index.size, size=round(outlier_fraction * track_index.size), replace=False)
@@ -142,12 +143,14 @@ def make_scene(
     width: int = 800,
     height: int = 600,
     visibility: float = 1.0,
+    camera: Camera | None = None,
 ) -> SyntheticScene:
     """A scene with known poses and points; tracks are projections + N(0, noise_px^2) pixel noise.
 
     `outlier_fraction` of all observations are replaced by uniformly random pixels (so a pair of
     images shares a fraction 1 - (1 - f)^2 of wrong matches). `visibility` < 1 drops each observation
-    with probability 1 - visibility, keeping at least two per track.
+    with probability 1 - visibility, keeping at least two per track. `camera` (default: pinhole, focal
+    0.75 width, principal point at the centre) may add distortion.
     """
     if num_cameras < 2:
         raise ValueError(f"make_scene needs at least 2 cameras, got {num_cameras}")
@@ -156,14 +159,96 @@ def make_scene(
     if not 0.0 < visibility <= 1.0:
         raise ValueError(f"visibility must be in (0, 1], got {visibility}")
     rng = np.random.default_rng(seed)
-    focal = 0.75 * width
-    K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    if camera is None:
+        focal = 0.75 * width
+        camera = Camera("pinhole", fx=focal, fy=focal, cx=width / 2, cy=height / 2)
     poses = _camera_poses(num_cameras, rng)
-    points = _points_inside_all_images(K, poses, width, height, num_points, rng)
+    points = _points_inside_all_images(camera, poses, width, height, num_points, rng)
     colors = rng.integers(0, 256, (num_points, 3), dtype=np.uint8)
 
     visible = _visible_mask(num_points, num_cameras, visibility, rng)
+    tracks, inlier_mask = observe(camera, poses, points, colors, visible, noise_px, outlier_fraction,
+                                  (width, height), rng)
+    return SyntheticScene(K=camera.K, camera=camera, width=width, height=height, poses=poses, points=points,
+                          colors=colors, tracks=tracks, inlier_mask=inlier_mask)
+
+
+OBJECT_RADIUS = 1.5
+"""Object scenes: points lie on a sphere of this radius around the origin."""
+MAX_VIEWING_ANGLE_DEG = 70.0
+"""A surface point is seen by a camera when its normal is within this angle of the direction to the camera
+(the far side of the object is hidden), as in a capture around an object."""
+
+
+def _object_camera_poses(num_cameras: int, layout: str, rng: np.random.Generator) -> list[CameraPose]:
+    """Cameras looking at the origin: a ring (elevation about 15 deg) or a hemisphere (10..70 deg rings)."""
+    if layout == "ring":
+        elevations = np.full(num_cameras, 15.0)
+        azimuths = np.linspace(0.0, 360.0, num_cameras, endpoint=False)
+    elif layout == "hemisphere":
+        rings = max(2, round(np.sqrt(num_cameras / 3)))
+        per_ring = np.array_split(np.arange(num_cameras), rings)
+        ring_elevations = np.linspace(10, 70, rings)
+        elevations = np.concatenate([np.full(len(r), e)
+                                     for r, e in zip(per_ring, ring_elevations, strict=True)])
+        azimuths = np.concatenate([np.linspace(0.0, 360.0, len(r), endpoint=False) + 17.0 * k
+                                   for k, r in enumerate(per_ring)])
+    else:
+        raise ValueError(f"layout must be 'ring' or 'hemisphere', got {layout!r}")
+    world_up = np.array([0.0, -1.0, 0.0])
+    poses = []
+    jittered = np.radians(elevations + rng.uniform(-3, 3, num_cameras))
+    for azimuth, elevation in zip(np.radians(azimuths), jittered, strict=True):
+        distance = CAMERA_DISTANCE * rng.uniform(0.9, 1.1)
+        center = distance * np.array([np.sin(azimuth) * np.cos(elevation), -np.sin(elevation),
+                                      -np.cos(azimuth) * np.cos(elevation)])
+        R = look_at(center, rng.normal(0, 0.1, 3), world_up)
+        R = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.deg2rad(rng.uniform(-5, 5))) @ R
+        poses.append(CameraPose.from_center(R, center))
+    return poses
+
+
+def make_object_scene(
+    num_cameras: int = 24,
+    layout: str = "ring",
+    num_points: int = 2000,
+    noise_px: float = 0.0,
+    outlier_fraction: float = 0.0,
+    seed: int = 0,
+    width: int = 640,
+    height: int = 480,
+    shuffle: bool = False,
+) -> SyntheticScene:
+    """Photos around an object: points on a sphere, each seen only by the cameras facing its side.
+
+    `layout` "ring" or "hemisphere"; `shuffle` puts the images in random file order (image m is no longer
+    next to images m - 1 and m + 1), as unordered captures are. Noise and outliers as in `make_scene`.
+    """
+    rng = np.random.default_rng(seed)
+    focal = 0.9 * width
+    K = np.array([[focal, 0.0, width / 2], [0.0, focal, height / 2], [0.0, 0.0, 1.0]])
+    poses = _object_camera_poses(num_cameras, layout, rng)
+    if shuffle:
+        poses = [poses[m] for m in rng.permutation(num_cameras)]
+    # Upper part of the sphere only for a hemisphere capture (the object stands on the ground).
+    normals = rng.normal(size=(4 * num_points, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    if layout == "hemisphere":
+        normals = normals[normals[:, 1] < 0.2]
+    normals = normals[:num_points]
+    points = OBJECT_RADIUS * normals
+    centers = np.array([pose.center for pose in poses])
+    to_camera = centers[None, :, :] - points[:, None, :]
+    cosine = np.einsum("nmk,nk->nm", to_camera, normals) / np.linalg.norm(to_camera, axis=2)
+    visible = cosine > np.cos(np.radians(MAX_VIEWING_ANGLE_DEG))
+    for m, pose in enumerate(poses):
+        uv = project(K, pose, points)
+        visible[:, m] &= (uv >= IMAGE_MARGIN_PX).all(axis=1) & (uv[:, 0] < width - IMAGE_MARGIN_PX) & (
+            uv[:, 1] < height - IMAGE_MARGIN_PX)
+    keep = visible.sum(axis=1) >= 2
+    points, visible = points[keep], visible[keep]
+    colors = rng.integers(0, 256, (len(points), 3), dtype=np.uint8)
     tracks, inlier_mask = observe(K, poses, points, colors, visible, noise_px, outlier_fraction,
                                   (width, height), rng)
-    return SyntheticScene(K=K, width=width, height=height, poses=poses, points=points, colors=colors,
-                          tracks=tracks, inlier_mask=inlier_mask)
+    return SyntheticScene(K=K, camera=Camera.from_K(K), width=width, height=height, poses=poses,
+                          points=points, colors=colors, tracks=tracks, inlier_mask=inlier_mask)

@@ -136,16 +136,24 @@ def load_dataset(
     unbounded: bool = False,
     image_size: ImageSize | None = None,
     cache_dir: Path | None = None,
+    within: Path | None = None,
 ) -> Dataset:
     """Blender folder (transforms_{train,val,test}.json), tiny-NeRF .npz, or reconstruction folder.
 
-    image_size: load the images smaller (intrinsics scaled to match); resized image files are cached in
-    cache_dir when given. unbounded: the scene reaches beyond its box (see `unbounded_scene`).
+    A Blender dataset's files must lie inside its folder; a reconstruction's inside `within` when given
+    (the service: the reconstruction's job folder). image_size: load the images smaller (intrinsics scaled
+    to match); resized image files are cached in cache_dir when given. unbounded: the scene reaches beyond
+    its box (see `unbounded_scene`).
     """
     path = Path(path)
     sizing = ImageLoading(white_background, image_size, cache_dir)
-    loader = {"npz": load_npz, "blender": load_blender, "reconstruction": load_reconstruction}
-    dataset = loader[dataset_format(path)](path, sizing)
+    kind = dataset_format(path)
+    if kind == "npz":
+        dataset = load_npz(path, sizing)
+    elif kind == "blender":
+        dataset = load_blender(path, sizing)
+    else:
+        dataset = load_reconstruction(path, sizing, within)
     return unbounded_scene(dataset) if unbounded else dataset
 
 
@@ -233,6 +241,9 @@ def load_image(path: Path, white_background: bool) -> np.ndarray:
         with Image.open(path) as image:
             has_alpha = image.mode in ("RGBA", "LA") or (image.mode == "P" and "transparency" in image.info)
             pixels = np.asarray(image.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as error:
+        # Above Pillow's MAX_IMAGE_PIXELS (a warning becomes this error where warnings are errors).
+        raise DatasetError(f"{path}: more pixels than the limit {Image.MAX_IMAGE_PIXELS}") from error
     except OSError as error:
         raise DatasetError(f"{path}: cannot read image ({error})") from None
     if not has_alpha:
@@ -273,11 +284,16 @@ class ImageLoading:
         with a cache_dir, kept as CACHE/<key>.npy; the key hashes the file's path, size and mtime, the
         target size and the background, so a changed file is decoded afresh.
         """
+        if self.image_size is None:  # full size: load_image's own checks and errors, nothing else
+            image = load_image(path, self.white_background)
+            return image, (image.shape[1], image.shape[0])
         if not path.is_file():
             raise DatasetError(f"{path}: image file not found")
         try:
             with Image.open(path) as header:
                 original = header.size
+        except (Image.DecompressionBombError, Image.DecompressionBombWarning) as error:
+            raise DatasetError(f"{path}: more pixels than the limit {Image.MAX_IMAGE_PIXELS}") from error
         except OSError as error:
             raise DatasetError(f"{path}: cannot read image ({error})") from None
         width, height = self.size_for(*original)
@@ -311,12 +327,26 @@ def check_same_size(image: np.ndarray, name: str, first: np.ndarray, first_name:
         )
 
 
-def image_path(root: Path, file_path: str) -> Path:
-    """A frame's file_path relative to root; Blender's have no extension (then .png)."""
-    candidate = root / file_path
+def confined_path(root: Path, file_path: Any, where: str, within: Path | None) -> Path:
+    """root / file_path resolved (links followed); DatasetError naming `where` if it leaves `within`.
+
+    The message is the same whether the target exists or not, so a dataset cannot probe the file system.
+    `within` None: no bound (a local reconstruction's images may live anywhere).
+    """
+    if not isinstance(file_path, str) or not file_path:
+        raise DatasetError(f"{where}: file_path must be a non-empty string")
+    candidate = (root / file_path).resolve()
+    if within is not None and not candidate.is_relative_to(within.resolve()):
+        raise DatasetError(f"{where}: file_path {file_path!r} points outside the dataset folder; refused")
+    return candidate
+
+
+def image_path(root: Path, file_path: str, where: str, within: Path | None) -> Path:
+    """A frame's file_path relative to root, bounded by `within`; Blender's have no extension (then .png)."""
+    candidate = confined_path(root, file_path, where, within)
     if candidate.suffix.lower() in (".png", ".jpg", ".jpeg") or candidate.is_file():
         return candidate
-    return candidate.with_name(candidate.name + ".png")
+    return confined_path(root, f"{file_path}.png", where, within)
 
 
 def synthetic_dataset(
@@ -384,7 +414,7 @@ def load_blender(root: Path, loading: ImageLoading = ImageLoading()) -> Dataset:
             poses.append(
                 check_rigid_pose(require(frame, "transform_matrix", where), f"{where} ({file_path})")
             )
-            image, original_size = loading.load(image_path(root, file_path))
+            image, original_size = loading.load(image_path(root, file_path, where, within=root))
             images.append(image)
             original_sizes.append(original_size)
             names.append(str(file_path))
@@ -578,11 +608,13 @@ def near_far_from_points(poses: np.ndarray, points: np.ndarray) -> tuple[float, 
     return float(low * DEPTH_MARGIN), float(high / DEPTH_MARGIN)
 
 
-def load_reconstruction(root: Path, loading: ImageLoading = ImageLoading()) -> Dataset:
+def load_reconstruction(
+    root: Path, loading: ImageLoading = ImageLoading(), within: Path | None = None
+) -> Dataset:
     """transforms.json (fl_x, fl_y, cx, cy, w, h, frames[file_path, transform_matrix]) + images + points.
 
-    Loaded smaller, the intrinsics scale with the image: f' = f W'/W, c' = c W'/W per axis (pixel centres at
-    +0.5 map onto each other because the image edges do).
+    Image files must lie inside `within` when given. Loaded smaller, the intrinsics scale with the image:
+    f' = f W'/W, c' = c W'/W per axis (pixel centres at +0.5 map onto each other because the image edges do).
     """
     json_path = root / "transforms.json"
     meta = read_json(json_path)
@@ -598,7 +630,7 @@ def load_reconstruction(root: Path, loading: ImageLoading = ImageLoading()) -> D
         where = f"{json_path} frames[{index}]"
         file_path = require(frame, "file_path", where)
         poses.append(check_rigid_pose(require(frame, "transform_matrix", where), f"{where} ({file_path})"))
-        image, original_size = loading.load(image_path(root, file_path))
+        image, original_size = loading.load(image_path(root, file_path, where, within))
         if original_size != (width, height):
             raise DatasetError(
                 f"{root / file_path}: image size {original_size[0]}x{original_size[1]} differs from "

@@ -15,34 +15,43 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.auth import AuthMiddleware
 from service.db import JobState, JobStore
-from service.deps import SettingsDep, StoreDep, require_token
+from service.deps import SettingsDep, StoreDep, current_client, visible_job
 from service.executor import make_executor
 from service.models import HealthOut, InfoOut, ReadyOut
 from service.routes import jobs, nerf, reconstructions
 from service.settings import ServiceSettings
-from service.uploads import UploadRejected
+from service.uploads import UploadRejected, sweep_orphan_folders
 
 log = logging.getLogger(__name__)
 
 
 class BodySizeLimit:
-    """Answers 413 to request bodies above the limit, declared (Content-Length) or streamed."""
+    """Answers 413 to request bodies above the limit, declared (Content-Length) or streamed.
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    Multipart uploads may reach SFMNERF_MAX_UPLOAD_BYTES; every other body (JSON) SFMNERF_MAX_JSON_BYTES.
+    """
+
+    def __init__(self, app: ASGIApp, settings: ServiceSettings) -> None:
         self.app = app
-        self.max_bytes = max_bytes
+        self.settings = settings
 
-    def _detail(self) -> str:
-        return f"the request body is larger than the limit SFMNERF_MAX_UPLOAD_BYTES={self.max_bytes}"
+    def _limit(self, scope: Scope) -> tuple[int, str]:
+        content_type = dict(scope["headers"]).get(b"content-type", b"")
+        if content_type.lower().startswith(b"multipart/form-data"):
+            return self.settings.max_upload_bytes, "SFMNERF_MAX_UPLOAD_BYTES"
+        return self.settings.max_json_bytes, "SFMNERF_MAX_JSON_BYTES"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        max_bytes, variable = self._limit(scope)
+        detail = f"the request body is larger than the limit {variable}={max_bytes}"
         declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            await JSONResponse({"detail": self._detail()}, status_code=413)(scope, receive, send)
+        if declared is not None and declared.isdigit() and int(declared) > max_bytes:
+            await JSONResponse({"detail": detail}, status_code=413)(scope, receive, send)
             return
         received = 0
 
@@ -51,9 +60,9 @@ class BodySizeLimit:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.max_bytes:
+                if received > max_bytes:
                     # An HTTPException passes FastAPI's body parsing unchanged and becomes the response.
-                    raise StarletteHTTPException(413, self._detail())
+                    raise StarletteHTTPException(413, detail)
             return message
 
         await self.app(scope, limited_receive, send)
@@ -85,6 +94,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = JobStore(settings.resolved_database_url)
+        sweep_orphan_folders(settings.jobs_dir, store)
         executor = make_executor(settings, store)
         app.state.store, app.state.executor = store, executor
         executor.start()
@@ -100,9 +110,12 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         description="Photographs to 3D: Structure from Motion reconstructions and Neural Radiance Field "
         "training as jobs, with their artifacts and renders.",
         lifespan=lifespan,
+        **({"docs_url": None, "redoc_url": None, "openapi_url": None} if settings.docs == "off" else {}),
     )
     app.state.settings = settings
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_upload_bytes)
+    # The last added runs first: the token is checked before the body limit and before any body is read.
+    app.add_middleware(BodySizeLimit, settings=settings)
+    app.add_middleware(AuthMiddleware, settings=settings)
 
     @app.exception_handler(UploadRejected)
     async def _rejected(_request: Request, error: UploadRejected) -> JSONResponse:
@@ -138,7 +151,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         "/v1/info",
         response_model=InfoOut,
         tags=["health"],
-        dependencies=[Depends(require_token)],
+        dependencies=[Depends(current_client)],
         summary="Version, device, queue length and limits",
     )
     def info(store: StoreDep, current: SettingsDep) -> InfoOut:
@@ -153,5 +166,5 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         )
 
     for router in (jobs.router, reconstructions.router, nerf.router):
-        app.include_router(router, dependencies=[Depends(require_token)])
+        app.include_router(router, dependencies=[Depends(visible_job)])
     return app

@@ -40,11 +40,15 @@ def _run_job(task: Any, job_id: str) -> str | None:
 
     settings = ServiceSettings()
     store = _store(settings)
-    worker = f"celery {task.request.hostname or socket.gethostname()} pid {os.getpid()}"
+    worker = f"celery {task.request.hostname or socket.gethostname()}"
     attempt = store.claim(job_id, worker=worker, pid=os.getpid())
     if attempt is None:
         return None
     state = execute(store, job_id, attempt, settings)
+    if state:  # sent from this process's sender threads: the task (and its worker slot) ends now
+        from service import webhooks
+
+        webhooks.enqueue_delivery(store, job_id, settings)
     return str(state) if state else None
 
 

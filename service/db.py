@@ -102,6 +102,7 @@ class Job(Base):
     worker: Mapped[str | None] = mapped_column(String(200), default=None)
     pid: Mapped[int | None] = mapped_column(Integer, default=None)
     task_id: Mapped[str | None] = mapped_column(String(100), default=None)
+    owner: Mapped[str | None] = mapped_column(String(64), index=True, default=None)
 
 
 class LogLine(Base):
@@ -164,6 +165,7 @@ class JobStore:
         source_job_id: str | None = None,
         retry_of: str | None = None,
         webhook_url: str | None = None,
+        owner: str | None = None,
     ) -> Job:
         job = Job(
             id=job_id or new_job_id(),
@@ -173,6 +175,7 @@ class JobStore:
             source_job_id=source_job_id,
             retry_of=retry_of,
             webhook_url=webhook_url,
+            owner=owner,
             created_at=utcnow(),
         )
         with self._sessions.begin() as session:
@@ -184,9 +187,18 @@ class JobStore:
             return session.get(Job, job_id)
 
     def list(
-        self, *, kind: str | None = None, state: str | None = None, limit: int = 50, offset: int = 0
+        self,
+        *,
+        kind: str | None = None,
+        state: str | None = None,
+        owner: str | None = None,
+        limit: int = 50,
+        offset: int = 0,
     ) -> tuple[list[Job], int]:
+        """Jobs newest first; only `owner`'s when given."""
         query = select(Job)
+        if owner is not None:
+            query = query.where(Job.owner == owner)
         if kind:
             query = query.where(Job.kind == kind)
         if state:

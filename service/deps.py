@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
-import secrets
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.auth import ANONYMOUS, Client
 from service.db import Job, JobKind, JobStore
 from service.executor import Executor
 from service.settings import ServiceSettings
 
-_bearer = HTTPBearer(auto_error=False, description="API token (SFMNERF_API_TOKEN), when configured.")
+_bearer = HTTPBearer(
+    auto_error=False, description="API token (SFMNERF_API_TOKEN or a client's), when configured."
+)
 
 
 def get_settings(request: Request) -> ServiceSettings:
@@ -35,25 +37,31 @@ JobIdPath = Annotated[
 ]
 
 
-def require_token(
-    settings: SettingsDep, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
-) -> None:
-    """Every /v1 route needs `Authorization: Bearer TOKEN` when SFMNERF_API_TOKEN is set."""
-    if settings.api_token is None:
+def current_client(
+    request: Request,
+    _credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)] = None,
+) -> Client:
+    """The caller, identified by `AuthMiddleware` (the bearer scheme is declared for the OpenAPI docs)."""
+    return request.state.client
+
+
+ClientDep = Annotated[Client, Depends(current_client)]
+
+
+def visible_job(request: Request, store: StoreDep, client: ClientDep) -> None:
+    """404 on every route of a job the caller may not see, exactly as for a job that does not exist."""
+    job_id = request.path_params.get("job_id")
+    if job_id is None or client.admin:
         return
-    expected = settings.api_token.get_secret_value()
-    if credentials is None or not secrets.compare_digest(credentials.credentials.encode(), expected.encode()):
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "missing or wrong API token (Authorization: Bearer TOKEN)",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
-
-
-def find_job(store: JobStore, job_id: str, kind: JobKind | None = None) -> Job:
-    """The job, or 404 naming the id (also when it exists but is of another kind)."""
     job = store.get(job_id)
-    if job is None or (kind is not None and job.kind != kind):
+    if job is None or not client.may_see(job.owner):
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
+
+
+def find_job(store: JobStore, job_id: str, kind: JobKind | None = None, client: Client = ANONYMOUS) -> Job:
+    """The job, or 404 naming the id (also when it is of another kind or not the client's)."""
+    job = store.get(job_id)
+    if job is None or (kind is not None and job.kind != kind) or not client.may_see(job.owner):
         what = f"{kind} job" if kind else "job"
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"{what} {job_id} not found")
     return job

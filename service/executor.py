@@ -24,7 +24,7 @@ from typing import IO, Protocol
 from uuid import uuid4
 
 from service import webhooks
-from service.db import Job, JobKind, JobState, JobStore
+from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore
 from service.jobs import job_dir
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 
@@ -158,8 +158,13 @@ class LocalExecutor:
             del self._processes[job_id]
             running.log_file.close()
             job = self.store.get(job_id)
-            if job is None or job.state != JobState.running or job.attempt != running.attempt:
-                continue  # the job recorded its own end
+            if job is None or job.attempt != running.attempt:
+                continue
+            if job.state in TERMINAL_STATES:  # it recorded its own end; its webhook is sent from here
+                webhooks.enqueue_delivery(self.store, job_id, self.settings)
+                continue
+            if job.state != JobState.running:
+                continue
             if job.cancel_requested:
                 state, error = JobState.cancelled, "cancelled"
             else:
@@ -167,14 +172,14 @@ class LocalExecutor:
                 error = describe_exit(returncode, job_dir(self.settings, job_id) / WORKER_LOG_NAME)
             if self.store.finish(job_id, running.attempt, state, error=error):
                 self.store.append_log(job_id, [f"finished: {state} ({error})"])
-                webhooks.notify(self.store, job_id, self.settings, background=True)
+                webhooks.enqueue_delivery(self.store, job_id, self.settings)
 
     def _kill_cancelled(self) -> None:
         for job in self.store.cancel_requested_running():
             running = self._processes.get(job.id)
             if running is None:  # claimed but never started, or not ours: nothing to kill
                 if self.store.finish(job.id, job.attempt, JobState.cancelled, error="cancelled"):
-                    webhooks.notify(self.store, job.id, self.settings, background=True)
+                    webhooks.enqueue_delivery(self.store, job.id, self.settings)
                 continue
             now = time.monotonic()
             if running.terminate_sent_at is None:
@@ -215,7 +220,7 @@ class LocalExecutor:
             cwd=str(Path(__file__).resolve().parents[1]),
         )
         self._processes[job_id] = _JobProcess(process=process, attempt=attempt, log_file=log_file)
-        self.store.set_process(job_id, attempt, process.pid, worker=f"local pid {process.pid}")
+        self.store.set_process(job_id, attempt, process.pid, worker="local")
 
 
 def _kill_stray_worker(job: Job) -> None:
@@ -269,7 +274,7 @@ class CeleryExecutor:
             self.celery.control.revoke(job.task_id, terminate=True, signal="SIGKILL")
             if self.store.finish(job.id, job.attempt, JobState.cancelled, error="cancelled"):
                 self.store.append_log(job.id, ["finished: cancelled (its worker process was killed)"])
-                webhooks.notify(self.store, job.id, self.settings, background=True)
+                webhooks.enqueue_delivery(self.store, job.id, self.settings)
         else:
             self.celery.control.revoke(job.task_id)
 
@@ -291,7 +296,7 @@ class CeleryExecutor:
                         f"{self.settings.heartbeat_timeout_seconds:g} s: it died or lost the database"
                     )
                     if self.store.finish(job.id, job.attempt, JobState.failed, error=error):
-                        webhooks.notify(self.store, job.id, self.settings, background=True)
+                        webhooks.enqueue_delivery(self.store, job.id, self.settings)
             except Exception:
                 log.exception("heartbeat reaper iteration failed")
 

@@ -12,19 +12,19 @@ import math
 import shutil
 import threading
 import time
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from service import webhooks
 from service.db import Job, JobKind, JobState, JobStore
 from service.settings import ServiceSettings
+from service.uploads import without_server_paths
 
 PROGRESS_WRITE_INTERVAL_SECONDS = 0.5
 """Progress of one stage is written at most this often (a NeRF step loop calls back every step)."""
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+log = logging.getLogger(__name__)
 
 
 def job_dir(settings: ServiceSettings, job_id: str) -> Path:
@@ -66,7 +66,7 @@ class JobContext:
         return output_dir(self.settings, self.job.id)
 
     def log(self, line: str) -> None:
-        self.store.append_log(self.job.id, [line])
+        self.store.append_log(self.job.id, [without_server_paths(line, self.settings)])
 
     def progress(self, stage: str, fraction: float) -> None:
         """ProgressCallback: stage name and overall fraction; writes are throttled, stage changes logged."""
@@ -85,17 +85,27 @@ class JobContext:
         return self.stop_reason is not None
 
 
+class _WithoutTraceback(logging.Formatter):
+    """The record's message only: tracebacks stay in the server's log, never in a job's."""
+
+    def formatException(self, ei: Any) -> str:  # noqa: N802 (logging's name)
+        return ""
+
+    def formatStack(self, stack_info: str) -> str:  # noqa: N802 (logging's name)
+        return ""
+
+
 class _StoreLogHandler(logging.Handler):
     """Copies the job's Python log records (estimation, neural) into its log lines."""
 
     def __init__(self, context: JobContext) -> None:
         super().__init__(logging.INFO)
         self.context = context
-        self.setFormatter(logging.Formatter(LOG_FORMAT))
+        self.setFormatter(_WithoutTraceback(LOG_FORMAT))
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            self.context.log(self.format(record))
+            self.context.log(self.format(record).rstrip("\n"))
         except Exception:  # logging must never break the job
             self.handleError(record)
 
@@ -228,6 +238,7 @@ def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSetting
     heartbeat.start()
     context.log(f"attempt {attempt} of {job.kind} job started by {job.worker or 'a worker'}")
     state, error, result = JobState.failed, None, None
+    unexpected: Exception | None = None
     try:
         result = JOB_FUNCTIONS[job.kind](context)
         state = JobState.cancelled if context.should_stop() else JobState.succeeded
@@ -235,17 +246,20 @@ def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSetting
         error = str(exc)
     except Exception as exc:  # any other failure ends the job with its reason, never a stuck job
         error = f"{type(exc).__name__}: {exc}"
-        context.log(traceback.format_exc())
+        unexpected = exc
     finally:
         stop_heartbeat.set()
         root.removeHandler(handler)
         root.setLevel(previous_level)
+    if unexpected is not None:  # the traceback goes to the server's log, never to the job's
+        log.error("%s job %s failed", job.kind, job_id, exc_info=unexpected)
+    if error is not None:
+        error = without_server_paths(error, settings)
     if state == JobState.cancelled:
         error = "cancelled"
     context.log(f"finished: {state}" + (f" ({error})" if error and state == JobState.failed else ""))
     if store.finish(
         job_id, attempt, state, error=error if state != JobState.succeeded else None, result=result
     ):
-        webhooks.notify(store, job_id, settings, background=False)
-        return state
+        return state  # the caller's process sends the webhook (webhooks.enqueue_delivery)
     return None

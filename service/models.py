@@ -37,7 +37,7 @@ class JobOut(BaseModel):
                     "source_job_id": None,
                     "retry_of": None,
                     "webhook_url": None,
-                    "worker": "local pid 4242",
+                    "worker": "local",
                     "result": None,
                     "links": {
                         "self": f"/v1/jobs/{JOB_ID_EXAMPLE}",

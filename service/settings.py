@@ -7,6 +7,7 @@ Every field is documented in the README's settings table; the defaults give the 
 from __future__ import annotations
 
 from functools import cached_property
+from ipaddress import IPv4Network, IPv6Network
 from pathlib import Path
 from typing import Literal
 
@@ -48,11 +49,37 @@ class ServiceSettings(BaseSettings):
     max_zip_ratio: float = Field(
         200.0, gt=1, description="Largest compression ratio of one zip entry (zip-bomb guard)."
     )
+    max_json_bytes: int = Field(
+        1 * 2**20,
+        ge=1,
+        description="Largest accepted body of a request that is not a multipart upload, bytes.",
+    )
+    validation_memory_bytes: int = Field(
+        4 * 2**30,
+        ge=2**27,
+        description="Address space of the process that decodes and checks an upload (over it: 413).",
+    )
+    validation_timeout_seconds: float = Field(
+        300.0, gt=0, description="Longest time the check of one upload may take (over it: 413)."
+    )
     max_render_pixels: int = Field(
         2_000_000, ge=1, description="Most pixels (width x height) of one render or video frame."
     )
     api_token: SecretStr | None = Field(
-        None, description="When set, every route but the health checks needs `Authorization: Bearer TOKEN`."
+        None,
+        description="The admin token: when set, every route but the health checks needs "
+        "`Authorization: Bearer TOKEN`; its holder sees every job.",
+    )
+    clients_file: Path | None = Field(
+        None,
+        description="File of named client tokens, one `name:sha256:HEX` line each "
+        "(HEX: SHA-256 of the token); "
+        "a client sees only its own jobs.",
+    )
+    docs: Literal["token", "public", "off"] = Field(
+        "token",
+        description="/docs, /redoc and /openapi.json: token (need a token like /v1 when auth is configured), "
+        "public (open to all) or off (not served).",
     )
     cancel_grace_seconds: float = Field(
         2.0, ge=0, description="Seconds between SIGTERM and SIGKILL when a job process is cancelled."
@@ -65,8 +92,14 @@ class ServiceSettings(BaseSettings):
     webhook_backoff_seconds: float = Field(
         1.0, ge=0, description="First delay between webhook attempts; doubles after each failure."
     )
+    webhook_timeout_seconds: float = Field(10.0, gt=0, description="Timeout of one webhook attempt.")
+    webhook_allowed_networks: list[IPv4Network | IPv6Network] = Field(
+        default_factory=list,
+        description="Networks webhooks may reach although they are not public (loopback, private, ...), "
+        'as JSON, e.g. ["10.0.0.0/8"].',
+    )
 
-    @field_validator("api_token", "database_url", mode="before")
+    @field_validator("api_token", "database_url", "clients_file", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
         # compose files pass unset variables as "": that means "not configured", not "the empty token".
@@ -97,6 +130,7 @@ class ServiceSettings(BaseSettings):
             "max_image_pixels": self.max_image_pixels,
             "max_zip_entries": self.max_zip_entries,
             "max_zip_uncompressed_bytes": self.max_zip_uncompressed_bytes,
+            "max_json_bytes": self.max_json_bytes,
             "max_render_pixels": self.max_render_pixels,
         }
 

@@ -6,19 +6,27 @@ Every function writes only inside the folder it is given and raises `UploadRejec
 
 from __future__ import annotations
 
+import logging
 import re
 import shutil
 import stat
+import time
 import zipfile
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
 from PIL import Image, UnidentifiedImageError
 
 from service.settings import ServiceSettings
+
+if TYPE_CHECKING:
+    from service.db import JobStore
+
+log = logging.getLogger(__name__)
 
 ALLOWED_IMAGE_FORMATS = {"PNG": ".png", "JPEG": ".jpg", "MPO": ".jpg"}
 """Pillow format -> suffix; MPO is what Pillow calls many camera JPEGs."""
@@ -28,6 +36,7 @@ COPY_CHUNK = 1 << 20
 DATASET_MARKER = "transforms_train.json"
 SMALL_ENTRY_BYTES = 1 << 20
 """Entries up to this size may compress arbitrarily well (e.g. a blank mask) without counting as bombs."""
+ORPHAN_MIN_AGE_SECONDS = 600.0
 
 
 class UploadRejected(Exception):
@@ -85,7 +94,10 @@ class SavedImage:
 
 
 def verify_image(path: Path, shown_name: str, settings: ServiceSettings) -> tuple[str, int, int]:
-    """(Pillow format, width, height) of a complete PNG/JPEG within the pixel limit, else UploadRejected."""
+    """(Pillow format, width, height) of a PNG/JPEG within the pixel limit, else UploadRejected.
+
+    Reads the header and the chunk structure only; `decode_image` decodes the pixels (in a worker).
+    """
     try:
         with Image.open(path) as image:
             image_format, (width, height) = image.format, image.size
@@ -96,9 +108,7 @@ def verify_image(path: Path, shown_name: str, settings: ServiceSettings) -> tupl
                 )
             if image_format not in ALLOWED_IMAGE_FORMATS:
                 raise invalid(f"images: {shown_name} is {image_format}, only PNG and JPEG are accepted")
-            image.verify()
-        with Image.open(path) as image:
-            image.load()  # verify() misses truncated pixel data; decoding everything finds it
+            image.verify()  # chunk structure and checksums, without decoding the pixels
     except Image.DecompressionBombError:
         raise too_large(
             f"images: {shown_name} has more pixels than the limit "
@@ -107,6 +117,15 @@ def verify_image(path: Path, shown_name: str, settings: ServiceSettings) -> tupl
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
         raise invalid(f"images: {shown_name} is not a complete PNG/JPEG image ({error})") from None
     return image_format, width, height
+
+
+def decode_image(path: Path, shown_name: str) -> None:
+    """Decodes every pixel (verify() misses truncated pixel data); heavy: run in a validation process."""
+    try:
+        with Image.open(path) as image:
+            image.load()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
+        raise invalid(f"images: {shown_name} is not a complete PNG/JPEG image ({error})") from None
 
 
 def check_image_count(count: int, settings: ServiceSettings) -> None:
@@ -119,7 +138,7 @@ def check_image_count(count: int, settings: ServiceSettings) -> None:
 def save_images(
     uploads: Iterable[tuple[str | None, BinaryIO]], folder: Path, settings: ServiceSettings
 ) -> list[SavedImage]:
-    """Stores the uploaded images under sanitized, unique names after verifying each with Pillow."""
+    """Stores the uploaded images under sanitized, unique names after checking each one's header."""
     uploads = list(uploads)
     check_image_count(len(uploads), settings)
     saved: list[SavedImage] = []
@@ -232,3 +251,39 @@ def find_dataset_root(folder: Path, field: str = "dataset") -> Path:
 
 def remove_tree(folder: Path) -> None:
     shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextmanager
+def removed_on_failure(folder: Path) -> Iterator[None]:
+    """Removes a new job's folder when its submission fails in any way (a refusal or a bug)."""
+    try:
+        yield
+    except BaseException:
+        remove_tree(folder)
+        raise
+
+
+def sweep_orphan_folders(jobs_dir: Path, store: JobStore) -> list[str]:
+    """Removes job folders that have no job in the store (a submission that died half-way).
+
+    Only folders untouched for ORPHAN_MIN_AGE_SECONDS: another server on the same data folder may be
+    storing an upload whose job it has not created yet.
+    """
+    removed = []
+    now = time.time()
+    for folder in sorted(jobs_dir.iterdir()) if jobs_dir.is_dir() else []:
+        if not folder.is_dir() or now - folder.stat().st_mtime < ORPHAN_MIN_AGE_SECONDS:
+            continue
+        if store.get(folder.name) is None:
+            remove_tree(folder)
+            removed.append(folder.name)
+    if removed:
+        log.warning("removed %d job folder(s) without a job: %s", len(removed), ", ".join(removed))
+    return removed
+
+
+def without_server_paths(text: str, settings: ServiceSettings) -> str:
+    """A message for a client: paths inside a job folder shortened to the names the client gave, and
+    any other path of the data folder hidden."""
+    job_files = re.escape(str(settings.jobs_dir)) + r"/[0-9a-f]{32}/(?:input/(?:dataset/)?|output/)?"
+    return re.sub(job_files, "", text).replace(str(settings.data_dir), "<data>")

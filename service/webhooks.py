@@ -1,56 +1,165 @@
-"""Webhooks: POST a finished job's resource to the URL given with it, retried with exponential back-off."""
+"""Webhooks: POST a finished job's resource to the URL given with it, from a sender apart from the job.
+
+A URL is checked when the job is submitted (`check_url`: 422 naming `webhook_url`) and again when it is
+called: its host is resolved once, every address must be public (the `ipaddress` module classifies it,
+whatever the spelling: 2130706433, 0x7f.1, ::ffff:127.0.0.1) unless SFMNERF_WEBHOOK_ALLOWED_NETWORKS holds
+it, and the request goes to that checked address (the Host header and TLS name stay the URL's): a second
+DNS answer cannot redirect it. Redirects are not followed, proxies from the environment are not used.
+
+`enqueue_delivery(store, job_id, settings)` hands a delivery to a small thread pool of the calling
+process and returns at once, so a webhook that never answers holds neither a request nor a job slot. The
+job's log says only "webhook delivered" or "webhook failed"; the reasons go to the server log.
+"""
 
 from __future__ import annotations
 
+import ipaddress
 import logging
+import queue
+import socket
 import threading
 import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from ipaddress import IPv4Address, IPv4Network, IPv6Address, IPv6Network
 
 import httpx
 
-from service.db import Job, JobStore
+from service.db import JobStore
 from service.models import JobOut
 from service.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
-TIMEOUT_SECONDS = 10.0
+SENDER_THREADS = 4
+_deliveries: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+_senders: list[threading.Thread] = []
+_senders_lock = threading.Lock()
+
+Network = IPv4Network | IPv6Network
 
 
-def deliver(url: str, payload: str, attempts: int, backoff_seconds: float) -> bool:
-    """POSTs payload (JSON) until a 2xx answer or `attempts` tries, waiting backoff, 2 backoff, ..."""
-    delay = backoff_seconds
-    for attempt in range(1, attempts + 1):
+class WebhookRefused(ValueError):
+    """A webhook URL the service will not call; the message says why (without probing further)."""
+
+
+@dataclass(frozen=True)
+class Target:
+    """A checked webhook: the URL to connect to (its host replaced by the checked address) and its host."""
+
+    url: httpx.URL
+    host: str
+
+
+def _public_or_allowed(address: IPv4Address | IPv6Address, allowed: Sequence[Network]) -> bool:
+    if isinstance(address, IPv6Address) and address.ipv4_mapped is not None:
+        address = address.ipv4_mapped
+    if any(address in network for network in allowed):
+        return True
+    return not (
+        address.is_loopback
+        or address.is_link_local
+        or address.is_private
+        or address.is_reserved
+        or address.is_multicast
+        or address.is_unspecified
+        or not address.is_global
+    )
+
+
+def resolve(url: str, allowed: Sequence[Network]) -> Target:
+    """The URL pinned to its host's first address, every address checked; WebhookRefused otherwise."""
+    try:
+        parsed = httpx.URL(url)
+    except (httpx.InvalidURL, ValueError) as error:
+        raise WebhookRefused(f"not a valid URL ({error})") from None
+    if parsed.scheme not in ("http", "https") or not parsed.host:
+        raise WebhookRefused("must be an http:// or https:// URL with a host")
+    if parsed.userinfo:
+        raise WebhookRefused("must not hold credentials (user:password@); put a secret in the path instead")
+    port = parsed.port or (443 if parsed.scheme == "https" else 80)
+    try:
+        infos = socket.getaddrinfo(parsed.host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError):
+        raise WebhookRefused(f"the host {parsed.host!r} cannot be resolved") from None
+    addresses = [ipaddress.ip_address(info[4][0].split("%")[0]) for info in infos]
+    if not addresses or not all(_public_or_allowed(address, allowed) for address in addresses):
+        raise WebhookRefused(
+            f"the host {parsed.host!r} is not a public address (loopback, private, link-local, reserved, "
+            "multicast or unspecified); SFMNERF_WEBHOOK_ALLOWED_NETWORKS can permit it"
+        )
+    return Target(url=parsed.copy_with(host=str(addresses[0])), host=parsed.host)
+
+
+def check_url(url: str | None, settings: ServiceSettings) -> str | None:
+    """The webhook URL of a submission, checked (422 naming `webhook_url` when refused)."""
+    if url is None:
+        return None
+    from service.uploads import invalid
+
+    try:
+        resolve(url, settings.webhook_allowed_networks)
+    except WebhookRefused as refused:
+        raise invalid(f"webhook_url: {refused}") from None
+    return url
+
+
+def deliver(url: str, payload: str, settings: ServiceSettings) -> bool:
+    """POSTs payload (JSON) until a 2xx answer or SFMNERF_WEBHOOK_ATTEMPTS tries, with doubling back-off."""
+    delay = settings.webhook_backoff_seconds
+    for attempt in range(1, settings.webhook_attempts + 1):
         try:
-            response = httpx.post(
-                url, content=payload, headers={"Content-Type": "application/json"}, timeout=TIMEOUT_SECONDS
-            )
+            target = resolve(url, settings.webhook_allowed_networks)
+            with httpx.Client(
+                follow_redirects=False, trust_env=False, timeout=settings.webhook_timeout_seconds
+            ) as client:
+                response = client.post(
+                    target.url,
+                    content=payload,
+                    headers={"Content-Type": "application/json", "Host": _host_header(url)},
+                    extensions={"sni_hostname": target.host},
+                )
             if response.is_success:
                 return True
             reason = f"HTTP {response.status_code}"
+        except WebhookRefused as refused:
+            reason = str(refused)
         except httpx.HTTPError as error:
             reason = f"{type(error).__name__}: {error}"
-        log.warning("webhook %s attempt %d/%d failed: %s", url, attempt, attempts, reason)
-        if attempt < attempts:
+        log.warning("webhook attempt %d/%d failed: %s", attempt, settings.webhook_attempts, reason)
+        if attempt < settings.webhook_attempts:
             time.sleep(delay)
             delay *= 2
     return False
 
 
-def notify(store: JobStore, job_id: str, settings: ServiceSettings, *, background: bool) -> None:
-    """Calls the job's webhook (if any) with its current resource; in a daemon thread when `background`."""
-    job: Job | None = store.get(job_id)
+def _host_header(url: str) -> str:
+    parsed = httpx.URL(url)
+    return parsed.netloc.decode("ascii")
+
+
+def enqueue_delivery(store: JobStore, job_id: str, settings: ServiceSettings) -> None:
+    """Queues the job's webhook (if it has one) with its current resource for the sender threads."""
+    job = store.get(job_id)
     if job is None or not job.webhook_url:
         return
-    payload = JobOut.from_job(job).model_dump_json()
+    url, payload = job.webhook_url, JobOut.from_job(job).model_dump_json()
 
     def send() -> None:
-        delivered = deliver(
-            job.webhook_url, payload, settings.webhook_attempts, settings.webhook_backoff_seconds
-        )
-        note = "delivered" if delivered else f"not delivered after {settings.webhook_attempts} attempts"
-        store.append_log(job_id, [f"webhook {job.webhook_url}: {note}"])
+        delivered = deliver(url, payload, settings)
+        store.append_log(job_id, ["webhook delivered" if delivered else "webhook failed"])
 
-    if background:
-        threading.Thread(target=send, name=f"webhook-{job_id}", daemon=True).start()
-    else:
-        send()
+    with _senders_lock:
+        while len(_senders) < SENDER_THREADS:
+            sender = threading.Thread(target=_send_forever, name=f"webhook-{len(_senders)}", daemon=True)
+            sender.start()
+            _senders.append(sender)
+    _deliveries.put(send)
+
+
+def _send_forever() -> None:
+    while True:
+        send = _deliveries.get()
+        try:
+            send()
+        except Exception:  # a failed delivery (or its log line) must not end the sender
+            log.exception("webhook delivery failed")

@@ -51,15 +51,38 @@ class StageProgressBars:
 @click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
               help="Output folder (created): sparse/, points.ply, transforms.json, report.json, figures/.")
 @click.option("--calibration", type=click.Path(path_type=Path), default=None,
-              help="3x3 K file; default: calibration.txt in IMAGES_DIR.")
+              help="3x3 K file; default: calibration.txt in IMAGES_DIR, and without one the camera is "
+                   "calibrated from EXIF or a prior and refined.")
 @click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True,
               help="auto: the folder's matching{i}.txt files when present, else SIFT.")
-def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str) -> None:
+@click.option("--relative-pose", type=click.Choice(["five-point", "eight-point"]), default="five-point",
+              show_default=True,
+              help="five-point: E by the minimal 5-point solver in RANSAC; eight-point: the normalized "
+                   "8-point F in RANSAC, then E = K^T F K.")
+@click.option("--camera-model", type=click.Choice(["auto", "pinhole", "simple-radial", "radial", "opencv"]),
+              default="auto", show_default=True,
+              help="COLMAP camera model. auto: pinhole with a calibration file (K fixed), simple-radial "
+                   "without one (focal length from EXIF or 1.2*max(w,h), refined with k1 by the bundle "
+                   "adjustment).")
+@click.option("--single-camera/--per-image-camera", default=True, show_default=True,
+              help="One camera shared by all photos, or one per photo.")
+@click.option("--refine-principal-point", is_flag=True,
+              help="Without a calibration file, also refine cx, cy (pinhole and opencv models only).")
+@click.option("--all-models", is_flag=True,
+              help="Also write every smaller model (images no model could join) to OUT/models/<k>/.")
+def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, relative_pose: str,
+                camera_model: str, single_camera: bool, refine_principal_point: bool,
+                all_models: bool) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
     from estimation import reconstruct as run_reconstruction
+    from estimation.config import CameraConfig, TwoViewConfig
 
-    config = ReconstructionConfig(features=features, calibration=calibration)
+    config = ReconstructionConfig(features=features, calibration=calibration,
+                                  two_view=TwoViewConfig(relative_pose=relative_pose),
+                                  camera=CameraConfig(model=camera_model, single_camera=single_camera,
+                                                      refine_principal_point=refine_principal_point),
+                                  mapper={"export_all_models": all_models})
     try:
         with StageProgressBars() as progress:
             result = run_reconstruction(images_dir, out_dir, config, progress=progress)
@@ -75,6 +98,17 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
         f"{report['points']} points, "
         f"reprojection error after BA: RMS {after['rms']:.3f} px, median {after['median']:.3f} px"
     )
+    if len(report["models"]) > 1:
+        sizes = ", ".join(str(model["images_registered"]) for model in report["models"])
+        where = "OUT/models/<k>/" if all_models else "report.json (--all-models writes them)"
+        click.echo(f"{len(report['models'])} models ({sizes} images); the largest is written, the others "
+                   f"are in {where}")
+    intrinsics = report["intrinsics"]
+    camera = intrinsics.get("camera") or next(iter(intrinsics["cameras"].values()))
+    click.echo(f"camera {intrinsics['model']} ({intrinsics['source']}): fx {camera['fx']:.2f} "
+               f"fy {camera['fy']:.2f} k1 {camera['k1']:.4f} k2 {camera['k2']:.4f}")
+    for warning in report["warnings"]:
+        click.echo(f"warning: {warning}")
     for entry in report["unregistered"]:
         click.echo(f"not registered: {entry['image']} ({entry['reason']})")
     click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "

@@ -10,7 +10,7 @@ from fastapi import APIRouter, HTTPException, Query, Response, status
 
 from service import webhooks
 from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore
-from service.deps import ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
+from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
 from service.jobs import input_dir, job_dir
 from service.models import ErrorOut, JobList, JobOut, LogsOut
 
@@ -31,12 +31,14 @@ def accepted(response: Response, job: JobOut) -> JobOut:
 @router.get("", response_model=JobList, summary="List jobs, newest first")
 def list_jobs(
     store: StoreDep,
+    client: ClientDep,
     kind: Annotated[JobKind | None, Query(description="Only jobs of this kind.")] = None,
     state: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 50,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
 ) -> JobList:
-    rows, total = store.list(kind=kind, state=state, limit=limit, offset=offset)
+    owner = None if client.admin else client.name
+    rows, total = store.list(kind=kind, state=state, owner=owner, limit=limit, offset=offset)
     return JobList(items=[JobOut.from_job(job) for job in rows], total=total, limit=limit, offset=offset)
 
 
@@ -73,7 +75,7 @@ def cancel_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settin
     executor.cancel(job_id)
     if job is not None and job.state == JobState.cancelled:
         store.append_log(job_id, ["finished: cancelled before it started"])
-        webhooks.notify(store, job_id, settings, background=True)
+        webhooks.enqueue_delivery(store, job_id, settings)
     # The answer shows the outcome when the process ends quickly (it usually does, within a second).
     return JobOut.from_job(_wait_while_running(store, job_id, settings.cancel_grace_seconds + 1.0) or job)
 
@@ -109,6 +111,7 @@ def retry_job(
         source_job_id=job.source_job_id,
         retry_of=job_id,
         webhook_url=job.webhook_url,
+        owner=job.owner,
     )
     store.append_log(new_id, [f"retry of job {job_id}"])
     executor.submit(new_id)

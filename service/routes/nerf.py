@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import shutil
 import threading
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -13,14 +12,23 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
+from service import webhooks
 from service.db import JobKind, JobState, new_job_id
-from service.deps import ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
+from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
 from service.jobs import finite_or_none, job_dir, output_dir
 from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
 from service.routes.jobs import NOT_FOUND, accepted
 from service.routes.reconstructions import REJECTED
 from service.settings import ServiceSettings
-from service.uploads import UploadRejected, extract_zip, find_dataset_root, invalid, save_stream
+from service.uploads import (
+    extract_zip,
+    find_dataset_root,
+    invalid,
+    removed_on_failure,
+    sanitize_filename,
+    save_stream,
+)
+from service.validation import check_isolated, check_npz_headers
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
 NO_CHECKPOINT = {409: {"model": ErrorOut, "description": "The job has no checkpoint yet."}}
@@ -61,11 +69,16 @@ def _train_config(options: str | None, overrides: dict[str, Any]) -> dict[str, A
 
 
 def _save_dataset(upload: UploadFile, job_id: str, settings: ServiceSettings) -> str:
-    """Stores an uploaded .npz or Blender zip in the job folder; returns its path relative to that folder."""
+    """Stores an uploaded .npz or Blender zip in the job folder; returns its path relative to that folder.
+
+    Only bounded work here (streamed copies, zip directory and .npy headers); the dataset is loaded by
+    `_check_dataset` in a validation process.
+    """
     folder = job_dir(settings, job_id)
-    name = (upload.filename or "").lower()
-    if name.endswith(".npz"):
+    shown_name = sanitize_filename(upload.filename or "dataset", "dataset")
+    if shown_name.lower().endswith(".npz"):
         save_stream(upload.file, folder / "input" / "dataset.npz")
+        check_npz_headers(folder / "input" / "dataset.npz", "dataset", shown_name, settings)
         return "input/dataset.npz"
     archive = folder / "input" / "upload.zip"
     save_stream(upload.file, archive)
@@ -75,13 +88,21 @@ def _save_dataset(upload: UploadFile, job_id: str, settings: ServiceSettings) ->
     return str(root.relative_to(folder))
 
 
-def _check_dataset(path: Path, field: str) -> None:
-    from neural import load_dataset
+def _check_dataset(job_id: str, path: Path, field: str, settings: ServiceSettings) -> None:
+    """load_dataset in a validation process, reading only inside the job's folder: 422 naming the frame
+    or file, 413 for a limit."""
+    within = str(job_dir(settings, job_id))
+    check_isolated("dataset", {"path": str(path), "field": field, "within": within}, settings)
 
-    try:
-        load_dataset(path)
-    except _dataset_errors() as error:
-        raise invalid(f"{field}: {error}") from None
+
+def _check_device(device: str, settings: ServiceSettings) -> None:
+    """device=cuda needs a CUDA GPU on this machine (local jobs run here; Celery workers are not known)."""
+    if device != "cuda" or settings.executor != "local":
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        raise invalid("device: 'cuda' was asked for but this machine has no CUDA GPU; use 'cpu' or 'auto'")
 
 
 @router.post(
@@ -94,6 +115,7 @@ def _check_dataset(path: Path, field: str) -> None:
 def create_nerf(
     response: Response,
     store: StoreDep,
+    client: ClientDep,
     executor: ExecutorDep,
     settings: SettingsDep,
     dataset: Annotated[
@@ -124,38 +146,38 @@ def create_nerf(
 ) -> JobOut:
     if (dataset is None) == (reconstruction_id is None):
         raise HTTPException(422, "dataset: give either an uploaded dataset or reconstruction_id, exactly one")
-    try:
-        config = _train_config(
-            options,
-            {"model": model, "steps": steps, "minutes": minutes, "batch_rays": batch_rays, "device": device},
-        )
-    except UploadRejected as rejected:
-        raise HTTPException(rejected.status_code, rejected.detail) from None
+    config = _train_config(
+        options,
+        {"model": model, "steps": steps, "minutes": minutes, "batch_rays": batch_rays, "device": device},
+    )
+    _check_device(config["device"], settings)
+    webhook_url = webhooks.check_url(webhook_url, settings)
     job_id = new_job_id()
     params: dict[str, Any] = {"train_config": config}
     source_job_id = None
     if reconstruction_id is not None:
-        source = find_job(store, reconstruction_id, JobKind.reconstruction)
+        source = find_job(store, reconstruction_id, JobKind.reconstruction, client)
         if source.state != JobState.succeeded:
             raise HTTPException(
                 status.HTTP_409_CONFLICT,
                 f"reconstruction {reconstruction_id} is {source.state}; a NeRF trains on a succeeded one",
             )
         source_job_id = reconstruction_id
-        try:
-            _check_dataset(output_dir(settings, reconstruction_id), "reconstruction_id")
-        except UploadRejected as rejected:
-            raise HTTPException(rejected.status_code, rejected.detail) from None
-    else:
-        try:
+        _check_dataset(
+            reconstruction_id, output_dir(settings, reconstruction_id), "reconstruction_id", settings
+        )
+    with removed_on_failure(job_dir(settings, job_id)):
+        if dataset is not None:
             params["dataset"] = _save_dataset(dataset, job_id, settings)
-            _check_dataset(job_dir(settings, job_id) / params["dataset"], "dataset")
-        except UploadRejected as rejected:
-            shutil.rmtree(job_dir(settings, job_id), ignore_errors=True)
-            raise HTTPException(rejected.status_code, rejected.detail) from None
-    job = store.create(
-        JobKind.nerf, params, job_id=job_id, source_job_id=source_job_id, webhook_url=webhook_url
-    )
+            _check_dataset(job_id, job_dir(settings, job_id) / params["dataset"], "dataset", settings)
+        job = store.create(
+            JobKind.nerf,
+            params,
+            job_id=job_id,
+            source_job_id=source_job_id,
+            webhook_url=webhook_url,
+            owner=client.name,
+        )
     executor.submit(job_id)
     return accepted(response, JobOut.from_job(job))
 
@@ -309,7 +331,7 @@ def queue_video(
     executor: ExecutorDep,
     settings: SettingsDep,
 ) -> JobOut:
-    find_job(store, job_id, JobKind.nerf)
+    source = find_job(store, job_id, JobKind.nerf)
     if request.width * request.height > settings.max_render_pixels:
         raise HTTPException(
             422,
@@ -317,7 +339,7 @@ def queue_video(
             f"SFMNERF_MAX_RENDER_PIXELS={settings.max_render_pixels}",
         )
     _require_checkpoint(job_id, settings)
-    job = store.create(JobKind.video, request.model_dump(), source_job_id=job_id)
+    job = store.create(JobKind.video, request.model_dump(), source_job_id=job_id, owner=source.owner)
     executor.submit(job.id)
     return accepted(response, JobOut.from_job(job))
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
 import zipfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -12,8 +11,9 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
+from service import webhooks
 from service.db import JobKind, JobState, new_job_id
-from service.deps import ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
+from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
 from service.jobs import input_dir, job_dir, output_dir
 from service.models import ErrorOut, JobOut, ReconstructionOut
 from service.routes.jobs import NOT_FOUND, accepted
@@ -21,10 +21,12 @@ from service.uploads import (
     UploadRejected,
     inside,
     invalid,
+    removed_on_failure,
     sanitize_filename,
     save_images,
     save_stream,
 )
+from service.validation import check_isolated
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstructions"])
 MATCH_NAME = re.compile(r"^matching(\d+)\.txt$")
@@ -39,7 +41,7 @@ REJECTED = {
 
 def _parse_k(text: str, source: str) -> Any:
     from estimation.errors import InputError
-    from estimation.images import parse_calibration
+    from estimation.io.images import parse_calibration
 
     try:
         return parse_calibration(text, source)
@@ -65,9 +67,6 @@ def _store_inputs(
     features: str,
 ) -> None:
     """Saves and checks everything the reconstruction reads; UploadRejected on the first problem."""
-    from estimation.errors import InputError
-    from estimation.matchfile import parse_match_file
-
     saved = save_images(((f.filename, f.file) for f in images), folder, settings)
     if len(saved) < 2:
         raise invalid(f"images: {len(saved)} image(s) uploaded, a reconstruction needs at least 2")
@@ -85,14 +84,15 @@ def _store_inputs(
         source = sanitize_filename(calibration.filename or CALIBRATION_NAME, "calibration")
     elif K:
         text, source = _k_from_numbers(K), "K"
-    else:
-        raise invalid("calibration: missing; upload calibration.txt (the 3x3 K) or give K as 9 numbers")
-    _parse_k(text, source)
-    inside(folder, CALIBRATION_NAME).write_text(text)
+    else:   # no calibration: the reconstruction takes the focal length from EXIF or a prior, and refines it
+        text = None
+    if text is not None:
+        _parse_k(text, source)
+        inside(folder, CALIBRATION_NAME).write_text(text)
 
     if features == "matches" and not matches:
         raise invalid("matches: features='matches' needs the matching<i>.txt files")
-    image_ids = {int(Path(image.name).stem) for image in saved if Path(image.name).stem.isdigit()}
+    match_files = []
     for upload in matches:
         name = sanitize_filename(upload.filename, "matches")
         found = MATCH_NAME.match(name)
@@ -104,10 +104,21 @@ def _store_inputs(
         if target.exists():
             raise invalid(f"matches: two files are named {name!r}")
         save_stream(upload.file, target)
-        try:
-            parse_match_file(target, int(found.group(1)), image_ids, first.width, first.height)
-        except InputError as error:
-            raise invalid(f"matches: {str(error).replace(str(target), name)}") from None
+        match_files.append((name, int(found.group(1))))
+    # Decoding the images and parsing the match files take memory in proportion to the upload: a worker.
+    check_isolated(
+        "reconstruction_inputs",
+        {
+            "field": "images",
+            "folder": str(folder),
+            "images": [image.name for image in saved],
+            "matches": match_files,
+            "image_ids": [int(Path(image.name).stem) for image in saved if Path(image.name).stem.isdigit()],
+            "width": first.width,
+            "height": first.height,
+        },
+        settings,
+    )
 
 
 @router.post(
@@ -120,6 +131,7 @@ def _store_inputs(
 def create_reconstruction(
     response: Response,
     store: StoreDep,
+    client: ClientDep,
     executor: ExecutorDep,
     settings: SettingsDep,
     images: Annotated[list[UploadFile], File(description="The photographs (PNG/JPEG), all of one size.")],
@@ -128,7 +140,8 @@ def create_reconstruction(
         File(description="Optional matching<i>.txt files (image ids are the images' numeric names)."),
     ] = None,
     calibration: Annotated[
-        UploadFile | None, File(description="calibration.txt: the 3x3 K, row by row.")
+        UploadFile | None, File(description="calibration.txt: the 3x3 K, row by row. Without it (or K) the "
+                                "camera is calibrated from the photos' EXIF or a prior, and refined.")
     ] = None,
     K: Annotated[
         str | None,
@@ -154,20 +167,24 @@ def create_reconstruction(
 ) -> JobOut:
     from estimation.config import ReconstructionConfig
 
+    webhook_url = webhooks.check_url(webhook_url, settings)
     job_id = new_job_id()
     folder = input_dir(settings, job_id)
-    folder.mkdir(parents=True)
-    try:
+    with removed_on_failure(job_dir(settings, job_id)):
+        folder.mkdir(parents=True)
         _store_inputs(folder, settings, images, matches or [], calibration, K, features)
-    except UploadRejected as rejected:
-        shutil.rmtree(job_dir(settings, job_id), ignore_errors=True)
-        raise HTTPException(rejected.status_code, rejected.detail) from None
-    config = ReconstructionConfig(features=features).model_dump(mode="json")
-    if ransac_threshold_px is not None:
-        config["ransac"]["threshold_px"] = ransac_threshold_px
-    if ba_max_iterations is not None:
-        config["bundle_adjustment"]["max_iterations"] = ba_max_iterations
-    job = store.create(JobKind.reconstruction, {"config": config}, job_id=job_id, webhook_url=webhook_url)
+        config = ReconstructionConfig(features=features).model_dump(mode="json")
+        if ransac_threshold_px is not None:
+            config["ransac"]["threshold_px"] = ransac_threshold_px
+        if ba_max_iterations is not None:
+            config["bundle_adjustment"]["max_iterations"] = ba_max_iterations
+        job = store.create(
+            JobKind.reconstruction,
+            {"config": config},
+            job_id=job_id,
+            webhook_url=webhook_url,
+            owner=client.name,
+        )
     executor.submit(job_id)
     return accepted(response, JobOut.from_job(job))
 

@@ -3,7 +3,12 @@
 import numpy as np
 import pytest
 
-from estimation.alignment import Similarity, align_similarity, aligned_pose_errors, rotation_angle_deg
+from estimation.geometry.alignment import (
+    Similarity,
+    align_similarity,
+    aligned_pose_errors,
+    rotation_angle_deg,
+)
 from estimation.synthetic import make_scene, project, rotation_about_axis
 
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 from PIL import Image
 
-from estimation.export import transforms_dict, write_ply
+from estimation.io.export import transforms_dict, write_ply
 from estimation.synthetic import make_scene, project
 from estimation.types import CameraPose
 from neural.data import load_dataset
@@ -188,6 +188,49 @@ def test_empty_split_is_rejected(small_blender):
     edit_json(small_blender / "transforms_val.json", lambda m: m.update(frames=[]))
     with pytest.raises(DatasetError, match=r"transforms_val\.json: 'frames' is empty"):
         load_dataset(small_blender)
+
+
+@pytest.mark.parametrize("outside", ["existing", "missing"])
+@pytest.mark.parametrize(
+    "file_path",
+    ["../secret/photo", "{absolute}/photo", "./train/../../secret/photo"],
+    ids=["dotdot", "absolute", "nested"],
+)
+def test_a_frame_pointing_outside_the_dataset_is_refused_the_same_way_whether_it_exists(
+    small_blender, file_path, outside
+):
+    secret = small_blender.parent / "secret"
+    secret.mkdir()
+    if outside == "existing":
+        shutil.copy(small_blender / "train/r_0.png", secret / "photo.png")
+    file_path = file_path.format(absolute=secret)
+    edit_json(small_blender / "transforms_train.json", lambda m: m["frames"][1].update(file_path=file_path))
+    with pytest.raises(DatasetError) as refused:
+        load_dataset(small_blender)
+    assert str(refused.value) == (
+        f"{small_blender / 'transforms_train.json'} frames[1]: file_path {file_path!r} "
+        "points outside the dataset folder; refused"
+    )
+
+
+def test_a_link_out_of_the_dataset_is_refused(small_blender, tmp_path):
+    (tmp_path / "elsewhere.png").write_bytes((small_blender / "train/r_1.png").read_bytes())
+    (small_blender / "train/r_1.png").unlink()
+    (small_blender / "train/r_1.png").symlink_to(tmp_path / "elsewhere.png")
+    with pytest.raises(DatasetError, match=r"frames\[1\]: file_path '\./train/r_1\.png' points outside"):
+        load_dataset(small_blender)
+
+
+def test_a_reconstruction_frame_outside_the_given_bound_is_refused(tmp_path):
+    """A local reconstruction may name images anywhere; with `within` (the service) they must stay inside."""
+    write_reconstruction(tmp_path / "job" / "output")
+    (tmp_path / "other.png").write_bytes((tmp_path / "job/output/images/3.png").read_bytes())
+    edit_json(
+        tmp_path / "job/output/transforms.json", lambda m: m["frames"][2].update(file_path="../../other.png")
+    )
+    assert load_dataset(tmp_path / "job/output").images.shape[0] == 5
+    with pytest.raises(DatasetError, match=r"frames\[2\]: file_path '\.\./\.\./other\.png' points outside"):
+        load_dataset(tmp_path / "job/output", within=tmp_path / "job")
 
 
 def test_npz_missing_array_and_unknown_paths(tmp_path):

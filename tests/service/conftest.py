@@ -10,7 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.db import TERMINAL_STATES
+from service.db import TERMINAL_STATES, JobStore
 from service.settings import ServiceSettings
 
 JOB_TIMEOUT_SECONDS = 180.0
@@ -70,3 +70,14 @@ def wait_for_job(
             logs = client.get(f"/v1/jobs/{job_id}/logs").json()
             raise AssertionError(f"job {job_id} still {job['state']} after {timeout} s: {job}\n{logs}")
         time.sleep(0.2)
+
+
+def job_pid(data_dir: Path, job_id: str) -> int:
+    """The pid of a job's process, read from the job store (the API shows no PIDs)."""
+    store = JobStore(make_settings(data_dir).resolved_database_url)
+    try:
+        job = store.get(job_id)
+    finally:
+        store.dispose()
+    assert job is not None and job.pid, job
+    return job.pid

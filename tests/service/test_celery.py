@@ -15,7 +15,7 @@ import redis
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from tests.service.conftest import make_settings, unity_hall_files, wait_for_job
+from tests.service.conftest import job_pid, make_settings, unity_hall_files, wait_for_job
 from tests.service.servers import free_port
 from tests.service.test_job_machinery import CANCEL_DEADLINE_SECONDS, process_alive
 
@@ -113,11 +113,6 @@ def unity(shared_data):
     return unity_hall_files(shared_data / "unity_hall")
 
 
-def celery_pid(job: dict) -> int:
-    assert job["worker"] and job["worker"].startswith("celery "), job
-    return int(job["worker"].rsplit(" ", 1)[-1])
-
-
 def started_in_worker(job: dict) -> bool:
     return job["state"] == "running" and job["stage"] not in (None, "starting")
 
@@ -137,7 +132,8 @@ def test_a_reconstruction_runs_on_a_celery_worker(celery_setup, unity):
 def test_cancel_kills_the_celery_job_and_the_worker_goes_on(celery_setup, unity):
     client, worker = celery_setup
     job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
-    pid = celery_pid(wait_for_job(client, job_id, until=started_in_worker))
+    wait_for_job(client, job_id, until=started_in_worker)
+    pid = job_pid(client.app.state.settings.data_dir, job_id)
     assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
     job = wait_for_job(client, job_id, timeout=CANCEL_DEADLINE_SECONDS)
     assert job["state"] == "cancelled"
@@ -150,7 +146,8 @@ def test_cancel_kills_the_celery_job_and_the_worker_goes_on(celery_setup, unity)
 def test_a_killed_celery_job_process_ends_failed_with_the_reason(celery_setup, unity):
     client, worker = celery_setup
     job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
-    pid = celery_pid(wait_for_job(client, job_id, until=started_in_worker))
+    wait_for_job(client, job_id, until=started_in_worker)
+    pid = job_pid(client.app.state.settings.data_dir, job_id)
     os.kill(pid, signal.SIGKILL)
     job = wait_for_job(client, job_id, timeout=30)
     assert job["state"] == "failed" and "WorkerLostError" in job["error"], job

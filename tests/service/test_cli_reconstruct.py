@@ -79,3 +79,20 @@ def test_a_singular_calibration_given_on_the_command_line_fails_naming_it(shared
 def test_an_unknown_feature_source_is_a_usage_error(shared_data, tmp_path):
     result = run(shared_data / "unity_hall", "--out", tmp_path / "out", "--features", "orb")
     assert result.exit_code == 2 and "Invalid value for '--features'" in result.output
+
+
+@pytest.mark.parametrize(("arguments", "expected"), [([], "five-point"),
+                                                     (["--relative-pose", "eight-point"], "eight-point")])
+def test_the_relative_pose_solver_is_chosen_on_the_command_line(monkeypatch, shared_data, tmp_path, arguments,
+                                                                 expected):
+    import estimation
+
+    seen = []
+
+    def capture(images_dir, out_dir, config, progress=None):
+        seen.append(config.two_view.relative_pose)
+        raise estimation.InputError("stopped after reading the options")
+
+    monkeypatch.setattr(estimation, "reconstruct", capture)
+    assert_clean_failure(run(shared_data / "unity_hall", "--out", tmp_path / "out", *arguments), "stopped")
+    assert seen == [expected]

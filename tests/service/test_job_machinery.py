@@ -15,7 +15,7 @@ import pytest
 
 from service.db import JobKind, JobStore
 from service.executor import CeleryExecutor
-from tests.service.conftest import make_settings, unity_hall_files, wait_for_job
+from tests.service.conftest import job_pid, make_settings, unity_hall_files, wait_for_job
 from tests.service.servers import free_port, start_server
 
 CANCEL_DEADLINE_SECONDS = 5.0
@@ -32,14 +32,9 @@ def process_alive(pid: int) -> bool:
         return False
 
 
-def worker_pid(job: dict) -> int:
-    assert job["worker"] and job["worker"].startswith("local pid "), job
-    return int(job["worker"].removeprefix("local pid "))
-
-
 def started_working(job: dict) -> bool:
     """Running inside its process (past the imports: the reconstruction reported a stage)."""
-    return job["state"] == "running" and job["worker"] != "local" and job["stage"] not in (None, "starting")
+    return job["state"] == "running" and job["stage"] not in (None, "starting")
 
 
 @pytest.fixture
@@ -47,10 +42,11 @@ def unity(shared_data):
     return unity_hall_files(shared_data / "unity_hall")
 
 
-def test_cancel_kills_the_running_job_and_marks_it_cancelled_within_seconds(client, unity):
+def test_cancel_kills_the_running_job_and_marks_it_cancelled_within_seconds(client, settings, unity):
     job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
     running = wait_for_job(client, job_id, until=started_working)
-    pid = worker_pid(running)
+    assert "pid" not in running["worker"]  # the API shows no PIDs
+    pid = job_pid(settings.data_dir, job_id)
     asked = time.monotonic()
     response = client.post(f"/v1/jobs/{job_id}/cancel")
     assert response.status_code == 200
@@ -60,9 +56,12 @@ def test_cancel_kills_the_running_job_and_marks_it_cancelled_within_seconds(clie
     assert not process_alive(pid)
 
 
-def test_a_job_whose_process_is_killed_ends_failed_with_the_reason_and_can_be_retried(client, unity):
+def test_a_job_whose_process_is_killed_ends_failed_with_the_reason_and_can_be_retried(
+    client, settings, unity
+):
     job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
-    pid = worker_pid(wait_for_job(client, job_id, until=started_working))
+    wait_for_job(client, job_id, until=started_working)
+    pid = job_pid(settings.data_dir, job_id)
     os.kill(pid, signal.SIGKILL)
     job = wait_for_job(client, job_id, timeout=CANCEL_DEADLINE_SECONDS)
     assert job["state"] == "failed"
@@ -84,7 +83,8 @@ def test_a_hard_restart_of_the_service_loses_no_job(tmp_path, unity):
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30) as client:
             first = client.post("/v1/reconstructions", files=unity).json()["id"]
             second = client.post("/v1/reconstructions", files=unity).json()["id"]
-            pid = worker_pid(wait_for_job(client, first, until=started_working))
+            wait_for_job(client, first, until=started_working)
+            pid = job_pid(tmp_path / "data", first)
             assert client.get(f"/v1/jobs/{second}").json()["state"] == "queued"  # concurrency 1
             server.kill()
             server.wait()

@@ -43,7 +43,9 @@ def webhook_url():
 @pytest.fixture(scope="module")
 def api(tmp_path_factory, shared_data, webhook_url):
     """One app for the module and one finished Unity Hall job: (client, job, settings)."""
-    settings = make_settings(tmp_path_factory.mktemp("api") / "data")
+    settings = make_settings(
+        tmp_path_factory.mktemp("api") / "data", webhook_allowed_networks=["127.0.0.0/8"]
+    )
     with TestClient(create_app(settings)) as client:
         response = client.post(
             "/v1/reconstructions",

@@ -22,6 +22,7 @@ from service.db import Base, JobKind, JobState, JobStore
 from service.settings import ServiceSettings
 from service.uploads import UploadRejected, extract_zip, inside, sanitize_filename
 from service.webhooks import deliver
+from tests.service.conftest import make_settings
 
 POSTGRES_BIN_DIRS = [Path("/usr/lib/postgresql") / v / "bin" for v in ("17", "16", "15", "14")]
 
@@ -186,17 +187,23 @@ class _FlakyReceiver(http.server.BaseHTTPRequestHandler):
         pass
 
 
-def test_a_webhook_is_retried_with_back_off_until_it_is_accepted():
+def test_a_webhook_is_retried_with_back_off_until_it_is_accepted(tmp_path):
     _FlakyReceiver.bodies = []
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _FlakyReceiver)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:
         url = f"http://127.0.0.1:{server.server_address[1]}/hook"
-        assert deliver(url, json.dumps({"id": "x", "state": "succeeded"}), attempts=4, backoff_seconds=0.01)
+        settings = make_settings(
+            tmp_path,
+            webhook_attempts=4,
+            webhook_backoff_seconds=0.01,
+            webhook_allowed_networks=["127.0.0.0/8"],
+        )
+        assert deliver(url, json.dumps({"id": "x", "state": "succeeded"}), settings)
         assert len(_FlakyReceiver.bodies) == 3 and _FlakyReceiver.bodies[-1]["state"] == "succeeded"
         _FlakyReceiver.bodies = []
-        assert not deliver(url, "{}", attempts=2, backoff_seconds=0.01)
+        assert not deliver(url, "{}", settings.model_copy(update={"webhook_attempts": 2}))
     finally:
         server.shutdown()
         server.server_close()

@@ -1,0 +1,233 @@
+"""Structure from Motion end to end, ours (`estimation.reconstruct`) beside pycolmap on the same images.
+
+For each set, both run from the image files with the same fixed intrinsics: ours with SIFT (or the
+course's match files for Unity Hall), pycolmap with its own pipeline (SIFT extraction, exhaustive matching,
+incremental mapping, intrinsics held fixed). The table gives registered images, the mean and max rotation
+error and camera-centre error against the ground truth after a similarity alignment of the registered
+centres (estimation.geometry.alignment.aligned_pose_errors), points, mean track length, seconds and the
+ratio ours / pycolmap. "Ceres left" starts pycolmap's bundle adjuster (Ceres, Huber loss at our
+huber_threshold_px, intrinsics fixed) from our exported model and prints the share of the cost it still
+removes: below 1 % means our final bundle adjustment converged.
+
+Sets (../shared/data):
+- lego: lego_200 train + val (90 views, 200x200 RGBA composited on white), K from camera_angle_x; the
+  ground-truth camera-to-world matrices (OpenGL axes) are converted once to world-to-camera OpenCV poses.
+  Pixel conventions: our keypoints put the top-left pixel's centre at (0, 0), so the principal point of
+  the image centre is ((W - 1) / 2, (H - 1) / 2) for us and (W / 2, H / 2) for COLMAP (centre at 0.5).
+- fountain, herzjesu: strecha/fountain-P11 and Herz-Jesus-P8 at full size with their calibration.txt
+  (OpenCV convention, + 0.5 for COLMAP) and ground_truth.json.
+- unity: Unity Hall with the course's match files (ours only; no ground truth: RMS and Ceres left).
+
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py                 # every set
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --no-pycolmap
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap: warnings and errors only, before it loads
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from PIL import Image  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from estimation import ReconstructionConfig, reconstruct  # noqa: E402
+from estimation.config import BundleAdjustmentConfig  # noqa: E402
+from estimation.geometry.alignment import aligned_pose_errors  # noqa: E402
+from estimation.io.export import opengl_c2w_to_opencv_pose  # noqa: E402
+from estimation.types import CameraPose  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg"}
+COLMAP_PIXEL_OFFSET = 0.5
+"""COLMAP puts the centre of the top-left pixel at (0.5, 0.5), we put it at (0, 0)."""
+
+
+@dataclass(frozen=True)
+class BenchSet:
+    """Images, their fixed intrinsics in our pixel convention, and the true poses by file name."""
+
+    name: str
+    images: Path
+    K: np.ndarray
+    truth: dict[str, CameraPose] | None
+    features: str = "sift"
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one method reconstructed, and how long it took."""
+
+    poses: dict[str, CameraPose]
+    points: int
+    mean_track_length: float
+    seconds: float
+    rms_px: float = float("nan")
+    ceres_left: float = float("nan")
+
+
+def lego_set(work: Path) -> BenchSet:
+    """lego_200 train + val composited on white into `work`, K from camera_angle_x, true poses."""
+    source = DATA / "lego_200"
+    folder = work / "lego"
+    folder.mkdir(parents=True, exist_ok=True)
+    truth, K = {}, None
+    for split in ("train", "val"):
+        meta = json.loads((source / f"transforms_{split}.json").read_text())
+        for frame in meta["frames"]:
+            name = Path(frame["file_path"]).name + ".png"
+            rgba = np.asarray(Image.open(source / split / name).convert("RGBA"), float) / 255.0
+            rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
+            Image.fromarray(np.rint(rgb * 255).astype(np.uint8)).save(folder / name)
+            truth[name] = opengl_c2w_to_opencv_pose(np.array(frame["transform_matrix"]))
+            height, width = rgba.shape[:2]
+            focal = 0.5 * width / np.tan(0.5 * meta["camera_angle_x"])
+            K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
+    np.savetxt(folder / "calibration.txt", K)
+    return BenchSet("lego_200 (90)", folder, K, truth)
+
+
+def strecha_set(name: str) -> BenchSet:
+    folder = DATA / "strecha" / name
+    cameras = json.loads((folder / "ground_truth.json").read_text())["cameras"]
+    truth = {image: CameraPose(R=np.array(c["R"], float), t=np.array(c["t"], float))
+             for image, c in cameras.items()}
+    return BenchSet(name, folder, np.loadtxt(folder / "calibration.txt"), truth)
+
+
+def run_ours(bench: BenchSet, out: Path) -> Outcome:
+    config = ReconstructionConfig(features=bench.features, write_figures=False)
+    start = time.perf_counter()
+    result = reconstruct(bench.images, out, config)
+    seconds = time.perf_counter() - start
+    names = result.model.image_names
+    return Outcome(poses={names[m]: pose for m, pose in result.model.poses.items()},
+                   points=result.report["points"], mean_track_length=result.report["mean_track_length"],
+                   seconds=seconds, rms_px=result.report["reprojection_error_px"]["after_ba"]["rms"],
+                   ceres_left=ceres_cost_left(out / "sparse"))
+
+
+def ceres_cost_left(sparse: Path) -> float:
+    """(initial - final) / initial of Ceres' Huber cost, started from the exported model (poses and
+    points free, intrinsics and the gauge of two cameras fixed)."""
+    import pycolmap
+
+    reconstruction = pycolmap.Reconstruction(str(sparse))
+    options = pycolmap.BundleAdjustmentOptions(refine_focal_length=False, refine_principal_point=False,
+                                               refine_extra_params=False, print_summary=False)
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.HUBER
+    options.ceres.loss_function_scale = BundleAdjustmentConfig().huber_threshold_px
+    options.ceres.solver_options.function_tolerance = 1e-10
+    options.ceres.solver_options.max_num_iterations = 200
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in reconstruction.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    summary = pycolmap.create_default_bundle_adjuster(options, config, reconstruction).solve()
+    ceres = getattr(summary, "ceres_summary", summary)
+    return float((ceres.initial_cost - ceres.final_cost) / ceres.initial_cost)
+
+
+def run_pycolmap(bench: BenchSet, work: Path) -> Outcome:
+    """pycolmap's extraction, exhaustive matching and incremental mapping with K fixed."""
+    import pycolmap
+
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    K = bench.K
+    params = [K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET, K[1, 2] + COLMAP_PIXEL_OFFSET]
+    image_names = sorted(p.name for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    database = work / "database.db"
+    reader = pycolmap.ImageReaderOptions(camera_model="PINHOLE", camera_params=",".join(map(str, params)))
+    options = pycolmap.IncrementalPipelineOptions()
+    options.ba_refine_focal_length = False
+    options.ba_refine_principal_point = False
+    options.ba_refine_extra_params = False
+    start = time.perf_counter()
+    pycolmap.extract_features(database, bench.images, image_names=image_names,
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+    models = pycolmap.incremental_mapping(database, bench.images, work / "sparse", options=options)
+    seconds = time.perf_counter() - start
+    if not models:
+        return Outcome({}, 0, 0.0, seconds)
+    model = max(models.values(), key=lambda m: m.num_reg_images())
+    poses = {}
+    for image in model.images.values():
+        if image.has_pose:
+            cam_from_world = image.cam_from_world()
+            poses[image.name] = CameraPose(R=cam_from_world.rotation.matrix(), t=cam_from_world.translation)
+    return Outcome(poses, model.num_points3D(), float(model.compute_mean_track_length()), seconds)
+
+
+def pose_error_cells(outcome: Outcome, truth: dict[str, CameraPose] | None) -> list[str]:
+    if truth is None or len(outcome.poses) < 3:
+        return ["-"] * 4
+    names = sorted(outcome.poses)
+    errors = aligned_pose_errors([outcome.poses[n] for n in names], [truth[n] for n in names])
+    return [f"{errors.rotation_deg.mean():.3f}", f"{errors.rotation_deg.max():.3f}",
+            f"{errors.center.mean():.4f}", f"{errors.center.max():.4f}"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sets", default="lego,fountain,herzjesu,unity",
+                        help="comma-separated: lego, fountain, herzjesu, unity")
+    parser.add_argument("--no-pycolmap", action="store_true", help="ours only")
+    args = parser.parse_args()
+    print(f"load average before: {os.getloadavg()}")
+    header = ("| set | method | registered | rot mean deg | rot max deg | centre mean | centre max | points "
+              "| track len | RMS px | Ceres left | seconds | ours/pycolmap |")
+    rows = [header, "|---" * (header.count("|") - 1) + "|"]
+    with tempfile.TemporaryDirectory(prefix="bench_sfm_") as tmp:
+        work = Path(tmp)
+        for key in args.sets.split(","):
+            if key == "lego":
+                bench = lego_set(work)
+            elif key == "fountain":
+                bench = strecha_set("fountain-P11")
+            elif key == "herzjesu":
+                bench = strecha_set("Herz-Jesus-P8")
+            elif key == "unity":
+                unity = DATA / "unity_hall"
+                bench = BenchSet("unity_hall (match files)", unity, np.loadtxt(unity / "calibration.txt"),
+                                 None, features="matches")
+            else:
+                raise SystemExit(f"unknown set {key!r}")
+            total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            ours = run_ours(bench, work / f"ours_{key}")
+            skip_colmap = args.no_pycolmap or key == "unity"
+            theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
+            ratio = f"{ours.seconds / theirs.seconds:.2f}" if theirs else "-"
+            rows.append(f"| {bench.name} | ours | {len(ours.poses)}/{total} | "
+                        + " | ".join(pose_error_cells(ours, bench.truth))
+                        + f" | {ours.points} | {ours.mean_track_length:.2f} | {ours.rms_px:.3f} | "
+                        f"{100 * ours.ceres_left:.3f} % | {ours.seconds:.1f} | {ratio} |")
+            if theirs:
+                rows.append(f"| {bench.name} | pycolmap | {len(theirs.poses)}/{total} | "
+                            + " | ".join(pose_error_cells(theirs, bench.truth))
+                            + f" | {theirs.points} | {theirs.mean_track_length:.2f} | - | - | "
+                            f"{theirs.seconds:.1f} | |")
+            print(rows[-2 if theirs else -1], flush=True)
+            if theirs:
+                print(rows[-1], flush=True)
+    print(f"load average after: {os.getloadavg()}")
+    print("\n".join(rows))
+
+
+if __name__ == "__main__":
+    main()

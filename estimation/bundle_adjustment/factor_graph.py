@@ -1,0 +1,455 @@
+"""Bundle adjustment with GTSAM: cameras, points and (on request) intrinsics that best explain the pixels.
+
+Solves  argmin_{R_c, t_c, X_p[, intrinsics]}  sum_o huber_k( ||pi(camera_c, R_c X_p + t_c) - uv_o|| / sigma )
+with huber_k(x) = x^2 / 2 for |x| <= k, k |x| - k^2 / 2 beyond (k = huber_threshold_px / sigma), as a
+GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt; pi is `geometry.projection`'s camera model.
+- Intrinsics fixed: the observations are first mapped to the ideal pixels of each camera's pinhole K
+  (`projection.ideal_pixels`, exact for pinhole cameras; for distorted ones the residual is measured
+  in the undistorted image) and each becomes a GenericProjectionFactorCal3_S2 (vectorized insertion).
+- Intrinsics refined (`IntrinsicsRefinement`): each observation is a GeneralSFMFactor2 on (pose, point,
+  calibration), the calibration a variable of the graph, one shared by every camera or one per camera:
+  Cal3Bundler (f, k1, k2) for simple-radial and radial, Cal3DS2 (fx, fy, s, u0, v0, k1, k2, p1, p2)
+  for pinhole and opencv. What the model or the request holds fixed (the skew always, the principal
+  point unless asked, as COLMAP does by default) is held by a near-hard prior on that component only.
+The gauge (7 DoF: rotation, translation, scale) is fixed by near-hard priors: a PriorFactorPose3 on each
+fixed camera and, when only one camera is fixed, a RangeFactorPose3 holding the distance between the
+centres of the first fixed camera and the scale-reference camera at its initial value.
+
+Keys are plain integers (camera c -> c, point p -> num_cameras + p), not gtsam Symbols: the vectorized
+gtsam.utilities.insertProjectionFactors takes the point keys as a float64 vector, which holds integers
+exactly only below 2^53 (Symbol keys carry their character in the top byte). Calibration c has key
+num_cameras + num_points + c.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from estimation.config import BundleAdjustmentConfig
+from estimation.errors import InputError
+from estimation.geometry.projection import (
+    DISTORTION_PARAMETERS,
+    Camera,
+    CameraInput,
+    as_camera,
+    ideal_pixels,
+    is_shared,
+)
+from estimation.geometry.projection import reprojection_residuals as observation_residuals
+from estimation.geometry.triangulation import Observations
+from estimation.types import CameraPose
+
+_LINEAR_SOLVERS = {
+    "multifrontal_cholesky": "MULTIFRONTAL_CHOLESKY",
+    "multifrontal_qr": "MULTIFRONTAL_QR",
+    "sequential_cholesky": "SEQUENTIAL_CHOLESKY",
+    "sequential_qr": "SEQUENTIAL_QR",
+    "pcg_block_jacobi": "ITERATIVE",
+}
+_ORDERING_TYPES = {"colamd": "COLAMD", "metis": "METIS", "natural": "NATURAL"}
+
+
+@dataclass(frozen=True)
+class IntrinsicsRefinement:
+    """Which intrinsics the BA refines; the skew always stays as given."""
+
+    focal: bool = False            # fx, fy (f for simple-radial and radial)
+    distortion: bool = False       # the coefficients the camera model has (none for pinhole)
+    per_image: bool = False        # one calibration variable per camera instead of one shared by all
+    principal_point: bool = False  # cx, cy: pinhole and opencv only (GTSAM's Cal3Bundler holds it fixed)
+
+    def refines(self, model: str) -> bool:
+        return self.focal or self.principal_point or (self.distortion and model != "pinhole")
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentResult:
+    """Adjusted cameras and points with the reprojection error before and after."""
+
+    poses: list[CameraPose]  # world-to-camera, same order as the input
+    points: np.ndarray  # (N, 3); points without observations are returned unchanged
+    initial_rms_px: float  # RMS over all observations (outliers included) of the pixel residual norm
+    final_rms_px: float
+    iterations: int  # Levenberg-Marquardt iterations
+    seconds: float  # wall time of the whole call (graph construction included)
+    initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
+    final_cost: float
+    cameras: list[Camera]  # intrinsics per pose after the adjustment (the same object when shared)
+
+
+def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
+    """World-to-camera (R, t) -> GTSAM's pose of the camera in the world (camera-to-world): (R^T, C)."""
+    return gtsam.Pose3(gtsam.Rot3(pose.R.T), pose.center)
+
+
+def camera_pose_from_gtsam(pose: gtsam.Pose3) -> CameraPose:
+    """GTSAM camera-to-world Pose3 (R_wc, C) -> world-to-camera (R = R_wc^T, t = -R C)."""
+    return CameraPose.from_center(pose.rotation().matrix().T, pose.translation())
+
+
+def per_pose_cameras(camera: CameraInput, num_poses: int) -> list[Camera]:
+    """One Camera per pose: a shared K or Camera repeated, or the given sequence as a list."""
+    if is_shared(camera):
+        return [as_camera(camera)] * num_poses
+    cameras = [as_camera(c) for c in camera]
+    if len(cameras) != num_poses:
+        raise InputError(
+            f"bundle_adjust: got {len(cameras)} cameras for {num_poses} poses (need one per pose)"
+        )
+    return cameras
+
+
+def reprojection_residuals(
+    camera: CameraInput,
+    poses: Sequence[CameraPose],
+    points: np.ndarray,
+    camera_index: np.ndarray,
+    point_index: np.ndarray,
+    uv: np.ndarray,
+) -> np.ndarray:
+    """r_o = pi(camera_c, R_c X_p + t_c) - uv_o for every observation, (O, 2) pixels."""
+    rotations = np.stack([pose.R for pose in poses])
+    translations = np.stack([pose.t for pose in poses])
+    observations = Observations(
+        R=rotations[camera_index], t=translations[camera_index], uv=uv,
+        point_index=point_index, num_points=len(points),
+    )
+    return observation_residuals(Camera.take(per_pose_cameras(camera, len(poses)), camera_index),
+                                 observations, points)
+
+
+def huber_cost(residuals: np.ndarray, huber_threshold_px: float, sigma_px: float = 1.0) -> float:
+    """sum_o huber_k(|r_o| / sigma); huber_k(x) = x^2/2 if x <= k else k x - k^2/2; k = threshold / sigma."""
+    x = np.linalg.norm(residuals, axis=1) / sigma_px
+    k = huber_threshold_px / sigma_px
+    return float(np.where(x <= k, 0.5 * x**2, k * x - 0.5 * k**2).sum())
+
+
+def rms(residuals: np.ndarray) -> float:
+    """sqrt(mean_o ||r_o||^2)."""
+    return float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))) if len(residuals) else 0.0
+
+
+def _validate(
+    cameras: Sequence[Camera],
+    poses: Sequence[CameraPose],
+    points: np.ndarray,
+    camera_index: np.ndarray,
+    point_index: np.ndarray,
+    uv: np.ndarray,
+    fixed_cameras: Sequence[int],
+    scale_reference: int | None,
+) -> None:
+    """Raise InputError naming the argument that does not fit the others."""
+    for c, camera in enumerate(cameras):
+        if not (np.all(np.isfinite(camera.K)) and np.all(np.isfinite(camera.distortion))):
+            raise InputError(f"bundle_adjust: camera {c}'s intrinsics must be finite")
+    if len({camera.model for camera in cameras}) > 1:
+        raise InputError("bundle_adjust: every camera must have the same camera model")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"bundle_adjust: points must be (N, 3), got shape {points.shape}")
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise InputError(f"bundle_adjust: uv must be (O, 2), got shape {uv.shape}")
+    if not (camera_index.shape == point_index.shape == (len(uv),)):
+        raise InputError(
+            f"bundle_adjust: camera_index {camera_index.shape}, point_index {point_index.shape} and "
+            f"uv {uv.shape} must describe the same number of observations"
+        )
+    if len(uv) and (camera_index.min() < 0 or camera_index.max() >= len(poses)):
+        raise InputError(
+            f"bundle_adjust: camera_index must lie in [0, {len(poses)}) (there are that many poses)"
+        )
+    if len(uv) and (point_index.min() < 0 or point_index.max() >= len(points)):
+        raise InputError(
+            f"bundle_adjust: point_index must lie in [0, {len(points)}) (there are that many points)"
+        )
+    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(uv))):
+        raise InputError("bundle_adjust: points and uv must be finite (found NaN or inf)")
+    if len(fixed_cameras) == 0:
+        raise InputError("bundle_adjust: fixed_cameras must name at least one camera (it fixes the gauge)")
+    for camera in [*fixed_cameras, *([] if scale_reference is None else [scale_reference])]:
+        if not 0 <= camera < len(poses):
+            raise InputError(
+                f"bundle_adjust: camera {camera} (fixed or scale reference) is not in [0, {len(poses)})"
+            )
+    if len(fixed_cameras) < 2 and scale_reference is not None:
+        if scale_reference == fixed_cameras[0]:
+            raise InputError("bundle_adjust: scale_reference must differ from the fixed camera")
+        if np.linalg.norm(poses[scale_reference].center - poses[fixed_cameras[0]].center) <= 0:
+            raise InputError("bundle_adjust: the fixed and scale-reference cameras share a centre (no scale)")
+
+
+def _pixel_noise(config: BundleAdjustmentConfig) -> gtsam.noiseModel.Base:
+    return gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(config.huber_threshold_px / config.measurement_sigma_px),
+        gtsam.noiseModel.Isotropic.Sigma(2, config.measurement_sigma_px),
+    )
+
+
+def _projection_factors(
+    cameras: Sequence[Camera],
+    camera_index: np.ndarray,
+    point_index: np.ndarray,
+    uv: np.ndarray,
+    config: BundleAdjustmentConfig,
+) -> gtsam.NonlinearFactorGraph:
+    """Fixed intrinsics: one GenericProjectionFactorCal3_S2 per observation on its ideal pixel
+    (K_c undistorted), Huber-robust, keys camera c and point N_c + p."""
+    graph = gtsam.NonlinearFactorGraph()
+    num_cameras = len(cameras)
+    pixel_noise = _pixel_noise(config)
+    ideal = ideal_pixels(Camera.take(cameras, camera_index), uv) if len(uv) else uv
+    # One vectorized call per camera instead of one Python call per observation.
+    by_camera = np.argsort(camera_index, kind="stable")
+    bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
+    point_keys = (num_cameras + point_index[by_camera]).astype(float)
+    measurements = np.ascontiguousarray(ideal[by_camera].T)
+    for camera in np.flatnonzero(np.diff(bounds)).tolist():
+        begin, end = bounds[camera], bounds[camera + 1]
+        K = cameras[camera].K
+        calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
+        gtsam.utilities.insertProjectionFactors(
+            graph, camera, point_keys[begin:end], measurements[:, begin:end], pixel_noise, calibration
+        )
+    return graph
+
+
+def _uses_bundler(model: str) -> bool:
+    """Cal3Bundler (one focal length, k1, k2) for simple-radial and radial; Cal3DS2 otherwise."""
+    return model in ("simple-radial", "radial")
+
+
+def camera_to_gtsam(camera: Camera) -> gtsam.Cal3Bundler | gtsam.Cal3DS2:
+    """The GTSAM calibration with the same projection as `camera`."""
+    if _uses_bundler(camera.model):
+        return gtsam.Cal3Bundler(camera.fx, camera.k1, camera.k2, camera.cx, camera.cy)
+    return gtsam.Cal3DS2(camera.fx, camera.fy, camera.skew, camera.cx, camera.cy,
+                         camera.k1, camera.k2, camera.p1, camera.p2)
+
+
+def camera_from_gtsam(calibration: gtsam.Cal3Bundler | gtsam.Cal3DS2, like: Camera) -> Camera:
+    """`like` (model, skew) with the focal lengths, principal point and coefficients of `calibration`
+    (those the model lacks, held near zero by a prior, are set to exactly zero)."""
+    bundler = isinstance(calibration, gtsam.Cal3Bundler)
+    coefficients = {"k1": calibration.k1(), "k2": calibration.k2(),
+                    "p1": 0.0 if bundler else calibration.p1(), "p2": 0.0 if bundler else calibration.p2()}
+    kept = {name: value for name, value in coefficients.items() if name in DISTORTION_PARAMETERS[like.model]}
+    return Camera(like.model, fx=calibration.fx(), fy=calibration.fx() if bundler else calibration.fy(),
+                  cx=calibration.px(), cy=calibration.py(), skew=like.skew, **kept)
+
+
+def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
+    """Which components of the GTSAM calibration's tangent vector the BA may change."""
+    distortion = refine.distortion and model != "pinhole"
+    if _uses_bundler(model):   # (f, k1, k2)
+        return np.array([refine.focal, distortion, distortion and model == "radial"])
+    opencv = distortion and model == "opencv"       # fx fy s, u0 v0, k1 k2 p1 p2
+    return np.array([refine.focal, refine.focal, False, refine.principal_point, refine.principal_point,
+                     opencv, opencv, opencv, opencv])
+
+
+def _calibrated_factors(
+    cameras: Sequence[Camera],
+    calibration_of_camera: np.ndarray,
+    calibration_offset: int,
+    camera_index: np.ndarray,
+    point_index: np.ndarray,
+    uv: np.ndarray,
+    refine: IntrinsicsRefinement,
+    config: BundleAdjustmentConfig,
+) -> gtsam.NonlinearFactorGraph:
+    """Refined intrinsics: a GeneralSFMFactor2 per observation on (pose c, point N_c + p, calibration
+    key calibration_offset + calibration_of_camera[c]), and per calibration a prior holding exactly the
+    components that `refine` and the model keep fixed."""
+    graph = gtsam.NonlinearFactorGraph()
+    model = cameras[0].model
+    factor = gtsam.GeneralSFMFactor2Cal3Bundler if _uses_bundler(model) else gtsam.GeneralSFMFactor2Cal3DS2
+    prior = gtsam.PriorFactorCal3Bundler if _uses_bundler(model) else gtsam.PriorFactorCal3DS2
+    pixel_noise = _pixel_noise(config)
+    point_keys = len(cameras) + point_index
+    observation_calibration = calibration_offset + calibration_of_camera[camera_index]
+    for measured, pose_key, point_key, calibration_key in zip(
+        uv, camera_index.tolist(), point_keys.tolist(), observation_calibration.tolist(), strict=True
+    ):
+        graph.add(factor(measured, pixel_noise, pose_key, point_key, calibration_key))
+    held = ~_free_components(model, refine)
+    hold_noise = gtsam.noiseModel.Diagonal.Precisions(held / config.fixed_intrinsics_sigma**2)
+    for key in np.unique(observation_calibration).tolist():
+        first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
+        graph.add(prior(key, camera_to_gtsam(cameras[first]), hold_noise))
+    return graph
+
+
+def _gauge_factors(
+    gtsam_poses: dict[int, gtsam.Pose3],
+    fixed_cameras: Sequence[int],
+    scale_reference: int | None,
+    config: BundleAdjustmentConfig,
+) -> gtsam.NonlinearFactorGraph:
+    """Near-hard PriorFactorPose3 per fixed camera; RangeFactorPose3 holding |C_ref - C_fixed0| as it is."""
+    graph = gtsam.NonlinearFactorGraph()
+    prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, config.fixed_camera_sigma)
+    for camera in fixed_cameras:
+        graph.add(gtsam.PriorFactorPose3(camera, gtsam_poses[camera], prior_noise))
+    if scale_reference is not None:
+        anchor = fixed_cameras[0]
+        distance = float(
+            np.linalg.norm(gtsam_poses[scale_reference].translation() - gtsam_poses[anchor].translation())
+        )
+        range_noise = gtsam.noiseModel.Isotropic.Sigma(1, config.scale_sigma_relative * distance)
+        graph.add(gtsam.RangeFactorPose3(anchor, scale_reference, distance, range_noise))
+    return graph
+
+
+def _elimination_ordering(
+    config: BundleAdjustmentConfig, camera_keys: np.ndarray, point_keys: np.ndarray,
+    calibration_keys: np.ndarray,
+) -> gtsam.Ordering | None:
+    """points_first: every point, then every camera and calibration (Schur complement order);
+    None: let GTSAM choose."""
+    if config.ordering != "points_first":
+        return None
+    ordering = gtsam.Ordering()
+    for key in (*point_keys.tolist(), *camera_keys.tolist(), *calibration_keys.tolist()):
+        ordering.push_back(key)
+    return ordering
+
+
+IterationHook = Callable[[int, float], None]
+"""Called after each Levenberg-Marquardt iteration with (iterations done, GTSAM's graph error after it)."""
+
+
+def _optimizer_params(
+    config: BundleAdjustmentConfig, ordering: gtsam.Ordering | None, on_iteration: IterationHook | None
+) -> gtsam.LevenbergMarquardtParams:
+    params = gtsam.LevenbergMarquardtParams()
+    if on_iteration is not None:
+        params.iterationHook = lambda iteration, _error_before, error_after: on_iteration(
+            int(iteration), float(error_after)
+        )
+    params.setMaxIterations(config.max_iterations)
+    params.setRelativeErrorTol(config.relative_error_tol)
+    params.setAbsoluteErrorTol(config.absolute_error_tol)
+    params.setlambdaInitial(config.lambda_initial)
+    params.setlambdaFactor(config.lambda_factor)
+    params.setDiagonalDamping(config.diagonal_damping)
+    params.setLinearSolverType(_LINEAR_SOLVERS[config.linear_solver])
+    if config.linear_solver == "pcg_block_jacobi":
+        pcg = gtsam.PCGSolverParameters()
+        pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
+        params.setIterativeParams(pcg)
+    if ordering is None:
+        params.setOrderingType(_ORDERING_TYPES[config.ordering])
+    else:
+        params.setOrdering(ordering)
+    return params
+
+
+def bundle_adjust(
+    camera: CameraInput,
+    poses: Sequence[CameraPose],
+    points: np.ndarray,
+    camera_index: np.ndarray,
+    point_index: np.ndarray,
+    uv: np.ndarray,
+    config: BundleAdjustmentConfig,
+    fixed_cameras: Sequence[int] = (0,),
+    scale_reference: int | None = 1,
+    on_iteration: IterationHook | None = None,
+    refine: IntrinsicsRefinement = IntrinsicsRefinement(),
+) -> BundleAdjustmentResult:
+    """Minimize the Huber-robust reprojection error over all observed cameras and points (GTSAM LM).
+
+    `camera` is a 3x3 K or Camera shared by every pose, or one Camera per pose. Observation o says
+    camera `camera_index[o]` sees point `point_index[o]` at pixel `uv[o]`.
+    `fixed_cameras` keep their pose (near-hard prior); with fewer than two of them, the distance between
+    the centres of `fixed_cameras[0]` and `scale_reference` keeps its initial value (None: scale free).
+    `refine` says which intrinsics are variables (shared by all cameras unless `refine.per_image`);
+    the result's `cameras` carry them.
+    Cameras and points without observations (and not fixed) are returned unchanged.
+    `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
+    graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
+    """
+    start = time.perf_counter()
+    cameras = per_pose_cameras(camera, len(poses))
+    points = np.asarray(points, float)
+    camera_index = np.asarray(camera_index, np.int64)
+    point_index = np.asarray(point_index, np.int64)
+    uv = np.asarray(uv, float)
+    fixed_cameras = [int(c) for c in fixed_cameras]
+    _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
+    if refine.principal_point and _uses_bundler(cameras[0].model):
+        raise InputError(f"bundle_adjust: the principal point can be refined for the pinhole and opencv "
+                         f"models only, not {cameras[0].model}")
+    use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
+
+    num_cameras = len(poses)
+    extra_cameras = [*fixed_cameras, *([scale_reference] if use_scale_prior else [])]
+    camera_keys = np.unique(np.concatenate([camera_index, extra_cameras]).astype(np.int64))
+    observed_points = np.unique(point_index)
+    point_keys = num_cameras + observed_points
+    refines = refine.refines(cameras[0].model) and len(uv) > 0
+    # Calibration variable of each camera: its own, or the one they all share.
+    calibration_of_camera = np.arange(num_cameras) if refine.per_image else np.zeros(num_cameras, np.int64)
+    calibration_offset = num_cameras + len(points)
+    calibration_keys = (calibration_offset + np.unique(calibration_of_camera[camera_index])
+                        if refines else np.zeros(0, np.int64))
+
+    if refines:
+        graph = _calibrated_factors(cameras, calibration_of_camera, calibration_offset, camera_index,
+                                    point_index, uv, refine, config)
+    else:
+        graph = _projection_factors(cameras, camera_index, point_index, uv, config)
+    gtsam_poses = {c: camera_pose_to_gtsam(poses[c]) for c in camera_keys.tolist()}
+    graph.push_back(
+        _gauge_factors(gtsam_poses, fixed_cameras, scale_reference if use_scale_prior else None, config)
+    )
+    initial = gtsam.Values()
+    for c, pose in gtsam_poses.items():
+        initial.insert(c, pose)
+    for key, point in zip(point_keys.tolist(), points[observed_points], strict=True):
+        initial.insert(key, point)
+    for key in calibration_keys.tolist():
+        first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
+        initial.insert(key, camera_to_gtsam(cameras[first]))
+
+    ordering = _elimination_ordering(config, camera_keys, point_keys, calibration_keys)
+    params = _optimizer_params(config, ordering, on_iteration)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    values = optimizer.optimize()
+
+    adjusted_poses = list(poses)
+    for c in camera_keys.tolist():
+        adjusted_poses[c] = camera_pose_from_gtsam(values.atPose3(c))
+    adjusted_points = points.copy()
+    if len(observed_points):
+        # extractPoint3 returns every Point3 in key order, i.e. in observed_points order.
+        adjusted_points[observed_points] = gtsam.utilities.extractPoint3(values)
+    adjusted_cameras = list(cameras)
+    if refines:
+        at = values.atCal3Bundler if _uses_bundler(cameras[0].model) else values.atCal3DS2
+        refined = {key - calibration_offset: camera_from_gtsam(at(key), cameras[0])
+                   for key in calibration_keys.tolist()}
+        adjusted_cameras = [refined.get(int(calibration_of_camera[c]), cameras[c])
+                            for c in range(num_cameras)]
+
+    initial_residuals = reprojection_residuals(cameras, poses, points, camera_index, point_index, uv)
+    final_residuals = reprojection_residuals(
+        adjusted_cameras, adjusted_poses, adjusted_points, camera_index, point_index, uv
+    )
+    return BundleAdjustmentResult(
+        poses=adjusted_poses,
+        points=adjusted_points,
+        initial_rms_px=rms(initial_residuals),
+        final_rms_px=rms(final_residuals),
+        iterations=int(optimizer.iterations()),
+        seconds=time.perf_counter() - start,
+        initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
+        final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),
+        cameras=adjusted_cameras,
+    )

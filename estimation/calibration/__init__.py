@@ -1,0 +1,1 @@
+"""Camera calibration from photos of a known target."""

@@ -1,0 +1,96 @@
+"""Which image pairs to match: all of them for up to `exhaustive_up_to` images; beyond, each image's most
+similar images by retrieval (VLAD over its SIFT descriptors, with a k-means vocabulary of the set's own
+descriptors) plus, when the file names are numbered, its next images in natural order (2 before 10).
+
+Order is only ever taken from natural-sorted names: a window over lexicographic names
+(r_0, r_1, r_10, r_100, ...) pairs images that are far apart in the capture.
+"""
+
+from __future__ import annotations
+
+import re
+
+import cv2
+import numpy as np
+import torch
+
+from estimation.config import SiftConfig
+
+VOCABULARY_TRAINING_DESCRIPTORS = 100_000
+"""At most this many descriptors (sampled evenly over the images) train the k-means vocabulary."""
+KMEANS_ITERATIONS = 20
+KMEANS_SEED = 0
+_NUMBER = re.compile(r"(\d+)")
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key splitting digit runs out as numbers: "r_2.png" < "r_10.png"."""
+    parts = _NUMBER.split(name)
+    return tuple((1, int(part), "") if part.isdigit() else (0, 0, part.lower()) for part in parts)
+
+
+def sequence_order(names: list[str]) -> list[int] | None:
+    """Image indices in natural name order when every name carries a number (a sequence), else None."""
+    if not names or not all(_NUMBER.search(name) for name in names):
+        return None
+    return sorted(range(len(names)), key=lambda index: natural_key(names[index]))
+
+
+def exhaustive_pairs(num_images: int) -> list[tuple[int, int]]:
+    return [(i, j) for i in range(num_images) for j in range(i + 1, num_images)]
+
+
+def sequential_pairs(order: list[int], neighbours: int) -> set[tuple[int, int]]:
+    """Each image with its next `neighbours` images along `order`."""
+    return {(min(a, b), max(a, b)) for k, a in enumerate(order) for b in order[k + 1: k + 1 + neighbours]}
+
+
+def train_vocabulary(descriptors: list[np.ndarray], size: int) -> np.ndarray:
+    """(size, D) k-means centres (cv2.kmeans, k-means++) of up to VOCABULARY_TRAINING_DESCRIPTORS rows."""
+    everything = np.concatenate([d for d in descriptors if len(d)]).astype(np.float32)
+    if len(everything) > VOCABULARY_TRAINING_DESCRIPTORS:
+        sample = np.linspace(0, len(everything) - 1, VOCABULARY_TRAINING_DESCRIPTORS).astype(int)
+        everything = everything[sample]
+    size = min(size, len(everything))
+    cv2.setRNGSeed(KMEANS_SEED)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, KMEANS_ITERATIONS, 1e-4)
+    _, _, centres = cv2.kmeans(everything, size, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
+    return centres
+
+
+def vlad(descriptors: np.ndarray, vocabulary: np.ndarray) -> np.ndarray:
+    """VLAD: per word, the sum of (descriptor - centre) over the descriptors nearest to it; each word's
+    block L2-normalized (intra-normalization), signed square root, then the whole vector L2-normalized."""
+    words, dimension = vocabulary.shape
+    if len(descriptors) == 0:
+        return np.zeros(words * dimension, np.float32)
+    d = torch.as_tensor(descriptors, dtype=torch.float32)
+    centres = torch.as_tensor(vocabulary, dtype=torch.float32)
+    nearest = torch.cdist(d, centres).argmin(dim=1)
+    residual_sums = torch.zeros_like(centres).index_add_(0, nearest, d - centres[nearest])
+    residual_sums = torch.nn.functional.normalize(residual_sums, dim=1)
+    flat = residual_sums.flatten()
+    flat = flat.sign() * flat.abs().sqrt()
+    return torch.nn.functional.normalize(flat, dim=0).numpy()
+
+
+def retrieval_pairs(global_descriptors: np.ndarray, neighbours: int) -> set[tuple[int, int]]:
+    """Each image with its `neighbours` most similar images by the dot product of global descriptors."""
+    similarity = global_descriptors @ global_descriptors.T
+    np.fill_diagonal(similarity, -np.inf)
+    k = min(neighbours, len(similarity) - 1)
+    nearest = np.argpartition(-similarity, k - 1, axis=1)[:, :k]
+    return {(min(i, int(j)), max(i, int(j))) for i in range(len(similarity)) for j in nearest[i]}
+
+
+def candidate_pairs(names: list[str], descriptors: list[np.ndarray], config: SiftConfig
+                    ) -> list[tuple[int, int]]:
+    """All pairs up to `exhaustive_up_to` images; beyond, retrieval neighbours plus sequence neighbours."""
+    if len(names) <= config.exhaustive_up_to:
+        return exhaustive_pairs(len(names))
+    vocabulary = train_vocabulary(descriptors, config.vocabulary_size)
+    pairs = retrieval_pairs(np.stack([vlad(d, vocabulary) for d in descriptors]), config.retrieval_neighbours)
+    order = sequence_order(names)
+    if order is not None and config.sequential_neighbours:
+        pairs |= sequential_pairs(order, config.sequential_neighbours)
+    return sorted(pairs)

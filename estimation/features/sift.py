@@ -1,0 +1,159 @@
+"""SIFT features and matches (OpenCV + torch) merged into multi-view `Tracks`, for folders without match
+files.
+
+Detection runs on the image downscaled to `max_image_side` (keypoints mapped back to full-resolution
+pixels, OpenCV convention: the centre of the top-left pixel is (0, 0)) and keeps the `max_features`
+strongest keypoints; descriptors are RootSIFT (sqrt of the L1-normalized SIFT vector, hence unit L2
+norm, so Euclidean distance compares them by the Hellinger kernel). Candidate pairs come from
+`features.pairs` (exhaustive, or retrieval + sequence), matches from `features.matching` (ratio test and
+mutual check). With a TwoViewConfig every pair is verified geometrically (`two_view.geometry`: E, F and H
+in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. The surviving matches
+are joined into tracks by the image-aware union-find of `track_building`, most distinctive matches
+(lowest ratio) first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
+from estimation.errors import DegenerateConfigurationError
+from estimation.features.matching import DescriptorMatches, match_pairs, matching_device
+from estimation.features.pairs import candidate_pairs
+from estimation.features.track_building import assemble_tracks
+from estimation.io.images import ImageSet, load_rgb
+from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry
+from estimation.types import ProgressCallback, Tracks
+
+DETECTION_SHARE = 0.4
+MATCHING_SHARE = 0.2
+"""Fractions of the SIFT progress spent detecting and matching (the rest verifying), for the progress bar."""
+
+
+class ImageFeatures(NamedTuple):
+    """Keypoints (N, 2) full-resolution pixel uv and their RootSIFT descriptors (N, 128) float32."""
+
+    uv: np.ndarray
+    descriptors: np.ndarray
+
+
+@dataclass(frozen=True)
+class SiftResult:
+    """Tracks from SIFT, with the counts that went into them."""
+
+    tracks: Tracks
+    keypoints_per_image: list[int]
+    matches_per_pair: dict[tuple[int, int], int]        # after the ratio test and mutual check
+    verified_per_pair: dict[tuple[int, int], int]       # kept after geometric verification
+    num_rejected_links: int
+    two_view: dict[tuple[int, int], TwoViewGeometry] = field(default_factory=dict)   # verified pairs
+
+
+def root_sift(descriptors: np.ndarray) -> np.ndarray:
+    """RootSIFT: d' = sqrt(d / ||d||_1), so ||d'||_2 = 1 (Arandjelovic & Zisserman 2012)."""
+    descriptors = np.asarray(descriptors, np.float32)
+    l1 = np.abs(descriptors).sum(axis=1, keepdims=True)
+    return np.sqrt(descriptors / np.maximum(l1, np.finfo(np.float32).tiny))
+
+
+def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
+    """SIFT on the (H, W, 3) uint8 image downscaled to config.max_image_side (area averaging), at most
+    config.max_features keypoints; uv in full-resolution pixels: u = (u_s + 0.5) W / W_s - 0.5."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    height, width = gray.shape
+    scale = min(1.0, config.max_image_side / max(height, width))
+    if scale < 1.0:
+        size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    sift = cv2.SIFT_create(nfeatures=config.max_features, contrastThreshold=config.contrast_threshold)
+    keypoints, descriptors = sift.detectAndCompute(gray, None)
+    if descriptors is None:
+        return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    # OpenCV's nfeatures keeps ties (and extra orientations) at the cut: enforce the budget exactly.
+    strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[: config.max_features]
+    keypoints, descriptors = [keypoints[k] for k in strongest], descriptors[strongest]
+    uv_small = np.array([kp.pt for kp in keypoints], float).reshape(-1, 2)
+    to_full = np.array([width / gray.shape[1], height / gray.shape[0]])
+    return ImageFeatures((uv_small + 0.5) * to_full - 0.5, root_sift(descriptors))
+
+
+def sample_colors(rgb: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """RGB (N, 3) uint8 at the pixels nearest to uv (N, 2), clamped to the image."""
+    height, width = rgb.shape[:2]
+    columns = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, width - 1)
+    rows = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, height - 1)
+    return rgb[rows, columns]
+
+
+def verify_pair(uv_a: np.ndarray, uv_b: np.ndarray, matches: DescriptorMatches, K: np.ndarray | None,
+                two_view: TwoViewConfig, ransac: RansacConfig) -> tuple[DescriptorMatches, TwoViewGeometry]:
+    """The matches that are inliers of the pair's two-view geometry (none when it is degenerate)."""
+    geometry = estimate_two_view_geometry(uv_a[matches.index_a], uv_b[matches.index_b], K, K, two_view,
+                                          ransac)
+    return DescriptorMatches(*(array[geometry.inlier_mask] for array in matches)), geometry
+
+
+def sift_tracks(
+    images: ImageSet,
+    config: SiftConfig,
+    two_view: TwoViewConfig | None = None,
+    ransac: RansacConfig = RansacConfig(),
+    K: np.ndarray | None = None,
+    progress: ProgressCallback | None = None,
+) -> SiftResult:
+    """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
+    merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1."""
+    report = progress or (lambda stage, fraction: None)
+    features, colors = [], []
+    for index, path in enumerate(images.paths):
+        rgb = load_rgb(path)
+        image_features = detect_features(rgb, config)
+        features.append(image_features)
+        colors.append(sample_colors(rgb, image_features.uv))
+        report("features", DETECTION_SHARE * (index + 1) / len(images))
+
+    pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
+    report("matching", DETECTION_SHARE)
+    matches = match_pairs([f.descriptors for f in features], pairs, config.ratio, config.max_distance,
+                          matching_device(config.device))
+    report("matching", DETECTION_SHARE + MATCHING_SHARE)
+
+    offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])
+    links, link_ratios, verified_per_pair, geometries = [], [], {}, {}
+    for count, (i, j) in enumerate(pairs, start=1):
+        pair_matches = matches[(i, j)]
+        if two_view is not None and len(pair_matches.ratio) < two_view.min_inliers:
+            pair_matches = DescriptorMatches(*(array[:0] for array in pair_matches))
+        elif two_view is not None:
+            pair_matches, geometries[(i, j)] = verify_pair(features[i].uv, features[j].uv, pair_matches,
+                                                           K, two_view, ransac)
+        verified_per_pair[(i, j)] = len(pair_matches.ratio)
+        links.append(np.stack([offsets[i] + pair_matches.index_a, offsets[j] + pair_matches.index_b], axis=1))
+        link_ratios.append(pair_matches.ratio)
+        report("verification", DETECTION_SHARE + MATCHING_SHARE + (1 - DETECTION_SHARE - MATCHING_SHARE)
+               * count / len(pairs))
+    all_links = np.concatenate(links).reshape(-1, 2) if links else np.zeros((0, 2), np.int64)
+    if len(all_links) == 0:
+        raise DegenerateConfigurationError(f"{images.folder}: SIFT found no matches between any two images")
+    all_links = all_links[np.argsort(np.concatenate(link_ratios), kind="stable")]
+
+    # Only keypoints that take part in a match become nodes of the track graph.
+    used_nodes, compact_links = np.unique(all_links, return_inverse=True)
+    node_image = np.searchsorted(offsets, used_nodes, side="right") - 1
+    all_uv = np.concatenate([f.uv for f in features])
+    all_colors = np.concatenate(colors)
+    assembly = assemble_tracks(
+        images.names, node_image, all_uv[used_nodes], all_colors[used_nodes], compact_links.reshape(-1, 2)
+    )
+    return SiftResult(
+        tracks=assembly.tracks,
+        keypoints_per_image=[len(f.uv) for f in features],
+        matches_per_pair={pair: len(m.ratio) for pair, m in matches.items()},
+        verified_per_pair=verified_per_pair,
+        num_rejected_links=assembly.num_rejected_links,
+        two_view=geometries,
+    )

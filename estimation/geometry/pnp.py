@@ -1,0 +1,162 @@
+"""Camera pose from 2D-3D correspondences: linear DLT PnP inside RANSAC, then non-linear refinement."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from estimation.config import RansacConfig
+from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.linalg import null_vector
+from estimation.geometry.projection import as_camera, normalized_to_pixel, project
+from estimation.geometry.ransac import random_samples, required_iterations
+from estimation.types import CameraPose
+
+MIN_CORRESPONDENCES = 6
+HYPOTHESES_PER_BATCH = 64
+
+
+class PnPResult(NamedTuple):
+    """RANSAC consensus of the DLT projection, and the pose of the DLT refit on it (R by SVD)."""
+
+    pose: CameraPose
+    inlier_mask: np.ndarray       # (N,) bool
+    iterations: int
+
+
+class PnPRefinement(NamedTuple):
+    """Pose minimizing the reprojection error, with the RMS before and after (pixels)."""
+
+    pose: CameraPose
+    initial_rms_px: float
+    final_rms_px: float
+
+
+def _require(num: int) -> None:
+    if num < MIN_CORRESPONDENCES:
+        raise DegenerateConfigurationError(
+            f"PnP needs at least {MIN_CORRESPONDENCES} 2D-3D correspondences, got {num}"
+        )
+
+
+def _point_normalization(points: np.ndarray) -> np.ndarray:
+    """T (4x4) with T X = [s (X - m), 1]: centroid at the origin, mean distance sqrt(3)."""
+    mean = points.mean(axis=0)
+    s = np.sqrt(3.0) / max(np.linalg.norm(points - mean, axis=1).mean(), 1e-12)
+    T = np.diag([s, s, s, 1.0])
+    T[:3, 3] = -s * mean
+    return T
+
+
+def _dlt_projection(x: np.ndarray, X_h: np.ndarray) -> np.ndarray:
+    """P (..., 3, 4) = argmin ||A p||, ||p|| = 1, rows of x ~ P X; x (..., N, 2) normalized, X (..., N, 4)."""
+    zeros = np.zeros_like(X_h)
+    row_u = np.concatenate([X_h, zeros, -x[..., 0:1] * X_h], axis=-1)
+    row_v = np.concatenate([zeros, X_h, -x[..., 1:2] * X_h], axis=-1)
+    A = np.concatenate([row_u, row_v], axis=-2)
+    return null_vector(A).reshape(*A.shape[:-2], 3, 4)
+
+
+def _fix_sign(P: np.ndarray) -> np.ndarray:
+    """P ~ lambda [R | t] is defined up to sign; choose lambda > 0 (det M > 0) so depths are positive."""
+    return P * np.sign(np.linalg.det(P[..., :3]))[..., None, None]
+
+
+def _pose_from_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[R | t] from P = lambda [R | t], lambda > 0: R = U V^T from M = U D V^T, t = p4 / mean(D)."""
+    U, D, Vt = np.linalg.svd(P[..., :3])
+    return U @ Vt, P[..., 3] / D.mean(axis=-1)[..., None]
+
+
+def _linear_pnp_batch(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Batched DLT on K^-1-normalized pixels: points (..., N, 3), uv (..., N, 2) -> P (..., 3, 4)."""
+    T = _point_normalization(points.reshape(-1, 3))
+    X_h = np.concatenate([points, np.ones((*points.shape[:-1], 1))], axis=-1) @ T.T
+    x = (np.concatenate([uv, np.ones((*uv.shape[:-1], 1))], axis=-1) @ np.linalg.inv(K).T)[..., :2]
+    return _fix_sign(_dlt_projection(x, X_h) @ T)
+
+
+def pnp_linear(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> CameraPose:
+    """DLT: x_n ~ [R | t] X on x_n = K^-1 [u v 1], 6+ points; R orthonormalized by SVD (R = U V^T)."""
+    _require(len(points))
+    R, t = _pose_from_projection(_linear_pnp_batch(K, np.asarray(points, float), np.asarray(uv, float)))
+    return CameraPose(R=R, t=t)
+
+
+def projection_errors(K: np.ndarray, P: np.ndarray, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """||pi(K P [X; 1]) - uv|| per point (pixels), inf behind the camera; P (..., 3, 4) -> (..., N)."""
+    x_cam = points @ np.swapaxes(P[..., :3], -1, -2) + P[..., None, :, 3]
+    depth = x_cam[..., 2]
+    safe_depth = np.where(depth > 0, depth, 1.0)
+    projected = normalized_to_pixel(as_camera(K), x_cam[..., :2] / safe_depth[..., None])
+    return np.where(depth > 0, np.linalg.norm(projected - uv, axis=-1), np.inf)
+
+
+def reprojection_errors(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray
+                        ) -> np.ndarray:
+    """||pi(K (R X + t)) - uv|| per point (pixels), inf behind the camera."""
+    projection = project(K, R, t, points)
+    return np.where(projection.depth > 0, np.linalg.norm(projection.uv - uv, axis=-1), np.inf)
+
+
+def pnp_ransac(K: np.ndarray, points: np.ndarray, uv: np.ndarray, config: RansacConfig) -> PnPResult:
+    """DLT maximizing #{reprojection < pnp_threshold_px}; N = log(1-p)/log(1-w^6); refit, then R by SVD.
+
+    Hypotheses are scored with the DLT's own projection P (before orthonormalization, which is only
+    accurate to about a degree with noisy, shallow structure); the pose is then P's nearest [R | t],
+    meant as the start of `pnp_nonlinear`.
+    """
+    points, uv = np.asarray(points, float), np.asarray(uv, float)
+    num = len(points)
+    _require(num)
+    rng = np.random.default_rng(config.seed)
+    best_mask, best_count = np.zeros(num, bool), -1
+    needed, iterations = config.max_iterations, 0
+    while iterations < needed:
+        samples = random_samples(rng, num, MIN_CORRESPONDENCES, HYPOTHESES_PER_BATCH)
+        masks = projection_errors(K, _linear_pnp_batch(K, points[samples], uv[samples]), points, uv) < (
+            config.pnp_threshold_px)
+        counts = masks.sum(axis=1)
+        best = int(np.argmax(counts))
+        iterations += HYPOTHESES_PER_BATCH
+        if counts[best] > best_count:
+            best_mask, best_count = masks[best], int(counts[best])
+            needed = required_iterations(best_count / num, MIN_CORRESPONDENCES, config.confidence,
+                                         config.max_iterations)
+    if best_count < MIN_CORRESPONDENCES:
+        raise DegenerateConfigurationError(
+            f"PnP RANSAC found no pose with {MIN_CORRESPONDENCES}+ inliers among {num} correspondences"
+        )
+    P = _linear_pnp_batch(K, points[best_mask], uv[best_mask])
+    inlier_mask = projection_errors(K, P, points, uv) < config.pnp_threshold_px
+    if inlier_mask.sum() >= max(best_count, MIN_CORRESPONDENCES):
+        P = _linear_pnp_batch(K, points[inlier_mask], uv[inlier_mask])
+    else:
+        inlier_mask = best_mask
+    R, t = _pose_from_projection(P)
+    return PnPResult(pose=CameraPose(R=R, t=t), inlier_mask=inlier_mask, iterations=iterations)
+
+
+def pnp_nonlinear(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: CameraPose) -> PnPRefinement:
+    """min_{w, t} sum ||pi(K (exp([w]x) R0 X + t)) - uv||^2 over a rotation vector w (Levenberg-Marquardt)."""
+    _require(len(points))
+
+    def pose_of(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return Rotation.from_rotvec(params[:3]).as_matrix() @ initial.R, params[3:]
+
+    def residuals(params: np.ndarray) -> np.ndarray:
+        R, t = pose_of(params)
+        return (project(K, R, t, points).uv - uv).ravel()
+
+    start = np.concatenate([np.zeros(3), initial.t])
+    solution = least_squares(residuals, start, method="lm", x_scale="jac")
+    R, t = pose_of(solution.x)
+
+    def rms(r: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
+
+    return PnPRefinement(pose=CameraPose(R=R, t=t), initial_rms_px=rms(residuals(start)),
+                         final_rms_px=rms(solution.fun))

@@ -1,0 +1,208 @@
+"""Triangulation of multi-view observations: linear DLT, then batched Levenberg-Marquardt on pixels.
+
+Observations are flat: observation o sees point `point_index[o]` in a camera with pose
+(`R[o]`, `t[o]`) at pixel `uv[o]`; every point has two or more observations. All points are solved
+together (one vectorized 4x4 or 3x3 system per point), so thousands of points take milliseconds.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from estimation.geometry.projection import reprojection_residuals
+
+NONLINEAR_ITERATIONS = 10
+INITIAL_DAMPING = 1e-3
+
+
+class Observations(NamedTuple):
+    """Flat observations of points by posed cameras (world-to-camera R, t per observation)."""
+
+    R: np.ndarray             # (O, 3, 3)
+    t: np.ndarray             # (O, 3)
+    uv: np.ndarray            # (O, 2) pixels
+    point_index: np.ndarray   # (O,) int in [0, num_points)
+    num_points: int
+
+
+class Triangulation(NamedTuple):
+    """Points and their mean reprojection error over their observations."""
+
+    points: np.ndarray            # (P, 3)
+    reprojection_px: np.ndarray   # (P,) mean over the point's observations
+
+
+def observations_for_pair(R1, t1, R2, t2, uv1: np.ndarray, uv2: np.ndarray) -> Observations:
+    """Flat observations of N points seen by two cameras (point n observed at uv1[n] and uv2[n])."""
+    n = len(uv1)
+    return Observations(
+        R=np.concatenate([np.broadcast_to(R1, (n, 3, 3)), np.broadcast_to(R2, (n, 3, 3))]),
+        t=np.concatenate([np.broadcast_to(t1, (n, 3)), np.broadcast_to(t2, (n, 3))]),
+        uv=np.concatenate([uv1, uv2]),
+        point_index=np.concatenate([np.arange(n), np.arange(n)]),
+        num_points=n,
+    )
+
+
+def mean_reprojection_px(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
+    """Mean over each point's observations of ||r_o|| (pixels), (P,)."""
+    error = np.linalg.norm(reprojection_residuals(K, obs, points), axis=1)
+    counts = np.bincount(obs.point_index, minlength=obs.num_points)
+    return np.bincount(obs.point_index, weights=error, minlength=obs.num_points) / np.maximum(counts, 1)
+
+
+def triangulate_linear(K: np.ndarray, obs: Observations) -> Triangulation:
+    """DLT: X = argmin ||A X||, ||X|| = 1, rows x_o x (R_o|t_o) X = 0 on normalized x_o = K^-1 [u v 1]."""
+    uv1 = np.hstack([obs.uv, np.ones((len(obs.uv), 1))])
+    x = uv1 @ np.linalg.inv(K).T
+    P = np.concatenate([obs.R, obs.t[:, :, None]], axis=2)                 # (O, 3, 4)
+    rows = np.stack([x[:, 0:1] * P[:, 2] - P[:, 0], x[:, 1:2] * P[:, 2] - P[:, 1]], axis=1)  # (O, 2, 4)
+    rows /= np.linalg.norm(rows, axis=2, keepdims=True)
+    normal = np.einsum("oki,okj->oij", rows, rows)                           # (O, 4, 4) per-observation A^T A
+    AtA = np.zeros((obs.num_points, 4, 4))
+    np.add.at(AtA, obs.point_index, normal)
+    homogeneous = np.linalg.eigh(AtA)[1][:, :, 0]        # eigenvector of the smallest eigenvalue
+    w = homogeneous[:, 3]
+    w = np.where(np.abs(w) < 1e-15, 1e-15, w)
+    points = homogeneous[:, :3] / w[:, None]
+    return Triangulation(points=points, reprojection_px=mean_reprojection_px(K, obs, points))
+
+
+def _projection_jacobian(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
+    """d pi(K (R X + t)) / dX = d pi / dx_cam @ R, (O, 2, 3)."""
+    x_cam = np.einsum("oij,oj->oi", obs.R, points[obs.point_index]) + obs.t
+    z = np.where(np.abs(x_cam[:, 2]) < 1e-12, 1e-12, x_cam[:, 2])
+    du_dx = np.stack([np.full_like(z, K[0, 0]) / z, np.full_like(z, K[0, 1]) / z,
+                      -(K[0, 0] * x_cam[:, 0] + K[0, 1] * x_cam[:, 1]) / z**2], axis=1)
+    dv_dx = np.stack([np.zeros_like(z), K[1, 1] / z, -K[1, 1] * x_cam[:, 1] / z**2], axis=1)
+    return np.stack([du_dx, dv_dx], axis=1) @ obs.R
+
+
+def triangulate_nonlinear(K: np.ndarray, obs: Observations, initial: np.ndarray,
+                          iterations: int = NONLINEAR_ITERATIONS) -> Triangulation:
+    """X_p = argmin sum_o ||pi(K (R_o X_p + t_o)) - uv_o||^2 per point: batched Levenberg-Marquardt."""
+    points = np.array(initial, float)
+    damping = np.full(obs.num_points, INITIAL_DAMPING)
+
+    def cost(candidate: np.ndarray) -> np.ndarray:
+        squared = (reprojection_residuals(K, obs, candidate) ** 2).sum(axis=1)
+        return np.bincount(obs.point_index, weights=squared, minlength=obs.num_points)
+
+    current = cost(points)
+    for _ in range(iterations):
+        residuals = reprojection_residuals(K, obs, points)
+        J = _projection_jacobian(K, obs, points)
+        JtJ = np.zeros((obs.num_points, 3, 3))
+        Jtr = np.zeros((obs.num_points, 3))
+        np.add.at(JtJ, obs.point_index, np.einsum("oki,okj->oij", J, J))
+        np.add.at(Jtr, obs.point_index, np.einsum("oki,ok->oi", J, residuals))
+        diagonal = np.einsum("pii->pi", JtJ)
+        system = JtJ + (damping[:, None] * diagonal)[:, :, None] * np.eye(3)
+        step = np.linalg.solve(system + 1e-12 * np.eye(3), -Jtr[:, :, None])[:, :, 0]
+        candidate = points + step
+        trial = cost(candidate)
+        better = trial < current
+        points[better] = candidate[better]
+        current = np.where(better, trial, current)
+        damping = np.where(better, damping / 10.0, damping * 10.0)
+    return Triangulation(points=points, reprojection_px=mean_reprojection_px(K, obs, points))
+
+
+def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, points: np.ndarray
+                            ) -> np.ndarray:
+    """Per point, the largest angle between two of its viewing rays X - C_o (degrees), (P,).
+
+    `centers` (O, 3) is the camera centre of each observation.
+    """
+    rays = points[obs_point_index] - centers
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    order = np.argsort(obs_point_index, kind="stable")
+    rays, owner = rays[order], obs_point_index[order]
+    min_cosine = np.ones(len(points))
+    # Observations of a point are contiguous after sorting: compare each with the ones `offset` after it.
+    for offset in range(1, int(np.bincount(owner).max(initial=1))):
+        same = owner[:-offset] == owner[offset:]
+        cosine = (rays[:-offset][same] * rays[offset:][same]).sum(axis=1)
+        np.minimum.at(min_cosine, owner[:-offset][same], cosine)
+    return np.degrees(np.arccos(np.clip(min_cosine, -1.0, 1.0)))
+
+
+def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
+    """||r_o|| in pixels, inf where the point is behind the observing camera or not finite, (O,)."""
+    x_cam_z = np.einsum("oj,oj->o", obs.R[:, 2], points[obs.point_index]) + obs.t[:, 2]
+    error = np.linalg.norm(reprojection_residuals(K, obs, points), axis=1)
+    return np.where((x_cam_z > 0) & np.isfinite(error), error, np.inf)
+
+
+class RobustTriangulation(NamedTuple):
+    """Points from each track's best two-view hypothesis, refined on the observations agreeing with it."""
+
+    points: np.ndarray        # (P, 3)
+    inlier_mask: np.ndarray   # (O,) bool: observation within max_error_px of its point (in front)
+    valid: np.ndarray         # (P,) bool: 2+ inliers seen at an angle of at least min_angle_deg
+
+
+def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, min_angle_deg: float,
+                       hypotheses_per_point: int, rng: np.random.Generator) -> RobustTriangulation:
+    """Per point, argmax over pairs (a, b) of its observations of #{o : ||r_o(DLT(a, b))|| < max_error_px}
+    (pairs under min_angle_deg or behind a camera score nothing), then non-linear on the consensus.
+
+    All points at once: `hypotheses_per_point` observation pairs per point (every pair when there are no
+    more than that, random ones otherwise), scored against all of the point's observations in one
+    vectorized pass.
+    """
+    order = np.argsort(obs.point_index, kind="stable")
+    counts = np.bincount(obs.point_index, minlength=obs.num_points)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    H = hypotheses_per_point
+    # Pair h of point p: observations a and b != a among the point's (sorted) observations; every pair in
+    # turn while h < n (n - 1) / 2 (h -> (a, b), b < a, in triangular order), random pairs beyond.
+    count_ph = np.repeat(np.maximum(counts, 2), H)
+    h = np.tile(np.arange(H), obs.num_points)
+    a_listed = np.floor((1 + np.sqrt(1 + 8 * h)) / 2).astype(np.int64)
+    b_listed = h - a_listed * (a_listed - 1) // 2
+    a_random = np.floor(rng.random(obs.num_points * H) * count_ph).astype(np.int64)
+    b_random = (a_random + 1 + np.floor(rng.random(obs.num_points * H) * (count_ph - 1)).astype(np.int64)
+                ) % count_ph
+    listed = h < count_ph * (count_ph - 1) // 2
+    a_offset = np.where(listed, a_listed, a_random)
+    b_offset = np.where(listed, b_listed, b_random)
+    start_ph = np.repeat(starts, H)
+    usable = np.repeat(counts >= 2, H)
+    pair_obs = order[np.stack([start_ph + a_offset, start_ph + b_offset]) * usable]      # (2, P*H)
+    num_hypotheses = obs.num_points * H
+    hypothesis_obs = Observations(
+        R=obs.R[pair_obs.ravel()], t=obs.t[pair_obs.ravel()], uv=obs.uv[pair_obs.ravel()],
+        point_index=np.tile(np.arange(num_hypotheses), 2), num_points=num_hypotheses)
+    candidates = triangulate_linear(K, hypothesis_obs).points
+    centers = -np.einsum("oji,oj->oi", hypothesis_obs.R, hypothesis_obs.t)
+    pair_angle = triangulation_angle_deg(centers, hypothesis_obs.point_index, candidates)
+
+    # Score hypothesis (p, h) on every observation of p: observation o is repeated for each h.
+    scored_obs = np.repeat(np.arange(len(obs.uv)), H)
+    scored_hypothesis = obs.point_index[scored_obs] * H + np.tile(np.arange(H), len(obs.uv))
+    expanded = Observations(R=obs.R[scored_obs], t=obs.t[scored_obs], uv=obs.uv[scored_obs],
+                            point_index=scored_hypothesis, num_points=num_hypotheses)
+    agrees = observation_errors(K, expanded, candidates) < max_error_px
+    support = np.bincount(scored_hypothesis, weights=agrees, minlength=num_hypotheses)
+    support[~(usable & (pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
+    best = np.argmax(support.reshape(obs.num_points, H), axis=1)
+    best_hypothesis = np.arange(obs.num_points) * H + best
+    inliers = agrees.reshape(len(obs.uv), H)[np.arange(len(obs.uv)), best[obs.point_index]]
+    inliers &= support[best_hypothesis][obs.point_index] >= 2
+
+    subset = Observations(obs.R[inliers], obs.t[inliers], obs.uv[inliers], obs.point_index[inliers],
+                          obs.num_points)
+    points = candidates[best_hypothesis]
+    if inliers.any():
+        points = triangulate_nonlinear(K, subset, points).points
+    inliers = observation_errors(K, obs, points) < max_error_px
+    inlier_counts = np.bincount(obs.point_index[inliers], minlength=obs.num_points)
+    all_centers = -np.einsum("oji,oj->oi", obs.R, obs.t)
+    angles = np.zeros(obs.num_points)
+    if inliers.any():
+        angles = triangulation_angle_deg(all_centers[inliers], obs.point_index[inliers], points)
+    valid = (inlier_counts >= 2) & (angles >= min_angle_deg)
+    return RobustTriangulation(points=points, inlier_mask=inliers & valid[obs.point_index], valid=valid)

@@ -1,0 +1,1 @@
+"""Inputs (image folders, calibration, match files) and outputs (COLMAP, PLY, JSON, figures)."""

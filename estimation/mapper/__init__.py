@@ -1,0 +1,1 @@
+"""The incremental mapper: initial pair, registration, triangulation and refinement (orchestration only)."""

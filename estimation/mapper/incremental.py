@@ -1,0 +1,570 @@
+"""Incremental Structure from Motion (COLMAP's incremental mapper in this project's own steps).
+
+Per model: an initial pair from the image graph (`initial_pair`), then repeatedly the unregistered image
+with the best visibility pyramid score (`next_image`) registered by P3P in LO-RANSAC and refined
+(`geometry.absolute_pose`); after each registration its tracks are continued or triangulated, a local BA
+adjusts the image and its best-connected neighbours, and the touched points are completed, merged and
+filtered. Whenever the model grew by `global_ba_growth`, and at the end, global refinement runs in rounds
+(BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change;
+the last step is a converged global BA. When registration stalls the thresholds are relaxed once; when a
+model cannot grow, another is started from the images no model holds. Orchestration only: the state and
+its operations live in `scene.Scene`, the geometry in `geometry/` and `two_view/`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+from scipy import sparse
+
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
+from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
+from estimation.errors import DegenerateConfigurationError, InputError
+from estimation.geometry.absolute_pose import absolute_pose_ransac
+from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared
+from estimation.mapper.initial_pair import (
+    InitialPairCandidate,
+    choose_initial_pair,
+    co_visible_pairs,
+    pair_name,
+)
+from estimation.mapper.next_image import visibility_pyramid_scores
+from estimation.mapper.scene import Scene
+from estimation.types import CameraPose, ProgressCallback, Tracks
+
+FINAL_BA_ROUNDS = 3
+"""Converged global BA, filter, and BA again while the filter removed anything."""
+
+
+class ReprojectionSummary(NamedTuple):
+    """Reprojection error of the model's observations in pixels."""
+
+    rms_px: float
+    mean_px: float
+    median_px: float
+    num_observations: int
+
+
+@dataclass
+class ReconstructionStats:
+    """Numbers for report.json."""
+
+    reprojection_before_ba: ReprojectionSummary  # before the final global refinement
+    reprojection_after_ba: ReprojectionSummary
+    pair_shared_tracks: dict[str, int]  # "a.png|b.png" -> shared tracks (verified matches)
+    initial_pair: tuple[str, str]
+    stage_seconds: dict[str, float]
+    initial_pair_median_angle_deg: float
+    bundle_adjustment_iterations: int  # of the final global BA
+    initial_pair_failures: dict[
+        str, str
+    ]  # candidate pairs tried before this model's pair, and why they failed
+    refinement_rounds: int
+    relaxed_thresholds: bool  # registration stalled and was retried with relaxed thresholds
+    final_cost_decrease: float  # relative robust-cost decrease of the last BA call (~0: converged)
+
+
+@dataclass
+class InitialPairDiagnostics:
+    """What the figures show about the initial pair (i, j)."""
+
+    i: int
+    j: int
+    uv_i: np.ndarray  # (K, 2) all putative correspondences
+    uv_j: np.ndarray  # (K, 2)
+    inlier_mask: np.ndarray  # (K,) inliers of the verified two-view model (E, or F)
+    points_linear: np.ndarray  # (L, 3) DLT points of the inliers in front of both cameras
+    points_nonlinear: np.ndarray  # (L, 3) the same after non-linear triangulation
+    pose_i: CameraPose  # the two cameras in the initial pair's frame (i at the origin)
+    pose_j: CameraPose
+
+
+@dataclass
+class SparseModel:
+    """Registered cameras and triangulated points with their observations (one model of the set)."""
+
+    image_names: list[str]
+    poses: dict[int, CameraPose]  # registered image index -> world-to-camera pose
+    unregistered: dict[int, str]  # image index -> why it is not in this model
+    points: np.ndarray  # (P, 3)
+    point_colors: np.ndarray  # (P, 3) uint8
+    point_track_ids: np.ndarray  # (P,) track of each point
+    obs_camera: np.ndarray  # (O,) image index
+    obs_point: np.ndarray  # (O,) index into points
+    obs_uv: np.ndarray  # (O, 2) pixels
+    point_errors: np.ndarray  # (P,) mean reprojection error in pixels
+    stats: ReconstructionStats
+    initial_pair_diagnostics: InitialPairDiagnostics
+    registration_order: list[int] = field(default_factory=list)
+    cameras: list[Camera] = field(default_factory=list)  # image index -> intrinsics (refined by the BA)
+
+    @property
+    def visibility(self) -> np.ndarray:
+        """(P, M) bool: point p is observed in image m."""
+        visible = np.zeros((len(self.points), len(self.image_names)), bool)
+        visible[self.obs_point, self.obs_camera] = True
+        return visible
+
+
+def summarize(errors: np.ndarray) -> ReprojectionSummary:
+    if len(errors) == 0:
+        return ReprojectionSummary(float("nan"), float("nan"), float("nan"), 0)
+    return ReprojectionSummary(
+        rms_px=float(np.sqrt(np.mean(errors**2))),
+        mean_px=float(np.mean(errors)),
+        median_px=float(np.median(errors)),
+        num_observations=len(errors),
+    )
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
+
+
+@dataclass
+class _Thresholds:
+    """Registration thresholds of one model; `relax` loosens them once when registration stalls."""
+
+    min_inliers: float
+    min_inlier_ratio: float
+    pnp_threshold_px: float
+    relaxed: bool = False
+
+    def relax(self, factor: float) -> None:
+        self.min_inliers *= factor
+        self.min_inlier_ratio *= factor
+        self.pnp_threshold_px /= factor
+        self.relaxed = True
+
+
+class _ModelBuilder:
+    """Grows one model from its initial pair (orchestration of the Scene's named operations)."""
+
+    def __init__(self, tracks: Tracks, camera: CameraInput, refine: IntrinsicsRefinement,
+                 config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
+                 progress: ProgressCallback | None) -> None:
+        self.config, self.mapper = config, config.mapper
+        self.scene = Scene(tracks, camera, refine)
+        self.available = available  # images no earlier model holds
+        self.timer, self.progress = timer, progress
+        self.rng = np.random.default_rng(config.ransac.seed)
+        self.trials = np.zeros(len(tracks.image_names), np.int64)
+        self.failures: dict[int, str] = {}
+        self.thresholds = _Thresholds(
+            self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio, config.ransac.pnp_threshold_px
+        )
+        self.refinement_rounds = 0
+        # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
+        self.image_size = (2.0 * self.scene.K[0, 2], 2.0 * self.scene.K[1, 2])
+
+    @property
+    def tracks(self) -> Tracks:
+        """The scene's tracks, in the working pixels of its pinhole K."""
+        return self.scene.tracks
+
+    @property
+    def max_error(self) -> float:
+        return self.config.filter.max_reprojection_px
+
+    @property
+    def min_angle(self) -> float:
+        return self.config.filter.min_triangulation_angle_deg
+
+    # -------------------------------------------------------------------------------------- steps
+
+    def initialize(self, candidate: InitialPairCandidate) -> None:
+        g = candidate.geometry
+        scene = self.scene
+        scene.register_image(g.i, CameraPose(R=np.eye(3), t=np.zeros(3)))
+        scene.register_image(g.j, candidate.pose_j)
+        keep = candidate.well_conditioned
+        track_ids = candidate.track_ids[keep]
+        obs_i, obs_j = self._observations_of(g.i, track_ids), self._observations_of(g.j, track_ids)
+        index = np.arange(len(track_ids))
+        scene.add_points(
+            candidate.points[keep], np.concatenate([obs_i, obs_j]), np.concatenate([index, index])
+        )
+        scene.bundle_adjust(self.config.bundle_adjustment)
+        scene.filter_points(self.max_error, self.min_angle)
+
+    def _observations_of(self, image: int, track_ids: np.ndarray) -> np.ndarray:
+        """Observation id of each given track in `image` (every track must be seen there)."""
+        in_image = np.flatnonzero(self.tracks.image_index == image)
+        order = np.argsort(self.tracks.track_index[in_image])
+        position = np.searchsorted(self.tracks.track_index[in_image][order], track_ids)
+        return in_image[order][position]
+
+    def next_images(self) -> list[int]:
+        """Unregistered images with enough 2D-3D correspondences, best visibility pyramid score first."""
+        scene, tracks = self.scene, self.tracks
+        waiting = self.available & ~scene.registered & (self.trials < self.mapper.max_registration_trials)
+        has_point = np.zeros(tracks.num_tracks, bool)
+        has_point[scene.point_track[scene.point_alive]] = True
+        visible = has_point[tracks.track_index] & waiting[tracks.image_index]
+        counts = np.bincount(tracks.image_index[visible], minlength=len(waiting))
+        scores = visibility_pyramid_scores(
+            tracks.image_index[visible], tracks.uv[visible], len(waiting), *self.image_size
+        )
+        for image in np.flatnonzero(waiting & (counts < self.mapper.min_pnp_correspondences)):
+            self.failures[int(image)] = (
+                f"only {counts[image]} 2D-3D correspondences with the reconstructed "
+                f"points (need {self.mapper.min_pnp_correspondences})"
+            )
+        ready = np.flatnonzero(waiting & (counts >= self.mapper.min_pnp_correspondences))
+        return [int(m) for m in ready[np.argsort(-scores[ready], kind="stable")]]
+
+    def register(self, image: int) -> str | None:
+        """Absolute pose of `image` from its 2D-3D correspondences; adds its inlier observations to their
+        points. Returns why it failed, or None."""
+        scene = self.scene
+        obs_ids, point_ids = scene.correspondences_2d3d(image)
+        points, uv = scene.point_xyz[point_ids], self.tracks.uv[obs_ids]
+        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.thresholds.pnp_threshold_px})
+        try:
+            if self.mapper.absolute_pose == "p3p":
+                result = absolute_pose_ransac(scene.K, points, uv, ransac)
+                pose, inliers = result.pose, result.inlier_mask
+            else:
+                linear = pnp_ransac(scene.K, points, uv, ransac)
+                pose = pnp_nonlinear(
+                    scene.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
+                ).pose
+                inliers = reprojection_errors(scene.K, pose.R, pose.t, points, uv) < ransac.pnp_threshold_px
+        except DegenerateConfigurationError as error:
+            return str(error)
+        need = max(self.thresholds.min_inliers, self.thresholds.min_inlier_ratio * len(obs_ids))
+        if inliers.sum() < need:
+            return (
+                f"absolute pose RANSAC found {int(inliers.sum())} inliers among {len(obs_ids)} 2D-3D "
+                f"correspondences (need {int(np.ceil(need))})"
+            )
+        scene.register_image(image, pose)
+        scene.add_observations(obs_ids[inliers], point_ids[inliers])
+        return None
+
+    def triangulate_image(self, image: int) -> None:
+        """New points for the image's tracks without one; continue existing points into it."""
+        tracks = self.tracks
+        image_tracks = tracks.track_index[tracks.image_index == image]
+        self.scene.triangulate_tracks(
+            image_tracks, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
+        )
+        self.scene.complete_tracks(self.max_error)
+
+    def local_bundle_adjustment(self, image: int) -> None:
+        """BA of `image` and the local_window - 1 images sharing most points with it; then complete, merge
+        and filter the points they see."""
+        scene = self.scene
+        used = scene.used_observations()
+        images = self.tracks.image_index[used]
+        own_points = np.unique(scene.obs_point[used[images == image]])
+        shared = np.bincount(
+            images[np.isin(scene.obs_point[used], own_points)], minlength=len(scene.registered)
+        )
+        shared[image] = 0
+        neighbours = np.argsort(-shared, kind="stable")[: self.config.bundle_adjustment.local_window - 1]
+        window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
+        local_config = self.config.bundle_adjustment.model_copy(
+            update={"max_iterations": self.config.bundle_adjustment.local_max_iterations}
+        )
+        scene.bundle_adjust(local_config, variable_images=window)
+        used = scene.used_observations()
+        touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
+        scene.complete_tracks(self.max_error, touched)
+        scene.merge_tracks(self.max_error)
+        scene.filter_points(self.max_error, self.min_angle, touched)
+
+    def retriangulate(self) -> int:
+        """Triangulate again the untriangulated tracks of registered image pairs whose shared tracks are
+        less than retriangulation_min_ratio triangulated (poses have improved, images were added).
+        Returns the points added."""
+        scene, tracks = self.scene, self.tracks
+        num_images = len(scene.registered)
+        in_registered = scene.registered[tracks.image_index]
+        visibility = sparse.csr_matrix(
+            (
+                np.ones(in_registered.sum()),
+                (tracks.track_index[in_registered], tracks.image_index[in_registered]),
+            ),
+            shape=(tracks.num_tracks, num_images),
+        )
+        used = scene.obs_point >= 0
+        triangulated = sparse.csr_matrix(
+            (np.ones(used.sum()), (tracks.track_index[used], tracks.image_index[used])),
+            shape=(tracks.num_tracks, num_images),
+        )
+        shared = (visibility.T @ visibility).toarray()
+        ratio = (triangulated.T @ triangulated).toarray() / np.maximum(shared, 1)
+        under = (shared > 0) & (ratio < self.mapper.retriangulation_min_ratio)
+        np.fill_diagonal(under, False)
+        if not under.any():
+            return 0
+        # A track qualifies when two of its registered images form an under-reconstructed pair.
+        hits = visibility.multiply(visibility @ sparse.csr_matrix(under.astype(float))).sum(axis=1)
+        candidates = np.flatnonzero(np.asarray(hits).ravel() > 0)
+        return scene.triangulate_tracks(
+            candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
+        )
+
+    def global_refinement(self, ba_config: BundleAdjustmentConfig) -> float:
+        """Rounds of global BA -> complete and merge tracks -> filter -> re-triangulate, until fewer than
+        refinement_min_change of the observations changed. Returns the last BA's relative cost decrease."""
+        scene = self.scene
+        decrease = 0.0
+        for _ in range(self.mapper.refinement_max_rounds):
+            before = len(scene.used_observations())
+            result = scene.bundle_adjust(ba_config)
+            decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
+            changed = scene.complete_tracks(self.max_error) + scene.merge_tracks(self.max_error)
+            changed += scene.filter_points(self.max_error, self.min_angle)
+            changed += self.retriangulate()
+            self.refinement_rounds += 1
+            if changed <= self.mapper.refinement_min_change * max(before, 1):
+                break
+        return decrease
+
+    def final_bundle_adjustment(self) -> tuple[float, int]:
+        """Converged global BA (tight tolerance), filtering and adjusting again while the filter removes
+        observations. Returns (relative cost decrease of the last BA, its iterations)."""
+        ba = self.config.bundle_adjustment
+        final = ba.model_copy(
+            update={"relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol)}
+        )
+        decrease, iterations = 0.0, 0
+        for _ in range(FINAL_BA_ROUNDS):
+            result = self.scene.bundle_adjust(final)
+            decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
+            iterations = result.iterations
+            if self.scene.filter_points(self.max_error, self.min_angle) == 0:
+                break
+        return decrease, iterations
+
+    # -------------------------------------------------------------------------------------- loop
+
+    def grow(self, num_images: int, images_done: int) -> None:
+        """Register images until none more can be: each success triangulates and adjusts; a stall
+        relaxes the thresholds once (after a global refinement that may add 2D-3D correspondences)."""
+        last_global = len(self.scene.order)
+        while True:
+            registered = None
+            for image in self.next_images():
+                if self.progress:
+                    self.progress(
+                        f"register {self.tracks.image_names[image]}",
+                        min(0.9, 0.05 + 0.85 * (images_done + len(self.scene.order)) / num_images),
+                    )
+                with self.timer.stage("registration"):
+                    reason = self.register(image)
+                self.trials[image] += 1
+                if reason is None:
+                    registered = image
+                    self.failures.pop(image, None)
+                    break
+                self.failures[image] = reason
+            if registered is None:
+                if self.thresholds.relaxed or not (self.available & ~self.scene.registered).any():
+                    return
+                with self.timer.stage("global refinement"):
+                    self.global_refinement(self.config.bundle_adjustment)
+                self.thresholds.relax(self.mapper.relaxed_registration_factor)
+                self.trials[:] = 0
+                continue
+            with self.timer.stage("triangulation"):
+                self.triangulate_image(registered)
+            with self.timer.stage("local bundle adjustment"):
+                self.local_bundle_adjustment(registered)
+            if len(self.scene.order) >= self.mapper.global_ba_growth * last_global:
+                with self.timer.stage("global refinement"):
+                    self.global_refinement(self.config.bundle_adjustment)
+                last_global = len(self.scene.order)
+
+
+# ----------------------------------------------------------------------------------------------------
+
+
+def _sparse_model(
+    builder: _ModelBuilder, candidate: InitialPairCandidate, stats: ReconstructionStats
+) -> SparseModel:
+    scene, tracks = builder.scene, builder.tracks
+    used = scene.used_observations()
+    point_ids, obs_point = np.unique(scene.obs_point[used], return_inverse=True)
+    errors = scene.errors(used)
+    point_errors = np.bincount(obs_point, weights=errors, minlength=len(point_ids)) / np.maximum(
+        np.bincount(obs_point, minlength=len(point_ids)), 1
+    )
+    g = candidate.geometry
+    diagnostics = InitialPairDiagnostics(
+        i=g.i,
+        j=g.j,
+        uv_i=g.uv_i,
+        uv_j=g.uv_j,
+        inlier_mask=g.inlier_mask,
+        points_linear=candidate.points_linear,
+        points_nonlinear=candidate.points,
+        pose_i=CameraPose(R=np.eye(3), t=np.zeros(3)),
+        pose_j=candidate.pose_j,
+    )
+    track_ids = scene.point_track[point_ids]
+    return SparseModel(
+        image_names=list(tracks.image_names),
+        poses=scene.poses,
+        unregistered={},
+        points=scene.point_xyz[point_ids].copy(),
+        point_colors=tracks.colors[track_ids],
+        point_track_ids=track_ids,
+        obs_camera=tracks.image_index[used].copy(),
+        obs_point=obs_point,
+        obs_uv=scene.observed_uv[used].copy(),
+        point_errors=point_errors,
+        stats=stats,
+        initial_pair_diagnostics=diagnostics,
+        registration_order=list(scene.order),
+        cameras=list(scene.cameras),
+    )
+
+
+def _why_no_model(
+    tracks: Tracks,
+    pairs: list[tuple[int, int, int]],
+    failures: dict[tuple[int, int], str],
+    small_models: dict[tuple[int, int], str],
+) -> str:
+    """One line per image: why no model could start from (or hold) it."""
+    lines = []
+    for m, name in enumerate(tracks.image_names):
+        own = [(i, j, n) for i, j, n in pairs if m in (i, j)]
+        if not own:
+            lines.append(f"{name}: shares no track with any other image")
+            continue
+        i, j, n = max(own, key=lambda pair: pair[2])
+        reason = small_models.get((i, j)) or failures.get((i, j)) or "not tried"
+        lines.append(f"{name}: best pair {pair_name(tracks, i, j)} ({n} shared tracks): {reason}")
+    return "no model could be started:\n" + "\n".join(lines)
+
+
+def reconstruct_models(
+    tracks: Tracks,
+    camera: CameraInput,
+    config: ReconstructionConfig,
+    progress: ProgressCallback | None = None,
+    refine: IntrinsicsRefinement = IntrinsicsRefinement(),
+    pair_types: dict[tuple[int, int], str] | None = None,
+) -> list[SparseModel]:
+    """Every model incremental SfM can build from the tracks, largest first.
+
+    A model starts from the best initial pair among images no earlier model holds and grows until no
+    image registers; models under min_model_images are discarded (their pair is not tried again).
+    `pair_types` maps (i, j), i < j, to geometric verification's label; planar/panoramic pairs never start
+    a model. `camera` (a 3x3 K, a Camera, or one Camera per image) is every image's initial camera; each
+    global BA refines the intrinsics as `refine` says, and the models' `cameras` carry the result.
+    Raises DegenerateConfigurationError naming, per image, why no model could start.
+    """
+    num_images = len(tracks.image_names)
+    if num_images < 2:
+        raise InputError(f"Structure from Motion needs at least 2 images, got {num_images}")
+    first_camera = as_camera(camera) if is_shared(camera) else camera[0]
+    K = first_camera.pinhole().K
+    mapper = config.mapper
+    timer = _Timer()
+    pairs = co_visible_pairs(tracks)
+    pair_shared = {pair_name(tracks, i, j): n for i, j, n in pairs}
+    available = np.ones(num_images, bool)
+    failures: dict[tuple[int, int], str] = {}
+    small_models: dict[tuple[int, int], str] = {}
+    min_images = min(mapper.min_model_images, num_images)
+    built: list[tuple[_ModelBuilder, SparseModel]] = []
+    while len(built) < mapper.max_models and available.sum() >= 2:
+        if progress:
+            progress("initial pair", 0.02 + 0.85 * (num_images - available.sum()) / num_images)
+        untried = [
+            (i, j, n)
+            for i, j, n in pairs
+            if available[i] and available[j] and (i, j) not in failures and (i, j) not in small_models
+        ]
+        with timer.stage("initial pair"):
+            choice = choose_initial_pair(K, tracks, untried, config, pair_types)
+        new_failures = {pair_name(tracks, *pair): reason for pair, reason in choice.failures.items()}
+        failures.update(choice.failures)
+        if choice.candidate is None:
+            break
+        candidate = choice.candidate
+        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress)
+        with timer.stage("initial pair"):
+            builder.initialize(candidate)
+        builder.grow(num_images, num_images - int(available.sum()))
+        pair = (candidate.geometry.i, candidate.geometry.j)
+        if len(builder.scene.order) < min_images:
+            small_models[pair] = (
+                f"the model it started could register only {len(builder.scene.order)} "
+                f"images (need {min_images}, min_model_images)"
+            )
+            continue
+        if progress:
+            progress(
+                "bundle adjustment",
+                min(
+                    0.9, 0.05 + 0.85 * (num_images - available.sum() + len(builder.scene.order)) / num_images
+                ),
+            )
+        before = summarize(builder.scene.errors(builder.scene.used_observations()))
+        with timer.stage("bundle adjustment"):
+            builder.global_refinement(config.bundle_adjustment)
+            decrease, iterations = builder.final_bundle_adjustment()
+        after = summarize(builder.scene.errors(builder.scene.used_observations()))
+        available[builder.scene.order] = False
+        stats = ReconstructionStats(
+            reprojection_before_ba=before,
+            reprojection_after_ba=after,
+            pair_shared_tracks=pair_shared,
+            initial_pair=(tracks.image_names[pair[0]], tracks.image_names[pair[1]]),
+            stage_seconds=timer.seconds,
+            initial_pair_median_angle_deg=candidate.median_angle_deg,
+            bundle_adjustment_iterations=iterations,
+            initial_pair_failures=new_failures,
+            refinement_rounds=builder.refinement_rounds,
+            relaxed_thresholds=builder.thresholds.relaxed,
+            final_cost_decrease=decrease,
+        )
+        built.append((builder, _sparse_model(builder, candidate, stats)))
+    if not built:
+        raise DegenerateConfigurationError(_why_no_model(tracks, pairs, failures, small_models))
+    if progress:
+        progress("done", 1.0)
+    built.sort(key=lambda item: -len(item[1].poses))
+    models = [model for _, model in built]
+    for builder, model in built:
+        for m in range(num_images):
+            if m in model.poses:
+                continue
+            holder = next((n for n, other in enumerate(models) if m in other.poses), None)
+            if holder is not None:
+                model.unregistered[m] = (
+                    f"registered in model {holder + 1} ({len(models[holder].poses)} images)"
+                )
+            else:
+                model.unregistered[m] = builder.failures.get(m) or next(
+                    (b.failures[m] for b, _ in built if m in b.failures), "shares no registered point"
+                )
+    return models
+
+
+def run_incremental(tracks: Tracks, camera: CameraInput, config: ReconstructionConfig,
+                    progress: ProgressCallback | None = None,
+                    refine: IntrinsicsRefinement = IntrinsicsRefinement()) -> SparseModel:
+    """The largest model of `reconstruct_models` (the others are named in its `unregistered` reasons)."""
+    return reconstruct_models(tracks, camera, config, progress, refine)[0]

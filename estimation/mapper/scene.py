@@ -1,0 +1,388 @@
+"""The model under construction: registered images, 3D points and the observations that support them.
+
+A `Scene` sits on the feature `Tracks` (the correspondence graph the matcher produced: a track is a set of
+keypoint observations linked by matches, at most one per image). A 3D point owns a subset of one track's
+observations; each observation belongs to at most one point (`obs_point`, -1 when it supports none). One
+track may be split into several points (observations that disagree), which `merge_tracks` joins again when
+one point explains them all, and `complete_tracks` continues a point into newly registered images, as
+COLMAP's IncrementalTriangulator does with its correspondence graph. Everything is vectorized over flat
+observation arrays; the named methods are the only way the mapper changes the scene.
+
+Intrinsics: every image has a `Camera` (distortion included), refined by the global BA. The minimal
+solvers and triangulation work with the pinhole `K` of the first camera on `tracks.uv`, the measured
+pixels `observed_uv` transferred through each image's current camera to K; reprojection errors, the
+filters and the BA use the measured pixels and the cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from estimation.config import BundleAdjustmentConfig
+from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared, transfer_pixels
+from estimation.geometry.triangulation import (
+    Observations,
+    observation_errors,
+    triangulate_nonlinear,
+    triangulate_ransac,
+    triangulation_angle_deg,
+)
+from estimation.types import CameraPose, Tracks
+
+if TYPE_CHECKING:  # GTSAM loads only when a bundle adjustment runs
+    from estimation.bundle_adjustment.factor_graph import BundleAdjustmentResult, IntrinsicsRefinement
+
+TWO_VIEW_ERROR_FACTOR = 0.5
+"""A two-view point is fitted to both rays, so each of its reprojection errors is about half the pair's
+epipolar distance: half the limit keeps two-view points as consistent as the pair's verification (and
+drops the wrong matches lying up to twice that far from the epipolar line, which nothing else can
+reveal; measured on synthetic rings, they were the largest error left)."""
+MAX_MERGE_ROUNDS = 3
+"""merge_tracks joins two points of a track per round; tracks split three ways or more need more rounds."""
+
+
+class Scene:
+    """Registered images (world-to-camera poses) and points over the observations of `tracks`."""
+
+    def __init__(self, tracks: Tracks, camera: CameraInput,
+                 refine: IntrinsicsRefinement | None = None) -> None:
+        num_images = len(tracks.image_names)
+        cameras = [as_camera(camera)] * num_images if is_shared(camera) else list(camera)
+        self.K = cameras[0].pinhole().K
+        self.refine = refine
+        self.observed_uv = tracks.uv
+        self.tracks = tracks
+        self.use_cameras(cameras)
+        self.R = np.full((num_images, 3, 3), np.nan)
+        self.t = np.full((num_images, 3), np.nan)
+        self.registered = np.zeros(num_images, bool)
+        self.order: list[int] = []
+        self.obs_point = np.full(len(tracks.track_index), -1, np.int64)
+        self.point_xyz = np.zeros((0, 3))
+        self.point_track = np.zeros(0, np.int64)
+        self.point_alive = np.zeros(0, bool)
+
+    # ------------------------------------------------------------------------------------------ images
+
+    def use_cameras(self, cameras: list[Camera]) -> None:
+        """Adopt new intrinsics per image: the working pixels follow them."""
+        self.cameras = cameras
+        source = Camera.take(cameras, self.tracks.image_index)
+        working = transfer_pixels(source, Camera.from_K(self.K), self.observed_uv)
+        self.tracks = replace(self.tracks, uv=working)
+
+    def pose(self, image: int) -> CameraPose:
+        return CameraPose(R=self.R[image].copy(), t=self.t[image].copy())
+
+    @property
+    def poses(self) -> dict[int, CameraPose]:
+        """Registered image -> pose, in registration order."""
+        return {m: self.pose(m) for m in self.order}
+
+    def register_image(self, image: int, pose: CameraPose) -> None:
+        if self.registered[image]:
+            raise ValueError(f"image {image} is already registered")
+        self.set_pose(image, pose)
+        self.registered[image] = True
+        self.order.append(image)
+
+    def set_pose(self, image: int, pose: CameraPose) -> None:
+        self.R[image], self.t[image] = pose.R, pose.t
+
+    def deregister_image(self, image: int) -> None:
+        """Forget the image's pose and every observation it contributes (points left with < 2 vanish)."""
+        in_image = np.flatnonzero((self.tracks.image_index == image) & (self.obs_point >= 0))
+        self.remove_observations(in_image)
+        self.registered[image] = False
+        self.R[image], self.t[image] = np.nan, np.nan
+        self.order.remove(image)
+
+    # ------------------------------------------------------------------------------------------ points
+
+    @property
+    def num_points(self) -> int:
+        return int(self.point_alive.sum())
+
+    def used_observations(self) -> np.ndarray:
+        return np.flatnonzero(self.obs_point >= 0)
+
+    def point_observation_counts(self) -> np.ndarray:
+        used = self.obs_point[self.obs_point >= 0]
+        return np.bincount(used, minlength=len(self.point_alive))
+
+    def add_points(self, xyz: np.ndarray, obs_ids: np.ndarray, new_point_of_obs: np.ndarray) -> np.ndarray:
+        """New points xyz (n, 3), observation obs_ids[k] supporting point new_point_of_obs[k] in [0, n).
+
+        Each observation must be free, in a registered image, and of the same track as its point's others.
+        Returns the new point ids.
+        """
+        obs_ids = np.asarray(obs_ids, np.int64)
+        self._check_free(obs_ids)
+        first = len(self.point_alive)
+        ids = first + np.arange(len(xyz))
+        track_of_point = np.full(len(xyz), -1, np.int64)
+        track_of_point[new_point_of_obs] = self.tracks.track_index[obs_ids]
+        if np.any(track_of_point[new_point_of_obs] != self.tracks.track_index[obs_ids]):
+            raise ValueError("a point's observations must all belong to one track")
+        self.point_xyz = np.concatenate([self.point_xyz, np.asarray(xyz, float).reshape(-1, 3)])
+        self.point_track = np.concatenate([self.point_track, track_of_point])
+        self.point_alive = np.concatenate([self.point_alive, np.ones(len(xyz), bool)])
+        self.obs_point[obs_ids] = ids[new_point_of_obs]
+        return ids
+
+    def add_observations(self, obs_ids: np.ndarray, point_ids: np.ndarray) -> None:
+        """Observation obs_ids[k] now supports the live point point_ids[k] (same track; free, registered)."""
+        obs_ids, point_ids = np.asarray(obs_ids, np.int64), np.asarray(point_ids, np.int64)
+        self._check_free(obs_ids)
+        if np.any(self.point_track[point_ids] != self.tracks.track_index[obs_ids]) or not np.all(
+            self.point_alive[point_ids]
+        ):
+            raise ValueError("an observation can only join a live point of its own track")
+        self.obs_point[obs_ids] = point_ids
+
+    def remove_observations(self, obs_ids: np.ndarray) -> None:
+        """The observations support no point any more; points left with fewer than two are deleted."""
+        obs_ids = np.asarray(obs_ids, np.int64)
+        touched = np.unique(self.obs_point[obs_ids])
+        self.obs_point[obs_ids] = -1
+        touched = touched[touched >= 0]
+        self.delete_points(touched[self.point_observation_counts()[touched] < 2])
+
+    def delete_points(self, point_ids: np.ndarray) -> None:
+        point_ids = np.asarray(point_ids, np.int64)
+        if len(point_ids) == 0:
+            return
+        self.point_alive[point_ids] = False
+        doomed = np.zeros(len(self.point_alive), bool)
+        doomed[point_ids] = True
+        self.obs_point[(self.obs_point >= 0) & doomed[np.maximum(self.obs_point, 0)]] = -1
+
+    def _check_free(self, obs_ids: np.ndarray) -> None:
+        if np.any(self.obs_point[obs_ids] >= 0):
+            raise ValueError("an observation already supports a point")
+        if not np.all(self.registered[self.tracks.image_index[obs_ids]]):
+            raise ValueError("only observations in registered images can support a point")
+
+    # ------------------------------------------------------------------------------------------ geometry
+
+    def observations(self, obs_ids: np.ndarray, point_index: np.ndarray, num_points: int) -> Observations:
+        """Flat Observations of the given track observations with their image's pose."""
+        images = self.tracks.image_index[obs_ids]
+        return Observations(
+            R=self.R[images],
+            t=self.t[images],
+            uv=self.tracks.uv[obs_ids],
+            point_index=point_index,
+            num_points=num_points,
+        )
+
+    def errors(self, obs_ids: np.ndarray, point_ids: np.ndarray | None = None) -> np.ndarray:
+        """Reprojection error (measured px through the image's camera, inf behind it) of each observation
+        against its point, or against point_ids[k] when given."""
+        obs_ids = np.asarray(obs_ids, np.int64)
+        points = self.obs_point[obs_ids] if point_ids is None else np.asarray(point_ids, np.int64)
+        obs = self.observations(obs_ids, points, len(self.point_alive))._replace(uv=self.observed_uv[obs_ids])
+        camera = Camera.take(self.cameras, self.tracks.image_index[obs_ids])
+        return observation_errors(camera, obs, self.point_xyz)
+
+    def triangulation_angles(self, point_ids: np.ndarray) -> np.ndarray:
+        """Largest angle (deg) between two viewing rays of each given point (point_ids sorted, unique)."""
+        point_ids = np.asarray(point_ids, np.int64)
+        used = self.used_observations()
+        used = used[np.isin(self.obs_point[used], point_ids)]
+        compact = np.searchsorted(point_ids, self.obs_point[used]) if len(point_ids) else used
+        images = self.tracks.image_index[used]
+        centers = -np.einsum("oji,oj->oi", self.R[images], self.t[images])
+        return triangulation_angle_deg(centers, compact, self.point_xyz[point_ids])
+
+    def visible_uv(self, image: int) -> np.ndarray:
+        """Pixels of the image's observations whose track has a live point (its 2D-3D candidates)."""
+        in_image = np.flatnonzero(self.tracks.image_index == image)
+        return self.tracks.uv[in_image[self._track_has_point()[self.tracks.track_index[in_image]]]]
+
+    def correspondences_2d3d(self, image: int) -> tuple[np.ndarray, np.ndarray]:
+        """(observation ids, point ids) of the image's observations whose track has a live point (for a
+        split track, its point with most observations)."""
+        in_image = np.flatnonzero(self.tracks.image_index == image)
+        point_of_track = self._main_point_of_track()
+        points = point_of_track[self.tracks.track_index[in_image]]
+        return in_image[points >= 0], points[points >= 0]
+
+    def _track_has_point(self) -> np.ndarray:
+        has = np.zeros(self.tracks.num_tracks, bool)
+        has[self.point_track[self.point_alive]] = True
+        return has
+
+    def _main_point_of_track(self) -> np.ndarray:
+        """Track -> its live point with most observations, -1 for none."""
+        alive = np.flatnonzero(self.point_alive)
+        counts = self.point_observation_counts()[alive]
+        ranked = alive[np.lexsort((-counts, self.point_track[alive]))]
+        point_of_track = np.full(self.tracks.num_tracks, -1, np.int64)
+        point_of_track[self.point_track[ranked[::-1]]] = ranked[::-1]  # the first of each track wins
+        return point_of_track
+
+    # ------------------------------------------------------------------------------------------ tracks
+
+    def triangulate_tracks(
+        self,
+        track_ids: np.ndarray,
+        max_error_px: float,
+        min_angle_deg: float,
+        hypotheses_per_point: int,
+        rng: np.random.Generator,
+    ) -> int:
+        """New points for the given tracks that have none yet, from their free observations in registered
+        images (robust two-view hypotheses, `triangulate_ransac`). Returns the number of points added."""
+        candidate = np.zeros(self.tracks.num_tracks, bool)
+        candidate[np.asarray(track_ids, np.int64)] = True
+        candidate &= ~self._track_has_point()
+        obs_ids = np.flatnonzero(
+            candidate[self.tracks.track_index]
+            & (self.obs_point < 0)
+            & self.registered[self.tracks.image_index]
+        )
+        tracks_of_obs, counts = np.unique(self.tracks.track_index[obs_ids], return_counts=True)
+        obs_ids = obs_ids[np.isin(self.tracks.track_index[obs_ids], tracks_of_obs[counts >= 2])]
+        if len(obs_ids) == 0:
+            return 0
+        track_list, point_index = np.unique(self.tracks.track_index[obs_ids], return_inverse=True)
+        result = triangulate_ransac(
+            self.K,
+            self.observations(obs_ids, point_index, len(track_list)),
+            max_error_px,
+            min_angle_deg,
+            hypotheses_per_point,
+            rng,
+        )
+        keep = result.inlier_mask
+        new_index = np.cumsum(result.valid) - 1
+        self.add_points(result.points[result.valid], obs_ids[keep], new_index[point_index[keep]])
+        return int(result.valid.sum())
+
+    def complete_tracks(self, max_error_px: float, point_ids: np.ndarray | None = None) -> int:
+        """Continue points into the free observations of their tracks in registered images that reproject
+        within max_error_px (to the closest point of the track). Returns the observations added."""
+        alive = np.flatnonzero(self.point_alive)
+        if point_ids is not None:
+            alive = np.intersect1d(alive, point_ids)
+        if len(alive) == 0:
+            return 0
+        alive = alive[np.argsort(self.point_track[alive], kind="stable")]
+        tracks_sorted = self.point_track[alive]
+        free = np.flatnonzero((self.obs_point < 0) & self.registered[self.tracks.image_index])
+        track_of_free = self.tracks.track_index[free]
+        begin = np.searchsorted(tracks_sorted, track_of_free, side="left")
+        end = np.searchsorted(tracks_sorted, track_of_free, side="right")
+        num_candidates = end - begin
+        if num_candidates.sum() == 0:
+            return 0
+        # One (observation, point) candidate per point of the observation's track.
+        cand_obs = np.repeat(free, num_candidates)
+        offsets = np.arange(num_candidates.sum()) - np.repeat(
+            np.cumsum(num_candidates) - num_candidates, num_candidates
+        )
+        cand_point = alive[np.repeat(begin, num_candidates) + offsets]
+        errors = self.errors(cand_obs, cand_point)
+        order = np.lexsort((errors, cand_obs))
+        first = np.concatenate([[True], cand_obs[order][1:] != cand_obs[order][:-1]])
+        best = order[first]
+        accept = best[errors[best] < max_error_px]
+        self.add_observations(cand_obs[accept], cand_point[accept])
+        return len(accept)
+
+    def merge_tracks(self, max_error_px: float) -> int:
+        """Join two points of one track when a single point, re-triangulated from both, explains every
+        observation of both within max_error_px. Returns the number of merges."""
+        merged = 0
+        for _ in range(MAX_MERGE_ROUNDS):
+            alive = np.flatnonzero(self.point_alive)
+            counts = self.point_observation_counts()
+            ranked = alive[np.lexsort((-counts[alive], self.point_track[alive]))]
+            same_track = self.point_track[ranked[1:]] == self.point_track[ranked[:-1]]
+            starts = np.concatenate([[True], ~same_track])  # first (largest) point of each track
+            keep_ids = ranked[:-1][same_track & starts[:-1]]
+            drop_ids = ranked[1:][same_track & starts[:-1]]
+            if len(keep_ids) == 0:
+                break
+            used = self.used_observations()
+            target = np.full(len(self.point_alive), -1, np.int64)
+            target[keep_ids], target[drop_ids] = np.arange(len(keep_ids)), np.arange(len(keep_ids))
+            involved = used[target[self.obs_point[used]] >= 0]
+            pair_index = target[self.obs_point[involved]]
+            obs = self.observations(involved, pair_index, len(keep_ids))
+            points = triangulate_nonlinear(self.K, obs, self.point_xyz[keep_ids]).points
+            worst = np.zeros(len(keep_ids))
+            np.maximum.at(worst, pair_index, observation_errors(self.K, obs, points))
+            ok = worst < max_error_px
+            if not ok.any():
+                break
+            self.point_xyz[keep_ids[ok]] = points[ok]
+            moving = involved[np.isin(self.obs_point[involved], drop_ids[ok])]
+            self.obs_point[moving] = keep_ids[target[self.obs_point[moving]]]
+            self.point_alive[drop_ids[ok]] = False
+            merged += int(ok.sum())
+        return merged
+
+    def filter_points(
+        self, max_error_px: float, min_angle_deg: float, point_ids: np.ndarray | None = None
+    ) -> int:
+        """Drop observations reprojecting beyond max_error_px (two-view points: TWO_VIEW_ERROR_FACTOR times
+        that) or behind their camera, then points with fewer than two observations or a triangulation
+        angle below min_angle_deg. Returns the number of observations removed."""
+        used = self.used_observations()
+        if point_ids is not None:
+            used = used[np.isin(self.obs_point[used], point_ids)]
+        before = len(self.used_observations())
+        two_view = self.point_observation_counts()[self.obs_point[used]] == 2
+        limit = np.where(two_view, TWO_VIEW_ERROR_FACTOR * max_error_px, max_error_px)
+        self.remove_observations(used[self.errors(used) > limit])
+        candidates = np.flatnonzero(self.point_alive)
+        if point_ids is not None:
+            candidates = np.intersect1d(candidates, point_ids)
+        self.delete_points(candidates[self.triangulation_angles(candidates) < min_angle_deg])
+        return before - len(self.used_observations())
+
+    # ------------------------------------------------------------------------------------------ BA
+
+    def bundle_adjust(
+        self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None
+    ) -> BundleAdjustmentResult:
+        """Global BA (variable_images None: first image fixed, scale by the second) or local BA of the
+        points seen by `variable_images`, with the other images that see them held fixed; both refine the
+        intrinsics as `refine` says (as COLMAP's local BA does) and the scene adopts them.
+
+        Returns the adjustment's result (costs, RMS, iterations); the scene holds the adjusted values.
+        """
+        from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement, bundle_adjust
+
+        used = self.used_observations()
+        images = self.tracks.image_index
+        cameras = list(self.order)
+        position = np.full(len(self.registered), -1, np.int64)
+        position[cameras] = np.arange(len(cameras))
+        fixed, scale_reference = [0], 1
+        refine = self.refine or IntrinsicsRefinement()
+        if variable_images is not None:
+            local_points = np.unique(self.obs_point[used[np.isin(images[used], variable_images)]])
+            used = used[np.isin(self.obs_point[used], local_points)]
+            outside = np.setdiff1d(np.unique(images[used]), variable_images)
+            if len(outside) >= 2:
+                fixed, scale_reference = position[outside].tolist(), None
+        point_ids, point_index = np.unique(self.obs_point[used], return_inverse=True)
+        result = bundle_adjust(
+            [self.cameras[m] for m in cameras], [self.pose(m) for m in cameras], self.point_xyz[point_ids],
+            position[images[used]], point_index, self.observed_uv[used], config, fixed_cameras=fixed,
+            scale_reference=scale_reference, refine=refine,
+        )
+        for m, pose in zip(cameras, result.poses, strict=True):
+            self.set_pose(m, pose)
+        self.point_xyz[point_ids] = result.points
+        if refine.refines(self.cameras[0].model):
+            refined = dict(zip(cameras, result.cameras, strict=True))
+            shared = None if refine.per_image else result.cameras[0]
+            self.use_cameras([refined.get(m, shared or camera) for m, camera in enumerate(self.cameras)])
+        return result

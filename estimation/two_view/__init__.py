@@ -1,0 +1,1 @@
+"""Two-view geometry: fundamental and essential matrices, relative pose and its chirality check."""

@@ -1,0 +1,221 @@
+"""Essential matrix: the minimal 5-point solver in RANSAC, or E = K^T F K from F (the seed's path);
+its four pose candidates and chirality disambiguation.
+
+The first camera is the world frame (R = I, C = 0); candidates are the second camera's pose.
+The 5-point solver is Stewenius' Groebner-basis formulation, batched over samples: E = x X + y Y + z Z + W
+in the null space of the five epipolar rows, det(E) = 0 and 2 E E^T E - tr(E E^T) E = 0 give ten cubics
+in (x, y, z), eliminated to the ten cubic monomials; the action matrix of x on the quotient basis of the
+ten monomials of degree <= 2 has the (up to ten) real solutions as eigenvectors.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from estimation.config import RansacConfig
+from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.ransac import ransac
+from estimation.geometry.triangulation import observations_for_pair, triangulate_linear
+from estimation.two_view.fundamental import eight_point, epipolar_rows, sampson_distance, sampson_residual
+from estimation.types import CameraPose
+
+W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+FIVE_POINT_SAMPLE = 5
+REAL_ROOT_TOLERANCE = 1e-9
+"""An eigenvalue of the action matrix is a real root when |imag| < this * (1 + |real|)."""
+
+
+class EssentialResult(NamedTuple):
+    """x2^T E x1 = 0 for the inliers (normalized coordinates x = K^-1 [u v 1])."""
+
+    E: np.ndarray                 # (3, 3), up to scale
+    inlier_mask: np.ndarray       # (N,) bool
+    sampson_px: np.ndarray        # (N,) Sampson distance in pixels under F = K2^-T E K1^-1
+    iterations: int
+
+
+def _monomials(max_degree: int) -> list[tuple[int, int, int]]:
+    """Exponents (i, j, k) of x^i y^j z^k with degree <= max_degree, highest degree first."""
+    return [(i, j, degree - i - j) for degree in range(max_degree, -1, -1)
+            for i in range(degree, -1, -1) for j in range(degree - i, -1, -1)]
+
+
+def _product_table(left: list, right: list, result: list) -> np.ndarray:
+    """T with (a (x) b) @ T = a * b for polynomials a, b, a * b given as coefficients on these monomials."""
+    position = {monomial: k for k, monomial in enumerate(result)}
+    table = np.zeros((len(left) * len(right), len(result)))
+    for a, left_monomial in enumerate(left):
+        for b, right_monomial in enumerate(right):
+            product = tuple(p + q for p, q in zip(left_monomial, right_monomial, strict=True))
+            table[a * len(right) + b, position[product]] = 1.0
+    return table
+
+
+LINEAR, QUADRATIC, CUBIC = _monomials(1), _monomials(2), _monomials(3)
+"""Monomial orders: LINEAR = (x, y, z, 1); CUBIC = the ten of degree 3, then QUADRATIC (quotient basis)."""
+LINEAR_TIMES_LINEAR = _product_table(LINEAR, LINEAR, QUADRATIC)
+QUADRATIC_TIMES_LINEAR = _product_table(QUADRATIC, LINEAR, CUBIC)
+X_TIMES_BASIS = [CUBIC.index((i + 1, j, k)) for i, j, k in CUBIC[10:]]
+"""Position in CUBIC of x * b for each basis monomial b = CUBIC[10:]."""
+
+
+def _poly_mul(a: np.ndarray, b: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """Coefficients of a * b (broadcast over leading axes)."""
+    outer = a[..., :, None] * b[..., None, :]
+    return outer.reshape(*outer.shape[:-2], -1) @ table
+
+
+def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """All real E with x2^T E x1 = 0, det E = 0, 2 E E^T E = tr(E E^T) E from samples (B, 5, 2) of
+    normalized coordinates; returns (M, 3, 3) unit-norm matrices, M <= 10 B."""
+    num = len(x1)
+    rows = epipolar_rows(x1, x2)
+    # Null space of the five rows: the eigenvectors of A^T A with the four smallest eigenvalues.
+    null_space = np.swapaxes(np.linalg.eigh(np.swapaxes(rows, -1, -2) @ rows)[1][..., :4], -1, -2)
+    E = np.moveaxis(null_space, 1, -1).reshape(num, 3, 3, 4)      # entries linear in (x, y, z, 1)
+    EEt = _poly_mul(E[:, :, None], E[:, None], LINEAR_TIMES_LINEAR).sum(axis=3)
+    trace = np.trace(EEt, axis1=1, axis2=2)
+    EEtE = _poly_mul(EEt[:, :, None], np.swapaxes(E, 1, 2)[:, None], QUADRATIC_TIMES_LINEAR).sum(axis=3)
+    trace_constraints = 2.0 * EEtE - _poly_mul(trace[:, None, None], E, QUADRATIC_TIMES_LINEAR)
+    minors = (_poly_mul(E[:, 1, [1, 0, 0]], E[:, 2, [2, 2, 1]], LINEAR_TIMES_LINEAR)
+              - _poly_mul(E[:, 1, [2, 2, 1]], E[:, 2, [1, 0, 0]], LINEAR_TIMES_LINEAR))
+    determinant = np.einsum("k,bkc->bc", [1.0, -1.0, 1.0], _poly_mul(minors, E[:, 0], QUADRATIC_TIMES_LINEAR))
+    constraints = np.concatenate([trace_constraints.reshape(num, 9, 20), determinant[:, None]], axis=1)
+    finite = np.isfinite(constraints).all(axis=(1, 2)) & (np.abs(np.linalg.det(constraints[:, :, :10])) > 0)
+    constraints, null_space = constraints[finite], null_space[finite]
+    # Gauss-Jordan on the cubic monomials: cubic_r = -reduced[r] . basis.
+    reduced = np.linalg.solve(constraints[:, :, :10], constraints[:, :, 10:])
+    action = np.zeros((len(reduced), 10, 10))
+    for row, target in enumerate(X_TIMES_BASIS):
+        if target < 10:
+            action[:, row] = -reduced[:, target]
+        else:
+            action[:, row, target - 10] = 1.0
+    values, vectors = np.linalg.eig(action)
+    real = np.abs(values.imag) < REAL_ROOT_TOLERANCE * (1.0 + np.abs(values.real))
+    vectors = vectors.real
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xyz1 = vectors[:, 6:10] / vectors[:, 9:10]            # basis rows 6..9 are x, y, z, 1
+    solutions = np.einsum("bks,bkj->bsj", xyz1, null_space).reshape(-1, 10, 3, 3)[real]
+    solutions = solutions[np.isfinite(solutions).all(axis=(1, 2))]
+    return solutions / np.linalg.norm(solutions, axis=(1, 2), keepdims=True)
+
+
+def to_normalized(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """x = K^-1 [u v 1] (dehomogenized), for points (..., 2)."""
+    return (uv - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T
+
+
+def fundamental_from_essential(E: np.ndarray, K1: np.ndarray, K2: np.ndarray) -> np.ndarray:
+    """F = K2^-T E K1^-1 (batched over E)."""
+    return np.linalg.inv(K2).T @ E @ np.linalg.inv(K1)
+
+
+def project_to_essential(E: np.ndarray) -> np.ndarray:
+    """The closest essential matrix up to scale: singular values replaced by (1, 1, 0)."""
+    U, _, Vt = np.linalg.svd(E)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+class RelativePose(NamedTuple):
+    """Second camera's pose relative to the first (R = I, C = 0), with the linear points it implies."""
+
+    pose: CameraPose
+    points: np.ndarray          # (N, 3) linear triangulation under `pose`
+    in_front: np.ndarray        # (N,) bool: r3 . (X - C) > 0 in both cameras
+    candidate_scores: list[int]  # points in front of both cameras, per candidate
+
+
+def essential_from_fundamental(F: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """E = K^T F K with its singular values projected to (1, 1, 0)."""
+    return project_to_essential(K.T @ F @ K)
+
+
+def pose_candidates(E: np.ndarray) -> list[CameraPose]:
+    """The four (R, C) with E ~ [t]x R: R in {U W V^T, U W^T V^T}, t = +-u3, C = -R^T t (det R = +1)."""
+    U, _, Vt = np.linalg.svd(E)
+    candidates = []
+    for R in (U @ W @ Vt, U @ W.T @ Vt):
+        # E and -E describe the same geometry: flip to a proper rotation.
+        R = R * np.sign(np.linalg.det(R))
+        for t in (U[:, 2], -U[:, 2]):
+            candidates.append(CameraPose(R=R, t=t.copy()))
+    return candidates
+
+
+def in_front_of_both(pose: CameraPose, points: np.ndarray) -> np.ndarray:
+    """Chirality: r3 . (X - C) > 0 for the second camera and X_z > 0 for the first (R = I, C = 0)."""
+    return (points[:, 2] > 0) & ((points - pose.center) @ pose.R[2] > 0)
+
+
+def choose_relative_pose(E: np.ndarray, K: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> RelativePose:
+    """The candidate putting most linearly triangulated points in front of both cameras."""
+    if len(uv1) < 1:
+        raise DegenerateConfigurationError("no correspondences to disambiguate the relative pose with")
+    best: RelativePose | None = None
+    scores: list[int] = []
+    for candidate in pose_candidates(E):
+        obs = observations_for_pair(np.eye(3), np.zeros(3), candidate.R, candidate.t, uv1, uv2)
+        points = triangulate_linear(K, obs).points
+        in_front = in_front_of_both(candidate, points)
+        scores.append(int(in_front.sum()))
+        if best is None or scores[-1] > best.in_front.sum():
+            best = RelativePose(pose=candidate, points=points, in_front=in_front, candidate_scores=[])
+    return best._replace(candidate_scores=scores)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x with [v]x w = v x w."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.ndarray
+                     ) -> np.ndarray:
+    """min over E = [t]x exp([w]x) R0 of sum r_i^2, r_i the Sampson residual of F = K2^-T E K1^-1 in pixels
+    (Levenberg-Marquardt on w and t, ||t|| fixed by normalization inside the residual)."""
+    start = pose_candidates(E)[0]          # any of the four factorizations E ~ [t]x R
+    K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
+
+    def essential_of(params: np.ndarray) -> np.ndarray:
+        # cv2.Rodrigues: exp([w]x), a few microseconds (this runs ~100 times per pair).
+        return skew(params[3:] / np.linalg.norm(params[3:])) @ cv2.Rodrigues(params[:3])[0] @ start.R
+
+    def residuals(params: np.ndarray) -> np.ndarray:
+        return sampson_residual(K2_inv_T @ essential_of(params) @ K1_inv, uv1, uv2)
+
+    # A relative cost change of 1e-6 moves the pose by far less than the pixel noise: stop there.
+    solution = least_squares(residuals, np.concatenate([np.zeros(3), start.t]), method="lm", ftol=1e-6,
+                             xtol=1e-6)
+    return essential_of(solution.x)
+
+
+def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold_px: float,
+                     config: RansacConfig) -> EssentialResult:
+    """E maximizing #{Sampson distance of F = K2^-T E K1^-1 < threshold_px}: minimal 5-point samples in the
+    RANSAC driver, each new best E re-fitted by the 8-point algorithm on its normalized inliers (LO), and
+    the final E polished by `refine_essential` on its inliers."""
+    uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
+
+    def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
+        return five_point_essential(to_normalized(K1, sample1), to_normalized(K2, sample2))
+
+    def residuals(E: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
+        return sampson_distance(fundamental_from_essential(E, K1, K2), points1, points2)
+
+    def refit(inliers1: np.ndarray, inliers2: np.ndarray) -> np.ndarray:
+        E = eight_point(to_normalized(K1, inliers1), to_normalized(K2, inliers2))
+        return project_to_essential(E)[None]
+
+    result = ransac((uv1, uv2), minimal, FIVE_POINT_SAMPLE, residuals, threshold_px, config, refit=refit,
+                    model_name="essential matrix")
+    inliers = result.inlier_mask
+    E = refine_essential(result.model, uv1[inliers], uv2[inliers], K1, K2)
+    distance = residuals(E[None], uv1, uv2)[0]
+    if (distance < threshold_px).sum() < inliers.sum():       # the polish may not lose consensus
+        E, distance = result.model, result.residuals
+    return EssentialResult(E=E, inlier_mask=distance < threshold_px, sampson_px=distance,
+                           iterations=result.iterations)

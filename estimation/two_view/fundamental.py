@@ -1,0 +1,122 @@
+"""Fundamental matrix: Hartley-normalized 8-point algorithm inside the RANSAC driver (Sampson distance)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from estimation.config import RansacConfig
+from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.linalg import null_vector
+from estimation.geometry.ransac import ransac
+
+MIN_CORRESPONDENCES = 8
+
+
+class Normalization(NamedTuple):
+    """x_n = T x: centroid at the origin, mean distance sqrt(2) (Hartley)."""
+
+    points: np.ndarray   # (N, 2) normalized
+    T: np.ndarray        # (3, 3)
+
+
+class FundamentalResult(NamedTuple):
+    """x2^T F x1 = 0 for the inliers (pixel coordinates)."""
+
+    F: np.ndarray                 # (3, 3), rank 2, ||F|| = 1
+    inlier_mask: np.ndarray       # (N,) bool
+    sampson_px: np.ndarray        # (N,) Sampson distance of every correspondence under F
+    iterations: int
+
+
+def hartley_normalization(uv: np.ndarray) -> Normalization:
+    """T = [[s, 0, -s mx], [0, s, -s my], [0, 0, 1]] with s = sqrt(2) / mean ||uv - m||."""
+    mean = uv.mean(axis=0)
+    spread = np.linalg.norm(uv - mean, axis=1).mean()
+    s = np.sqrt(2.0) / max(spread, 1e-12)
+    T = np.array([[s, 0.0, -s * mean[0]], [0.0, s, -s * mean[1]], [0.0, 0.0, 1.0]])
+    return Normalization(points=(uv - mean) * s, T=T)
+
+
+def epipolar_rows(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Rows of A f = 0 from x2^T F x1 = 0, for points (..., 2): (..., 9)."""
+    u1, v1, u2, v2 = x1[..., 0], x1[..., 1], x2[..., 0], x2[..., 1]
+    one = np.ones_like(u1)
+    return np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, one], axis=-1)
+
+
+def _enforce_rank_two(F: np.ndarray) -> np.ndarray:
+    """Closest rank-2 matrix in Frobenius norm: zero the smallest singular value (batched)."""
+    U, S, Vt = np.linalg.svd(F)
+    S[..., 2] = 0.0
+    return U @ (S[..., :, None] * Vt)
+
+
+def _eight_point_normalized(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """min ||A f|| s.t. ||f|| = 1 on (N, 2) normalized points (last right singular vector), then rank 2."""
+    F = null_vector(epipolar_rows(x1, x2)).reshape(3, 3)
+    return _enforce_rank_two(F)
+
+
+def _eight_point_minimal(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Batched minimal samples (B, 8, 2): f = null vector of A via eigh(A^T A) (faster than SVD), rank 2."""
+    A = epipolar_rows(x1, x2)
+    f = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)[1][..., :, 0]
+    return _enforce_rank_two(f.reshape(-1, 3, 3))
+
+
+def _denormalize(F_n: np.ndarray, T1: np.ndarray, T2: np.ndarray) -> np.ndarray:
+    """F = T2^T F_n T1, scaled to unit Frobenius norm (batched)."""
+    F = T2.T @ F_n @ T1
+    return F / np.linalg.norm(F, axis=(-2, -1), keepdims=True)
+
+
+def eight_point(uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """Normalized 8-point: F = T2^T F_n T1 with F_n = argmin ||A f||, rank 2 by SVD (N >= 8 points)."""
+    if len(uv1) < MIN_CORRESPONDENCES:
+        raise DegenerateConfigurationError(
+            f"the 8-point algorithm needs at least {MIN_CORRESPONDENCES} correspondences, got {len(uv1)}"
+        )
+    n1, n2 = hartley_normalization(uv1), hartley_normalization(uv2)
+    return _denormalize(_eight_point_normalized(n1.points, n2.points), n1.T, n2.T)
+
+
+def sampson_residual(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """r = x2^T F x1 / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2): signed, in pixels.
+
+    F may be batched (B, 3, 3); the result is then (B, N).
+    """
+    Fx1 = uv1 @ np.swapaxes(F[..., :, :2], -1, -2) + F[..., None, :, 2]     # (..., N, 3): F [u1 v1 1]^T
+    Ftx2 = uv2 @ F[..., :2, :] + F[..., None, 2, :]                          # F^T [u2 v2 1]^T
+    algebraic = (Fx1[..., :2] * uv2).sum(axis=-1) + Fx1[..., 2]
+    gradient_sq = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
+    return algebraic / np.sqrt(np.maximum(gradient_sq, 1e-300))
+
+
+def sampson_distance(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
+    """d = |sampson_residual|: first-order distance of (x1, x2) to the epipolar variety, in pixels."""
+    return np.abs(sampson_residual(F, uv1, uv2))
+
+
+def ransac_fundamental(uv1: np.ndarray, uv2: np.ndarray, config: RansacConfig) -> FundamentalResult:
+    """F maximizing #{Sampson distance < threshold_px}: minimal 8-point samples in the RANSAC driver,
+    each new best F re-fitted by the normalized 8-point on its inliers (LO-RANSAC)."""
+    uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
+    if len(uv1) < MIN_CORRESPONDENCES:
+        raise DegenerateConfigurationError(
+            f"a fundamental matrix needs at least {MIN_CORRESPONDENCES} correspondences, got {len(uv1)}"
+        )
+    # One normalization of all points serves every minimal sample.
+    T1, T2 = hartley_normalization(uv1).T, hartley_normalization(uv2).T
+
+    def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
+        x1 = sample1 @ T1[:2, :2].T + T1[:2, 2]
+        x2 = sample2 @ T2[:2, :2].T + T2[:2, 2]
+        return _denormalize(_eight_point_minimal(x1, x2), T1, T2)
+
+    result = ransac((uv1, uv2), minimal, MIN_CORRESPONDENCES, sampson_distance, config.threshold_px, config,
+                    refit=lambda inliers1, inliers2: eight_point(inliers1, inliers2)[None],
+                    model_name="fundamental matrix")
+    return FundamentalResult(F=result.model, inlier_mask=result.inlier_mask, sampson_px=result.residuals,
+                             iterations=result.iterations)

@@ -1,0 +1,140 @@
+"""Geometric verification of an image pair: E (5-point, or from the 8-point F), F and H in RANSAC, and the
+pair's two-view geometry type as COLMAP labels it, so that planar and pure-rotation pairs do not start a
+model.
+
+The decision (COLMAP's EstimateCalibratedTwoViewGeometry): fewer than min_inliers F inliers is
+degenerate; E is trusted when K is known and E explains almost all of F's inliers (min_e_f_inlier_ratio),
+F otherwise. When H explains most of those inliers (max_h_inlier_ratio) the pair is planar or a pure
+rotation; with K, the two are told apart by H's normalized singular values (baseline over plane distance
+below max_rotation_translation: panoramic).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from estimation.config import RansacConfig, TwoViewConfig
+from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.ransac import required_iterations
+from estimation.two_view.essential import (
+    FIVE_POINT_SAMPLE,
+    fundamental_from_essential,
+    project_to_essential,
+    ransac_essential,
+)
+from estimation.two_view.fundamental import ransac_fundamental, sampson_distance
+from estimation.two_view.homography import MIN_CORRESPONDENCES as H_SAMPLE
+from estimation.two_view.homography import homography_translation, ransac_homography
+
+
+class TwoViewGeometryType(StrEnum):
+    """COLMAP's two-view geometry configurations."""
+
+    CALIBRATED = "calibrated"                    # E with general motion and 3D structure
+    UNCALIBRATED = "uncalibrated"                # F with general motion and 3D structure
+    PLANAR = "planar"                            # H of a scene plane seen from two centres
+    PANORAMIC = "panoramic"                      # H of a pure rotation (no baseline)
+    PLANAR_OR_PANORAMIC = "planar_or_panoramic"  # H without K: the two cannot be told apart
+    DEGENERATE = "degenerate"                    # too few inliers for any model
+
+
+INITIALIZABLE = (TwoViewGeometryType.CALIBRATED, TwoViewGeometryType.UNCALIBRATED)
+
+
+@dataclass(frozen=True)
+class TwoViewGeometry:
+    """The verified geometry of one pair; `inlier_mask` is the inliers of the model the type rests on
+    (E when calibrated or planar/panoramic with K, F when uncalibrated, H when only H fits)."""
+
+    type: TwoViewGeometryType
+    inlier_mask: np.ndarray          # (N,) bool
+    F: np.ndarray | None             # pixel coordinates: x2^T F x1 = 0
+    E: np.ndarray | None             # normalized coordinates (K known)
+    H: np.ndarray | None             # pixel coordinates: x2 ~ H x1
+    num_inliers_f: int
+    num_inliers_e: int
+    num_inliers_h: int
+
+    @property
+    def num_inliers(self) -> int:
+        return int(self.inlier_mask.sum())
+
+    @property
+    def h_e_inlier_ratio(self) -> float:
+        """H inliers over E inliers (over F inliers without K): near 1 for planar or rotating pairs."""
+        reference = self.num_inliers_e if self.E is not None else self.num_inliers_f
+        return self.num_inliers_h / reference if reference else 0.0
+
+    @property
+    def can_initialize(self) -> bool:
+        """General motion with 3D structure: a pair a model may start from."""
+        return self.type in INITIALIZABLE
+
+
+def _robust(estimate, *args):
+    """The estimator's result, or None when RANSAC finds no model."""
+    try:
+        return estimate(*args)
+    except DegenerateConfigurationError:
+        return None
+
+
+def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray | None, K2: np.ndarray | None,
+                               config: TwoViewConfig, ransac: RansacConfig) -> TwoViewGeometry:
+    """F (8-point), E (5-point, or E = K^T F K under relative_pose "eight-point"; only with K) and H
+    (4-point) in RANSAC at max_error_px, and the pair's type from their inlier counts."""
+    uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
+    threshold = config.max_error_px
+    ransac = ransac.model_copy(update={"threshold_px": threshold})
+    calibrated = K1 is not None and K2 is not None
+    none = np.zeros(len(uv1), bool)
+
+    fundamental = _robust(ransac_fundamental, uv1, uv2, ransac)
+    if fundamental is None or fundamental.inlier_mask.sum() < config.min_inliers:
+        # Every pair that E or H explains satisfies an F too: too few F inliers leave too few for them.
+        return TwoViewGeometry(type=TwoViewGeometryType.DEGENERATE, inlier_mask=none,
+                               F=fundamental.F if fundamental else None, E=None, H=None,
+                               num_inliers_f=int(fundamental.inlier_mask.sum()) if fundamental else 0,
+                               num_inliers_e=0, num_inliers_h=0)
+    F, f_mask = fundamental.F, fundamental.inlier_mask
+    num_f = int(f_mask.sum())
+
+    def searching_for(share: float, sample_size: int) -> RansacConfig:
+        """The RANSAC settings that find, with the configured confidence, a model explaining `share` of
+        the matches: a model needs that many inliers to change the decision, so no more samples."""
+        needed = required_iterations(min(share, 1.0), sample_size, ransac.confidence, ransac.max_iterations)
+        return ransac.model_copy(update={"max_iterations": needed})
+
+    E, e_mask, H, h_mask = None, none, None, none
+    if calibrated and config.relative_pose == "five-point":
+        essential = _robust(ransac_essential, uv1, uv2, K1, K2, threshold,
+                            searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE))
+        if essential is not None:
+            E, e_mask = essential.E, essential.inlier_mask
+    elif calibrated:
+        E = project_to_essential(K2.T @ F @ K1)        # the seed's E = K^T F K
+        e_mask = sampson_distance(fundamental_from_essential(E, K1, K2), uv1, uv2) < threshold
+    num_e = int(e_mask.sum())
+    use_e = E is not None and num_e >= config.min_inliers and num_e >= config.min_e_f_inlier_ratio * num_f
+    num_reference = num_e if use_e else num_f
+    homography = _robust(ransac_homography, uv1, uv2, threshold,
+                         searching_for(config.max_h_inlier_ratio * num_reference / len(uv1), H_SAMPLE))
+    if homography is not None:
+        H, h_mask = homography.H, homography.inlier_mask
+    num_h = int(h_mask.sum())
+
+    def result(type_: TwoViewGeometryType, mask: np.ndarray) -> TwoViewGeometry:
+        return TwoViewGeometry(type=type_, inlier_mask=mask, F=F, E=E, H=H, num_inliers_f=num_f,
+                               num_inliers_e=num_e, num_inliers_h=num_h)
+
+    if num_h > config.max_h_inlier_ratio * num_reference:
+        if not use_e:
+            return result(TwoViewGeometryType.PLANAR_OR_PANORAMIC, f_mask)
+        rotation = homography_translation(H, K1, K2) < config.max_rotation_translation
+        return result(TwoViewGeometryType.PANORAMIC if rotation else TwoViewGeometryType.PLANAR, e_mask)
+    if use_e:
+        return result(TwoViewGeometryType.CALIBRATED, e_mask)
+    return result(TwoViewGeometryType.UNCALIBRATED, f_mask)

@@ -1,0 +1,202 @@
+"""The heavy checks of an upload (decoding images, parsing match files, loading a dataset) in a child process.
+
+`check_isolated(check, arguments, settings)` runs `python -m service.validation CHECK` with the arguments as
+JSON on stdin; the child limits its own address space (SFMNERF_VALIDATION_MEMORY_BYTES) and Pillow's pixel
+limit (SFMNERF_MAX_IMAGE_PIXELS) before it reads anything, and prints its verdict as one JSON line. So a
+decompression bomb or a huge dataset costs the child its memory, never the API. `check_npz_headers` is
+the cheap part that stays in the API: the .npy headers inside an .npz, read before anything is inflated.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import resource
+import subprocess
+import sys
+import warnings
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
+from service.uploads import UploadRejected, decode_image, invalid, too_large, without_server_paths
+
+log = logging.getLogger(__name__)
+NPZ_MEMBER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}\.npy$")
+NPZ_HEADER_READERS = {
+    (1, 0): np.lib.format.read_array_header_1_0,
+    (2, 0): np.lib.format.read_array_header_2_0,
+}
+STDERR_TAIL_CHARS = 2000
+OUT_OF_MEMORY_EXIT = 3
+
+
+def check_npz_headers(path: Path, field: str, shown_name: str, settings: ServiceSettings) -> None:
+    """Member names, dtypes and shapes of an .npz from its zip directory and .npy headers only.
+
+    Refuses object arrays (pickles), arrays whose declared size exceeds the zip limit, and image stacks
+    whose images exceed the pixel limit, before any array data is decompressed.
+    """
+    try:
+        archive = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError) as error:
+        raise invalid(f"{field}: {shown_name} is not a valid .npz file ({error})") from None
+    with archive:
+        infos = archive.infolist()
+        if len(infos) > settings.max_zip_entries:
+            raise too_large(
+                f"{field}: {shown_name} holds {len(infos)} arrays, more than the limit "
+                f"SFMNERF_MAX_ZIP_ENTRIES={settings.max_zip_entries}"
+            )
+        total = 0
+        for info in infos:
+            if not NPZ_MEMBER.match(info.filename):
+                raise invalid(f"{field}: {shown_name} member {info.filename!r} is not a named .npy array")
+            shape, dtype = _npy_header(archive, info, field, shown_name)
+            what = f"{field}: {shown_name} array {info.filename.removesuffix('.npy')!r}"
+            if dtype.hasobject:
+                raise invalid(f"{what} holds Python objects; only numeric arrays are accepted")
+            total += math.prod(shape) * dtype.itemsize
+            if total > settings.max_zip_uncompressed_bytes:
+                raise too_large(
+                    f"{what} {shape} of {dtype} makes the arrays larger than the limit "
+                    f"SFMNERF_MAX_ZIP_UNCOMPRESSED_BYTES={settings.max_zip_uncompressed_bytes}"
+                )
+            if (
+                info.filename == "images.npy"
+                and len(shape) == 4
+                and shape[1] * shape[2] > settings.max_image_pixels
+            ):
+                raise too_large(
+                    f"{what}: images of {shape[2]}x{shape[1]} pixels, more than the limit "
+                    f"SFMNERF_MAX_IMAGE_PIXELS={settings.max_image_pixels}"
+                )
+
+
+def _npy_header(
+    archive: zipfile.ZipFile, info: zipfile.ZipInfo, field: str, shown_name: str
+) -> tuple[tuple[int, ...], np.dtype]:
+    try:
+        with archive.open(info) as member:
+            version = np.lib.format.read_magic(member)
+            reader = NPZ_HEADER_READERS.get(version)
+            if reader is None:
+                raise ValueError(f".npy format version {version} is not accepted")
+            shape, _fortran_order, dtype = reader(member)
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as error:
+        raise invalid(
+            f"{field}: {shown_name} member {info.filename!r} has no valid .npy header ({error})"
+        ) from None
+    return tuple(int(n) for n in shape), dtype
+
+
+# ---- the checks that run in the child ------------------------------------------------------------------
+
+
+def _check_dataset(arguments: dict[str, Any], settings: ServiceSettings) -> None:
+    """load_dataset on the extracted upload (or a reconstruction's output): every file and pose checked,
+    every file it names inside `within` (the job folder)."""
+    from PIL import Image
+
+    from neural.data import load_dataset
+    from neural.errors import DatasetError
+
+    field = arguments["field"]
+    try:
+        load_dataset(Path(arguments["path"]), within=Path(arguments["within"]))
+    except DatasetError as error:
+        if isinstance(error.__cause__, (Image.DecompressionBombError, Image.DecompressionBombWarning)):
+            raise too_large(f"{field}: {error} (SFMNERF_MAX_IMAGE_PIXELS)") from None
+        raise invalid(f"{field}: {error}") from None
+
+
+def _check_reconstruction_inputs(arguments: dict[str, Any], settings: ServiceSettings) -> None:
+    """Every image decoded and every match file parsed against the image ids and size."""
+    from estimation.errors import InputError
+    from estimation.io.matchfile import parse_match_file
+
+    folder = Path(arguments["folder"])
+    for name in arguments["images"]:
+        decode_image(folder / name, name)
+    for name, index in arguments["matches"]:
+        target = folder / name
+        try:
+            parse_match_file(
+                target, index, set(arguments["image_ids"]), arguments["width"], arguments["height"]
+            )
+        except InputError as error:
+            raise invalid(f"matches: {str(error).replace(str(target), name)}") from None
+
+
+CHECKS: dict[str, Callable[[dict[str, Any], ServiceSettings], None]] = {
+    "dataset": _check_dataset,
+    "reconstruction_inputs": _check_reconstruction_inputs,
+}
+
+
+def check_isolated(check: str, arguments: dict[str, Any], settings: ServiceSettings) -> None:
+    """Runs CHECKS[check] in a child process; raises its UploadRejected, or 413 when it ran out of memory
+    or time. `arguments["field"]` names the request field in those messages."""
+    field = arguments.get("field", "upload")
+    env = {k: v for k, v in os.environ.items() if k != "SFMNERF_API_TOKEN"}
+    env[WORKER_SETTINGS_ENV] = settings.to_worker_json()
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    try:
+        child = subprocess.run(
+            [sys.executable, "-m", "service.validation", check],
+            input=json.dumps(arguments),
+            capture_output=True,
+            text=True,
+            timeout=settings.validation_timeout_seconds,
+            env=env,
+            cwd=str(Path(__file__).resolve().parents[1]),
+        )
+    except subprocess.TimeoutExpired:
+        raise too_large(
+            f"{field}: checking the upload took longer than the limit "
+            f"SFMNERF_VALIDATION_TIMEOUT_SECONDS={settings.validation_timeout_seconds:g}"
+        ) from None
+    lines = child.stdout.strip().splitlines()
+    if child.returncode == 0 and lines:
+        verdict = json.loads(lines[-1])
+        if verdict["status"] == 200:
+            return
+        raise UploadRejected(verdict["status"], without_server_paths(verdict["detail"], settings))
+    log.error("validation %s exited with %s: %s", check, child.returncode, child.stderr[-STDERR_TAIL_CHARS:])
+    if child.returncode == OUT_OF_MEMORY_EXIT or child.returncode < 0:  # a signal: the kernel's OOM killer
+        raise too_large(
+            f"{field}: checking the upload needs more memory than the limit "
+            f"SFMNERF_VALIDATION_MEMORY_BYTES={settings.validation_memory_bytes}"
+        )
+    raise invalid(f"{field}: the upload could not be read")
+
+
+def main(check: str) -> int:
+    settings = ServiceSettings.model_validate_json(os.environ[WORKER_SETTINGS_ENV])
+    limit = settings.validation_memory_bytes
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    from PIL import Image
+
+    Image.MAX_IMAGE_PIXELS = settings.max_image_pixels
+    warnings.simplefilter("error", Image.DecompressionBombWarning)
+    arguments = json.loads(sys.stdin.read())
+    try:
+        CHECKS[check](arguments, settings)
+        verdict = {"status": 200}
+    except UploadRejected as rejected:
+        verdict = {"status": rejected.status_code, "detail": rejected.detail}
+    except MemoryError:
+        return OUT_OF_MEMORY_EXIT
+    print(json.dumps(verdict))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))

@@ -1,0 +1,322 @@
+"""Bundle adjustment against synthetic ground truth: convergence, gauge, robustness, local BA, bad input."""
+
+import gtsam
+import numpy as np
+import pytest
+
+from estimation.bundle_adjustment.factor_graph import (
+    IntrinsicsRefinement,
+    bundle_adjust,
+    camera_pose_from_gtsam,
+    camera_pose_to_gtsam,
+    camera_to_gtsam,
+    huber_cost,
+    reprojection_residuals,
+    rms,
+)
+from estimation.config import BundleAdjustmentConfig
+from estimation.errors import InputError
+from estimation.geometry.alignment import align_similarity, aligned_pose_errors
+from estimation.geometry.projection import Camera
+from estimation.synthetic import make_scene, project
+from estimation.types import CameraPose
+
+
+def perturbed(poses, points, rng, rotation_rad=0.02, center=0.1, point=0.05, keep=(0,)):
+    """Poses (except `keep`) and points moved by random rotations / offsets of the given sizes."""
+    moved = [
+        pose
+        if k in keep
+        else CameraPose.from_center(
+            gtsam.Rot3.Expmap(rng.normal(0, rotation_rad, 3)).matrix() @ pose.R,
+            pose.center + rng.normal(0, center, 3),
+        )
+        for k, pose in enumerate(poses)
+    ]
+    return moved, points + rng.normal(0, point, points.shape)
+
+
+def observations(scene):
+    return scene.tracks.image_index, scene.tracks.track_index, scene.tracks.uv
+
+
+def run(scene, poses, points, config=None, **kwargs):
+    return bundle_adjust(
+        scene.K, poses, points, *observations(scene), config or BundleAdjustmentConfig(), **kwargs
+    )
+
+
+def test_pose_conversion_to_gtsam_is_camera_to_world_and_round_trips():
+    scene = make_scene(num_cameras=3, num_points=20, seed=4)
+    pose = scene.poses[1]
+    pose3 = camera_pose_to_gtsam(pose)
+    np.testing.assert_allclose(pose3.translation(), pose.center, atol=1e-12)
+    back = camera_pose_from_gtsam(pose3)
+    np.testing.assert_allclose(back.R, pose.R, atol=1e-12)
+    np.testing.assert_allclose(back.t, pose.t, atol=1e-12)
+    camera = gtsam.PinholeCameraCal3_S2(pose3, gtsam.Cal3_S2(*scene.K[[0, 1, 0, 0, 1], [0, 1, 1, 2, 2]]))
+    ours = reprojection_residuals(
+        scene.K, [pose], scene.points[:1], np.array([0]), np.array([0]), np.zeros((1, 2))
+    )
+    np.testing.assert_allclose(camera.project(scene.points[0]), ours[0], atol=1e-9)
+
+
+def test_huber_cost_is_gtsams_robust_factor_error():
+    config = BundleAdjustmentConfig(huber_threshold_px=2.0, measurement_sigma_px=0.5)
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(config.huber_threshold_px / config.measurement_sigma_px),
+        gtsam.noiseModel.Isotropic.Sigma(2, config.measurement_sigma_px),
+    )
+    values = gtsam.Values()
+    values.insert(0, gtsam.Pose3())
+    values.insert(1, np.array([0.1, -0.2, 4.0]))
+    calibration = gtsam.Cal3_S2(500, 500, 0, 320, 240)
+    projected = gtsam.PinholeCameraCal3_S2(gtsam.Pose3(), calibration).project(np.array([0.1, -0.2, 4.0]))
+    for offset in ([0.3, -0.4], [3.0, 4.0]):  # inside and beyond the Huber threshold
+        factor = gtsam.GenericProjectionFactorCal3_S2(projected + offset, noise, 0, 1, calibration)
+        ours = huber_cost(np.array([offset]), config.huber_threshold_px, config.measurement_sigma_px)
+        assert factor.error(values) == pytest.approx(ours, rel=1e-9)
+
+
+def test_noise_free_scene_is_recovered_exactly_after_similarity_alignment():
+    scene = make_scene(num_cameras=5, num_points=200, seed=1)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(0))
+    result = run(scene, poses, points, BundleAdjustmentConfig(relative_error_tol=1e-12, max_iterations=50))
+    errors = aligned_pose_errors(result.poses, scene.poses)
+    assert errors.rotation_deg.max() < 1e-6
+    assert errors.center.max() < 1e-6 * scene.scene_size
+    assert result.final_rms_px < 1e-6 < 1.0 < result.initial_rms_px
+
+
+def test_perturbed_noisy_scene_converges_to_truth_and_noise_level():
+    scene = make_scene(num_cameras=6, num_points=400, noise_px=0.5, seed=2)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(1))
+    result = run(scene, poses, points)
+
+    errors = aligned_pose_errors(result.poses, scene.poses)
+    assert errors.rotation_deg.max() < 0.05
+    assert errors.center.max() < 1e-3 * scene.scene_size
+    similarity = align_similarity(
+        np.array([p.center for p in result.poses]), np.array([p.center for p in scene.poses])
+    )
+    point_errors = np.linalg.norm(similarity.apply_points(result.points) - scene.points, axis=1)
+    assert np.median(point_errors) < 2e-3 * scene.scene_size
+    # Least squares leaves residuals of the noise level shrunk by the fitted degrees of freedom:
+    # E[rms^2] = rms_truth^2 (1 - dof / #residuals), dof = 6 per free camera + 3 per point - 1 (scale).
+    rms_at_truth = rms(reprojection_residuals(scene.K, scene.poses, scene.points, *observations(scene)))
+    dof = 6 * (len(scene.poses) - 1) + 3 * len(scene.points) - 1
+    expected = rms_at_truth * np.sqrt(1 - dof / (2 * len(scene.tracks.uv)))
+    assert result.final_rms_px == pytest.approx(expected, rel=0.03)
+    assert result.initial_rms_px > 10 * result.final_rms_px
+    assert result.final_cost < result.initial_cost
+    assert result.iterations >= 1
+
+
+@pytest.mark.parametrize(
+    ("ordering", "linear_solver"),
+    [
+        ("colamd", "multifrontal_cholesky"),
+        ("metis", "sequential_cholesky"),
+        ("points_first", "multifrontal_qr"),
+    ],
+)
+def test_every_ordering_and_linear_solver_reaches_the_same_optimum(ordering, linear_solver):
+    scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    reference = run(scene, poses, points, BundleAdjustmentConfig(relative_error_tol=1e-10))
+    other = run(
+        scene,
+        poses,
+        points,
+        BundleAdjustmentConfig(relative_error_tol=1e-10, ordering=ordering, linear_solver=linear_solver),
+    )
+    assert other.final_cost == pytest.approx(reference.final_cost, rel=1e-6)
+    np.testing.assert_allclose(other.points, reference.points, atol=1e-6)
+
+
+def test_block_jacobi_pcg_reaches_the_direct_solvers_cost_within_a_thousandth():
+    scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    direct = run(scene, poses, points)
+    iterative = run(scene, poses, points, BundleAdjustmentConfig(linear_solver="pcg_block_jacobi"))
+    assert iterative.final_cost < 0.01 * iterative.initial_cost
+    assert iterative.final_cost == pytest.approx(direct.final_cost, rel=1e-3)
+
+
+def test_iteration_hook_sees_every_iteration_with_a_falling_error():
+    scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    calls = []
+    result = run(scene, poses, points, on_iteration=lambda iteration, error: calls.append((iteration, error)))
+    assert [iteration for iteration, _ in calls] == list(range(1, result.iterations + 1))
+    errors = [error for _, error in calls]
+    assert errors == sorted(errors, reverse=True)
+    # GTSAM's graph error is the robust cost plus the gauge priors, which stay almost satisfied.
+    assert errors[-1] == pytest.approx(result.final_cost, rel=1e-6)
+
+
+def test_gauge_first_camera_stays_put_and_scale_reference_distance_is_kept():
+    scene = make_scene(num_cameras=5, num_points=300, noise_px=1.0, seed=5)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3), keep=())
+    result = run(scene, poses, points, fixed_cameras=(2,), scale_reference=4)
+    np.testing.assert_allclose(result.poses[2].R, poses[2].R, atol=1e-9)
+    np.testing.assert_allclose(result.poses[2].t, poses[2].t, atol=1e-8)
+    distance = np.linalg.norm(poses[4].center - poses[2].center)
+    assert np.linalg.norm(result.poses[4].center - result.poses[2].center) == pytest.approx(
+        distance, rel=1e-6
+    )
+    assert not np.allclose(result.poses[4].center, poses[4].center, atol=1e-3)  # it did move otherwise
+
+
+def test_huber_loss_downweights_outliers():
+    scene = make_scene(num_cameras=6, num_points=300, noise_px=0.5, outlier_fraction=0.2, seed=6)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(4))
+    robust = run(scene, poses, points, BundleAdjustmentConfig(huber_threshold_px=2.0))
+    least_squares = run(scene, poses, points, BundleAdjustmentConfig(huber_threshold_px=1e4))
+
+    robust_errors = aligned_pose_errors(robust.poses, scene.poses)
+    plain_errors = aligned_pose_errors(least_squares.poses, scene.poses)
+    assert robust_errors.rotation_deg.max() < 0.5
+    assert robust_errors.center.max() < 5e-3 * scene.scene_size
+    assert robust_errors.center.max() < 0.05 * plain_errors.center.max()
+    inliers = scene.inlier_mask
+    residuals = reprojection_residuals(scene.K, robust.poses, robust.points, *observations(scene))
+    # Most inliers fit to the noise level (median of |N(0, 0.5^2 I_2)| is 0.59 px); a point whose track
+    # holds several outliers may still be off, so the median, not the RMS.
+    assert np.median(np.linalg.norm(residuals[inliers], axis=1)) < 0.8
+
+
+def test_local_bundle_adjustment_keeps_fixed_cameras_and_fixes_the_free_ones():
+    scene = make_scene(num_cameras=6, num_points=300, noise_px=0.3, seed=7)
+    fixed = (0, 1, 2, 3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(5), keep=fixed)
+    config = BundleAdjustmentConfig()
+    result = run(scene, poses, points, config, fixed_cameras=fixed, scale_reference=None)
+    for camera in fixed:  # held by a near-hard prior: they may move far less than its sigma
+        np.testing.assert_allclose(
+            result.poses[camera].R, scene.poses[camera].R, atol=0.1 * config.fixed_camera_sigma
+        )
+        np.testing.assert_allclose(
+            result.poses[camera].t, scene.poses[camera].t, atol=0.1 * config.fixed_camera_sigma
+        )
+    for camera in (4, 5):  # the fixed cameras carry the true gauge, so no alignment is needed
+        assert (
+            np.linalg.norm(result.poses[camera].center - scene.poses[camera].center) < 1e-3 * scene.scene_size
+        )
+
+
+def test_unobserved_points_and_cameras_are_returned_unchanged():
+    scene = make_scene(num_cameras=4, num_points=100, noise_px=0.5, seed=8)
+    image_index, track_index, uv = observations(scene)
+    keep = (track_index != 7) & (image_index != 3)
+    extra_pose = CameraPose.from_center(np.eye(3), np.array([0.0, 0.0, -9.0]))
+    poses = [*scene.poses[:3], extra_pose]
+    result = bundle_adjust(
+        scene.K, poses, scene.points, image_index[keep], track_index[keep], uv[keep], BundleAdjustmentConfig()
+    )
+    np.testing.assert_array_equal(result.points[7], scene.points[7])
+    np.testing.assert_array_equal(result.poses[3].t, extra_pose.t)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda a: {**a, "uv": a["uv"][:-1]}, "same number of observations"),
+        (lambda a: {**a, "camera_index": a["camera_index"] + 10}, "camera_index"),
+        (lambda a: {**a, "point_index": -a["point_index"] - 1}, "point_index"),
+        (lambda a: {**a, "points": a["points"][:, :2]}, "points must be"),
+        (lambda a: {**a, "fixed_cameras": ()}, "fixed_cameras"),
+        (lambda a: {**a, "scale_reference": 0}, "scale_reference"),
+        (lambda a: {**a, "camera": [a["camera"]] * 2}, "2 cameras for 3 poses"),
+        (lambda a: {**a, "camera": np.full((3, 3), np.nan)}, "intrinsics must be finite"),
+    ],
+)
+def test_bad_input_raises_input_error_naming_the_argument(change, message):
+    scene = make_scene(num_cameras=3, num_points=20, seed=9)
+    image_index, track_index, uv = observations(scene)
+    arguments = {
+        "camera": scene.K,
+        "poses": scene.poses,
+        "points": scene.points,
+        "camera_index": image_index,
+        "point_index": track_index,
+        "uv": uv,
+        "config": BundleAdjustmentConfig(),
+        "fixed_cameras": (0,),
+    }
+    with pytest.raises(InputError, match=message):
+        bundle_adjust(**change(arguments))
+
+
+# --- intrinsics -----------------------------------------------------------------------------------
+
+TRUE_RADIAL = Camera("radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.15, k2=0.02)
+
+
+def prior_camera(model, width=800, height=600):
+    """COLMAP's prior: focal 1.2 max(w, h), no distortion, principal point at the centre."""
+    focal = 1.2 * max(width, height)
+    return Camera(model, fx=focal, fy=focal, cx=400.0, cy=300.0)
+
+
+@pytest.mark.parametrize("model", ["simple-radial", "radial", "opencv"])
+def test_gtsam_calibrations_project_like_the_projection_module(model):
+    camera = TRUE_RADIAL.as_model(model)
+    scene = make_scene(num_cameras=2, num_points=30, seed=1, camera=camera)
+    pose = scene.poses[1]
+    gtsam_camera = (gtsam.PinholeCameraCal3Bundler if model != "opencv" else gtsam.PinholeCameraCal3DS2)(
+        camera_pose_to_gtsam(pose), camera_to_gtsam(camera))
+    ours = project(camera, pose, scene.points)
+    np.testing.assert_allclose([gtsam_camera.project(p) for p in scene.points], ours, atol=1e-8)
+
+
+@pytest.mark.parametrize(("model", "truth"), [("radial", TRUE_RADIAL),
+                                              ("simple-radial", TRUE_RADIAL.as_model("simple-radial"))])
+def test_shared_focal_and_distortion_are_recovered_from_the_prior(model, truth):
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(0))
+    result = bundle_adjust(prior_camera(model), poses, points, *observations(scene), BundleAdjustmentConfig(),
+                           refine=IntrinsicsRefinement(focal=True, distortion=True))
+    camera = result.cameras[0]
+    assert all(c is camera for c in result.cameras)                 # one shared calibration
+    assert camera.fx == pytest.approx(truth.fx, rel=0.005)
+    assert camera.k1 == pytest.approx(truth.k1, rel=0.10)
+    assert (camera.cx, camera.cy) == (400.0, 300.0)                 # the principal point is held
+    assert result.final_rms_px < 0.75                               # ~ the noise: sqrt(2) * 0.5 px
+    errors = aligned_pose_errors(result.poses, scene.poses)
+    assert errors.rotation_deg.max() < 0.1
+
+
+def test_per_image_calibrations_are_refined_separately():
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.3, seed=4, camera=TRUE_RADIAL)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(1))
+    start = [prior_camera("radial")] * 8
+    result = bundle_adjust(start, poses, points, *observations(scene), BundleAdjustmentConfig(),
+                           refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=True))
+    focals = np.array([c.fx for c in result.cameras])
+    assert len(set(focals.tolist())) == 8                            # eight calibration variables
+    np.testing.assert_allclose(focals, TRUE_RADIAL.fx, rtol=0.02)
+
+
+def test_fixed_intrinsics_stay_as_given_and_distorted_pixels_are_undistorted_first():
+    scene = make_scene(num_cameras=5, num_points=200, noise_px=0.0, seed=5, camera=TRUE_RADIAL)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    result = bundle_adjust(TRUE_RADIAL, poses, points, *observations(scene), BundleAdjustmentConfig())
+    assert result.cameras == [TRUE_RADIAL] * 5
+    assert result.final_rms_px < 1e-4
+    assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 1e-4
+
+
+def test_the_principal_point_is_refined_on_request_for_the_opencv_model():
+    truth = Camera("opencv", fx=600.0, fy=605.0, cx=390.0, cy=310.0, k1=-0.1, k2=0.01, p1=1e-3, p2=-1e-3)
+    scene = make_scene(num_cameras=10, num_points=500, noise_px=0.3, seed=6, camera=truth)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3))
+    refine = IntrinsicsRefinement(focal=True, distortion=True, principal_point=True)
+    result = bundle_adjust(prior_camera("opencv"), poses, points, *observations(scene),
+                           BundleAdjustmentConfig(), refine=refine)
+    camera = result.cameras[0]
+    assert np.hypot(camera.cx - truth.cx, camera.cy - truth.cy) < 3.0     # started 10.8 px away
+    assert camera.fx == pytest.approx(truth.fx, rel=0.01) and camera.fy == pytest.approx(truth.fy, rel=0.01)
+    with pytest.raises(InputError, match="principal point can be refined for the pinhole and opencv"):
+        bundle_adjust(prior_camera("radial"), poses, points, *observations(scene), BundleAdjustmentConfig(),
+                      refine=refine)

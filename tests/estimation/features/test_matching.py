@@ -1,0 +1,69 @@
+"""Batched descriptor matching: ratio test, mutual check, and agreement with brute force per pair."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from estimation.features.matching import DISTANCE_BLOCK_ELEMENTS, match_descriptors, match_pairs
+
+
+def unit(vector: np.ndarray) -> np.ndarray:
+    return (vector / np.linalg.norm(vector)).astype(np.float32)
+
+
+def test_the_ratio_test_drops_a_match_with_two_equally_close_candidates():
+    rng = np.random.default_rng(0)
+    a = np.stack([unit(rng.normal(size=128)) for _ in range(3)])
+    b = np.concatenate([a + 0.01, [a[0] + 0.012]]).astype(np.float32)   # a[0] has two near twins in b
+    matches = match_descriptors(a, b, ratio=0.8)
+    np.testing.assert_array_equal(matches.index_a, [1, 2])
+    np.testing.assert_array_equal(matches.index_b, [1, 2])
+    assert np.all(matches.ratio < 0.8)
+
+
+def test_the_mutual_check_keeps_only_the_match_both_sides_agree_on():
+    rng = np.random.default_rng(1)
+    base = unit(rng.normal(size=128))
+    far = [unit(rng.normal(size=128)) for _ in range(3)]
+    # a[0] and a[1] both have b[0] as their clear nearest neighbour; b[0]'s nearest is a[1].
+    a = np.stack([unit(base + 0.08 * far[0]), unit(base + 0.01 * far[1])])
+    b = np.stack([base, far[2]])
+    matches = match_descriptors(a, b, ratio=0.9)
+    np.testing.assert_array_equal(matches.index_a, [1])
+    np.testing.assert_array_equal(matches.index_b, [0])
+
+
+def test_too_few_descriptors_give_no_matches():
+    one, five = np.zeros((1, 128), np.float32), np.zeros((5, 128), np.float32)
+    assert len(match_descriptors(one, five, 0.8).ratio) == 0
+    assert len(match_descriptors(five, one, 0.8).ratio) == 0
+
+
+def brute_force(a: np.ndarray, b: np.ndarray, ratio: float) -> set[tuple[int, int]]:
+    """OpenCV's brute-force kNN with the same ratio test and cross check, as the reference."""
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    nearest_a_of_b = {m.queryIdx: m.trainIdx for m in matcher.match(b, a)}
+    return {(best.queryIdx, best.trainIdx) for best, second in matcher.knnMatch(a, b, k=2)
+            if best.distance < ratio * second.distance and nearest_a_of_b[best.trainIdx] == best.queryIdx}
+
+
+def test_batched_matching_of_many_pairs_equals_brute_force_pair_by_pair(monkeypatch):
+    rng = np.random.default_rng(2)
+    shared = rng.normal(size=(150, 128))
+    images = []
+    for count in (300, 180, 250, 2, 90):                       # uneven sizes: padding is exercised
+        rows = np.concatenate([shared[: min(count, 150)], rng.normal(size=(max(count - 150, 0), 128))])
+        noisy = rows + rng.normal(0, 0.3, rows.shape)
+        images.append(np.abs(noisy[rng.permutation(count)]).astype(np.float32))
+    pairs = [(i, j) for i in range(5) for j in range(i + 1, 5)]
+    # A small block forces several blocks of query rows per image.
+    monkeypatch.setattr("estimation.features.matching.DISTANCE_BLOCK_ELEMENTS", DISTANCE_BLOCK_ELEMENTS >> 8)
+    matches = match_pairs(images, pairs, ratio=0.8)
+    assert set(matches) == set(pairs)
+    for (i, j), result in matches.items():
+        found = set(zip(result.index_a.tolist(), result.index_b.tolist(), strict=True))
+        enough = min(len(images[i]), len(images[j])) >= 2
+        expected = brute_force(images[i], images[j], 0.8) if enough else set()
+        assert found == expected
+        assert len(expected) > 20 or 3 in (i, j)                  # image 3 has only two descriptors

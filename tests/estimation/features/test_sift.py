@@ -1,0 +1,122 @@
+"""SIFT features: RootSIFT, detection downscaled with keypoints mapped back, the feature budget, and
+tracks that agree with known geometry."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
+from estimation.errors import InputError
+from estimation.features.matching import match_descriptors
+from estimation.features.sift import detect_features, root_sift, sample_colors, sift_tracks
+from estimation.io.images import find_calibration, list_images, load_rgb
+from estimation.io.matchfile import load_match_tracks
+from estimation.two_view.geometry import TwoViewGeometryType
+
+
+def test_root_sift_is_the_l2_normalized_square_root_of_the_l1_normalized_descriptor():
+    raw = np.random.default_rng(0).integers(0, 256, (50, 128)).astype(np.float32)
+    descriptors = root_sift(raw)
+    np.testing.assert_allclose(np.linalg.norm(descriptors, axis=1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(descriptors**2, raw / raw.sum(axis=1, keepdims=True), rtol=1e-5)
+    # Hellinger: the dot product of RootSIFT is the Bhattacharyya coefficient of the L1-normalized SIFT.
+    p = raw / raw.sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(descriptors[0] @ descriptors[1], np.sqrt(p[0] * p[1]).sum(), rtol=1e-5)
+
+
+def textured_image(width: int, height: int, seed: int) -> np.ndarray:
+    texture = cv2.GaussianBlur(np.random.default_rng(seed).normal(size=(height, width)), (0, 0), 2.5)
+    gray = cv2.normalize(texture, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return np.repeat(gray[:, :, None], 3, axis=2)
+
+
+def test_keypoints_detected_downscaled_are_mapped_back_to_full_resolution_pixels():
+    small = textured_image(240, 180, seed=3)
+    large = cv2.resize(small, (720, 540), interpolation=cv2.INTER_CUBIC)    # the same view, 3x the pixels
+    reference = detect_features(small, SiftConfig(max_features=400))
+    mapped = detect_features(large, SiftConfig(max_features=400, max_image_side=240))
+    assert len(mapped.uv) > 100
+    assert mapped.uv.max() > 500                                # full-resolution pixel coordinates
+    expected = (reference.uv + 0.5) * 3 - 0.5                  # OpenCV convention: pixel centres at integers
+    distance = np.linalg.norm(mapped.uv[:, None] - expected[None], axis=2).min(axis=1)
+    assert np.median(distance) < 0.5                            # mapping uv * 3 instead would be 1 px off
+    assert np.mean(distance < 1.5) > 0.9
+    naive = np.linalg.norm(mapped.uv[:, None] - reference.uv[None] * 3, axis=2).min(axis=1)
+    assert np.median(naive) > np.median(distance) + 0.5
+
+
+def test_the_feature_budget_keeps_the_strongest_keypoints():
+    rgb = textured_image(320, 240, seed=4)
+    assert len(detect_features(rgb, SiftConfig(max_features=100)).uv) <= 100
+    assert len(detect_features(rgb, SiftConfig(max_features=5000)).uv) > 100
+
+
+def test_matches_between_an_image_and_its_warp_follow_the_homography(shared_data):
+    rgb = load_rgb(shared_data / "unity_hall" / "1.png")
+    angle, scale = np.deg2rad(10), 0.9
+    H = np.array([[scale * np.cos(angle), -scale * np.sin(angle), 60.0],
+                  [scale * np.sin(angle), scale * np.cos(angle), -20.0],
+                  [2e-5, 1e-5, 1.0]])
+    warped = cv2.warpPerspective(rgb, H, (rgb.shape[1], rgb.shape[0]))
+    config = SiftConfig(max_features=1500)
+    features_a, features_b = detect_features(rgb, config), detect_features(warped, config)
+    matches = match_descriptors(features_a.descriptors, features_b.descriptors, ratio=0.8)
+    assert len(matches.ratio) >= 200
+    mapped = cv2.perspectiveTransform(features_a.uv[matches.index_a][None], H)[0]
+    error = np.linalg.norm(mapped - features_b.uv[matches.index_b], axis=1)
+    assert np.mean(error < 2.0) > 0.95
+
+
+def test_colours_are_sampled_at_the_nearest_pixel_clamped_to_the_image():
+    rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
+    np.testing.assert_array_equal(sample_colors(rgb, np.array([[0.2, 0.6], [5.0, -1.0]])),
+                                  [rgb[1, 0], rgb[0, 2]])
+
+
+@pytest.fixture(scope="module")
+def unity_sift(shared_data):
+    images = list_images(shared_data / "unity_hall")
+    K = find_calibration(shared_data / "unity_hall")
+    return images, sift_tracks(images, SiftConfig(max_features=1500), TwoViewConfig(), RansacConfig(), K=K)
+
+
+def test_sift_tracks_on_unity_hall_are_multiview_and_consistent(unity_sift):
+    images, result = unity_sift
+    tracks = result.tracks
+    assert len(result.matches_per_pair) == 10                    # 5 images: all pairs
+    assert all(result.verified_per_pair[pair] <= n for pair, n in result.matches_per_pair.items())
+    # A general hall scene: verified pairs are calibrated, never planar or pure rotation.
+    assert {g.type for g in result.two_view.values()} == {TwoViewGeometryType.CALIBRATED}
+    lengths = np.bincount(tracks.track_index)
+    assert lengths.min() >= 2 and lengths.max() >= 4             # pairwise matches chained into tracks
+    keys = tracks.track_index * len(images) + tracks.image_index
+    assert np.unique(keys).size == keys.size                     # at most once per image
+    assert np.all((tracks.uv >= 0) & (tracks.uv <= [images.width, images.height]))
+    assert tracks.colors.dtype == np.uint8 and len(tracks.colors) == tracks.num_tracks
+
+
+def test_sift_correspondences_agree_with_the_course_matches_epipolar_geometry(shared_data, unity_sift):
+    images, result = unity_sift
+    course = load_match_tracks(images).tracks
+    for i, j in [(0, 1), (2, 3)]:
+        _, course_i, course_j = course.pair_correspondences(i, j)
+        F, _ = cv2.findFundamentalMat(course_i, course_j, cv2.FM_RANSAC, 1.0, 0.999)
+        _, uv_i, uv_j = result.tracks.pair_correspondences(i, j)
+        assert len(uv_i) >= 100
+        line_j = np.c_[uv_i, np.ones(len(uv_i))] @ F.T            # epipolar lines of uv_i in image j
+        residual = np.sum(line_j * np.c_[uv_j, np.ones(len(uv_j))], axis=1)
+        distance = np.abs(residual) / np.hypot(line_j[:, 0], line_j[:, 1])
+        # Random correspondences would lie within 3 px of the epipolar line a few percent of the time
+        # (the course's own matches of these pairs are 74 % and 86 % inliers at 1 px).
+        assert np.mean(distance < 3.0) > 0.9
+
+
+def test_images_without_any_common_features_are_an_input_error(tmp_path):
+    from PIL import Image
+
+    for index in (1, 2):
+        Image.fromarray(np.full((64, 64, 3), 40 * index, np.uint8)).save(tmp_path / f"{index}.png")
+    with pytest.raises(InputError, match="SIFT found no matches between any two images"):
+        sift_tracks(list_images(tmp_path), SiftConfig())

@@ -1,0 +1,85 @@
+"""Linear PnP (DLT), PnP RANSAC and non-linear PnP, against synthetic ground truth."""
+
+import numpy as np
+import pytest
+
+from estimation.config import RansacConfig
+from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.alignment import rotation_angle_deg
+from estimation.geometry.pnp import pnp_linear, pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.synthetic import make_scene, rotation_about_axis
+from estimation.types import CameraPose
+
+
+def correspondences(scene, image):
+    in_image = scene.tracks.image_index == image
+    return (scene.points[scene.tracks.track_index[in_image]], scene.tracks.uv[in_image],
+            scene.inlier_mask[in_image])
+
+
+def test_linear_pnp_is_exact_from_six_noise_free_correspondences():
+    scene = make_scene(num_points=6, seed=1)
+    points, uv, _ = correspondences(scene, 2)
+    pose = pnp_linear(scene.K, points, uv)
+    np.testing.assert_allclose(pose.R, scene.poses[2].R, atol=1e-9)
+    np.testing.assert_allclose(pose.t, scene.poses[2].t, atol=1e-9)
+
+
+def test_linear_pnp_returns_a_proper_rotation_under_noise():
+    scene = make_scene(num_points=50, noise_px=3.0, seed=2)
+    pose = pnp_linear(scene.K, *correspondences(scene, 1)[:2])
+    np.testing.assert_allclose(pose.R @ pose.R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(pose.R) == pytest.approx(1.0)
+    assert rotation_angle_deg(pose.R, scene.poses[1].R) < 2.0
+
+
+def test_fewer_than_six_correspondences_are_degenerate():
+    points, uv = np.zeros((5, 3)), np.zeros((5, 2))
+    for solve in (lambda: pnp_linear(np.eye(3), points, uv), lambda: pnp_ransac(np.eye(3), points, uv,
+                                                                                     RansacConfig())):
+        with pytest.raises(DegenerateConfigurationError, match="at least 6"):
+            solve()
+
+
+def test_ransac_pnp_under_noise_and_30_percent_outliers():
+    scene = make_scene(num_points=400, noise_px=0.5, outlier_fraction=0.3, seed=3)
+    for image in range(5):
+        points, uv, truly_inlier = correspondences(scene, image)
+        result = pnp_ransac(scene.K, points, uv, RansacConfig())
+        assert (result.inlier_mask & ~truly_inlier).sum() <= 2        # random pixels rarely land within 4 px
+        assert (result.inlier_mask & truly_inlier).sum() >= 0.98 * truly_inlier.sum()
+        truth = scene.poses[image]
+        assert rotation_angle_deg(result.pose.R, truth.R) < 0.5
+        assert np.linalg.norm(result.pose.center - truth.center) < 0.01 * scene.scene_size
+
+
+def test_nonlinear_pnp_reaches_the_noise_floor_and_beats_the_linear_pose():
+    scene = make_scene(num_points=400, noise_px=0.5, outlier_fraction=0.3, seed=4)
+    points, uv, truly_inlier = correspondences(scene, 3)
+    ransac = pnp_ransac(scene.K, points, uv, RansacConfig())
+    inliers = ransac.inlier_mask
+    refined = pnp_nonlinear(scene.K, points[inliers], uv[inliers], ransac.pose)
+    truth = scene.poses[3]
+    assert refined.final_rms_px < refined.initial_rms_px
+    assert refined.final_rms_px == pytest.approx(0.5 * np.sqrt(2), rel=0.15)   # 2D noise of 0.5 px per axis
+    assert rotation_angle_deg(refined.pose.R, truth.R) < 0.05
+    assert np.linalg.norm(refined.pose.center - truth.center) < 0.001 * scene.scene_size
+
+
+def test_nonlinear_pnp_recovers_a_perturbed_pose_exactly_without_noise():
+    scene = make_scene(num_points=100, seed=5)
+    points, uv, _ = correspondences(scene, 0)
+    truth = scene.poses[0]
+    start = CameraPose(R=rotation_about_axis(np.array([1.0, 1.0, 0.0]), 0.05) @ truth.R, t=truth.t + 0.1)
+    refined = pnp_nonlinear(scene.K, points, uv, start)
+    assert rotation_angle_deg(refined.pose.R, truth.R) < 1e-6
+    np.testing.assert_allclose(refined.pose.t, truth.t, atol=1e-6)
+    np.testing.assert_allclose(refined.pose.R @ refined.pose.R.T, np.eye(3), atol=1e-12)
+
+
+def test_reprojection_errors_are_infinite_behind_the_camera():
+    pose = CameraPose(R=np.eye(3), t=np.zeros(3))
+    errors = reprojection_errors(np.eye(3), pose.R, pose.t, np.array([[0.0, 0, 2], [0.0, 0, -2]]),
+                                 np.zeros((2, 2)))
+    assert errors[0] == 0.0
+    assert errors[1] == np.inf

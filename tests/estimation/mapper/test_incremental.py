@@ -1,0 +1,296 @@
+"""Incremental SfM end to end on synthetic scenes with known cameras (real data: tests of the API)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
+from estimation.config import ReconstructionConfig
+from estimation.errors import DegenerateConfigurationError, InputError
+from estimation.geometry.alignment import align_similarity, aligned_pose_errors
+from estimation.geometry.projection import Camera
+from estimation.mapper.incremental import SparseModel, reconstruct_models, run_incremental
+from estimation.synthetic import make_object_scene, make_scene, observe, rotation_about_axis
+from estimation.types import CameraPose, Tracks
+
+CONFIG = ReconstructionConfig()
+
+
+def reconstruct(tracks: Tracks, scene, config=CONFIG, progress=None) -> SparseModel:
+    return run_incremental(tracks, scene.K, config, progress)
+
+
+def pose_errors(model: SparseModel, scene):
+    registered = sorted(model.poses)
+    return aligned_pose_errors([model.poses[m] for m in registered], [scene.poses[m] for m in registered])
+
+
+@pytest.fixture(scope="module")
+def noisy_scene():
+    return make_scene(num_points=500, noise_px=0.5, outlier_fraction=0.3, seed=0)
+
+
+@pytest.fixture(scope="module")
+def noisy_model(noisy_scene):
+    stages = []
+    model = reconstruct(noisy_scene.tracks, noisy_scene, progress=lambda name, f: stages.append((name, f)))
+    return model, stages
+
+
+def test_noise_free_scene_is_recovered_to_1e_6_after_similarity_alignment():
+    scene = make_scene(num_points=300, seed=7)
+    model = reconstruct(scene.tracks, scene)
+    assert sorted(model.poses) == [0, 1, 2, 3, 4]
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.max() < 1e-6
+    assert errors.center.max() < 1e-6 * scene.scene_size
+    similarity = align_similarity(np.array([model.poses[m].center for m in range(5)]),
+                                  np.array([p.center for p in scene.poses]))
+    aligned_points = similarity.apply_points(model.points)
+    point_errors = np.linalg.norm(aligned_points - scene.points[model.point_track_ids], axis=1)
+    assert len(model.points) == 300
+    assert point_errors.max() < 1e-6 * scene.scene_size
+    assert model.stats.reprojection_after_ba.rms_px < 1e-6
+
+
+def test_noise_and_30_percent_outliers_give_poses_within_half_a_degree_and_one_percent(noisy_model,
+                                                                                       noisy_scene):
+    model, _ = noisy_model
+    assert sorted(model.poses) == [0, 1, 2, 3, 4]
+    assert model.unregistered == {}
+    errors = pose_errors(model, noisy_scene)
+    assert errors.rotation_deg.max() < 0.5
+    assert errors.center.max() < 0.01 * noisy_scene.scene_size
+    # Outlier observations are left out: almost every kept observation is a true projection.
+    kept_pairs = set(zip(model.point_track_ids[model.obs_point].tolist(), model.obs_camera.tolist(),
+                         strict=True))
+    tracks = noisy_scene.tracks
+    outlier_pairs = set(zip(tracks.track_index[~noisy_scene.inlier_mask].tolist(),
+                            tracks.image_index[~noisy_scene.inlier_mask].tolist(), strict=True))
+    assert len(kept_pairs & outlier_pairs) < 0.02 * len(kept_pairs)
+
+
+def test_reprojection_statistics_are_recorded_before_and_after_bundle_adjustment(noisy_model):
+    stats = noisy_model[0].stats
+    before, after = stats.reprojection_before_ba, stats.reprojection_after_ba
+    assert after.rms_px < 1.0
+    assert after.rms_px <= before.rms_px * (1 + 1e-4)   # the BA lowers the Huber cost, not exactly the RMS
+    assert after.median_px <= after.mean_px <= after.rms_px
+    assert stats.pair_shared_tracks == {f"{a}.png|{b}.png": 500 for a in range(1, 6) for b in range(a + 1, 6)}
+    assert {"initial pair", "registration", "local bundle adjustment", "bundle adjustment"} <= set(
+        stats.stage_seconds)
+    assert abs(stats.final_cost_decrease) < 1e-6      # the final BA is converged
+    assert stats.initial_pair_median_angle_deg >= CONFIG.mapper.min_initial_pair_median_angle_deg
+
+
+def test_model_arrays_are_consistent(noisy_model, noisy_scene):
+    model, _ = noisy_model
+    num_points = len(model.points)
+    assert model.point_colors.shape == (num_points, 3) and model.point_colors.dtype == np.uint8
+    np.testing.assert_array_equal(model.point_colors, noisy_scene.colors[model.point_track_ids])
+    visibility = model.visibility
+    assert visibility.shape == (num_points, 5)
+    assert visibility.sum() == len(model.obs_point)
+    assert visibility.sum(axis=1).min() >= 2
+    assert model.point_errors.max() <= CONFIG.filter.max_reprojection_px
+    diagnostics = model.initial_pair_diagnostics
+    assert (noisy_scene.tracks.image_names[diagnostics.i], noisy_scene.tracks.image_names[diagnostics.j]) == (
+        model.stats.initial_pair)
+    assert diagnostics.uv_i.shape == diagnostics.uv_j.shape == (len(diagnostics.inlier_mask), 2)
+    assert diagnostics.points_linear.shape == diagnostics.points_nonlinear.shape
+    assert len(diagnostics.points_linear) <= diagnostics.inlier_mask.sum()
+
+
+def test_progress_reports_named_stages_in_order(noisy_model):
+    model, stages = noisy_model
+    names = [name for name, _ in stages]
+    fractions = [f for _, f in stages]
+    assert fractions == sorted(fractions) and fractions[0] >= 0.0 and fractions[-1] == 1.0
+    assert names.index("initial pair") < names.index("bundle adjustment")
+    initial = set(model.stats.initial_pair)
+    expected = [f"register {name}" for name in model.image_names if name not in initial]
+    assert sorted(n for n in names if n.startswith("register ")) == sorted(expected)
+
+
+def test_partial_visibility_with_multi_view_tracks_still_registers_every_image():
+    scene = make_scene(num_cameras=7, num_points=800, noise_px=0.5, outlier_fraction=0.1, visibility=0.5,
+                       seed=3)
+    model = reconstruct(scene.tracks, scene)
+    assert sorted(model.poses) == list(range(7))
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.max() < 0.5
+    assert errors.center.max() < 0.01 * scene.scene_size
+    assert model.visibility.sum(axis=1).max() > 2        # tracks longer than a pair are kept whole
+
+
+def rotated_copy(pose: CameraPose, angle_deg: float) -> CameraPose:
+    """The same camera centre, turned about its own y axis."""
+    turn = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(angle_deg))
+    return CameraPose.from_center(turn @ pose.R, pose.center)
+
+
+def test_initial_pair_is_chosen_by_parallax_not_by_match_count():
+    base = make_scene(num_points=400, seed=4)
+    poses = [base.poses[0], rotated_copy(base.poses[0], 3.0), *base.poses[2:]]
+    rng = np.random.default_rng(0)
+    visible = np.ones((400, 5), bool)
+    visible[:, 2:] = rng.random((400, 3)) < 0.7     # images 1 and 2 share the most tracks
+    tracks, _ = observe(base.K, poses, base.points, base.colors, visible, 0.5, 0.0, (800, 600), rng)
+    model = reconstruct(tracks, base)
+    assert max(model.stats.pair_shared_tracks, key=model.stats.pair_shared_tracks.get) == "1.png|2.png"
+    assert model.stats.initial_pair != ("1.png", "2.png")
+    assert "panoramic" in model.stats.initial_pair_failures["1.png|2.png"]
+    assert sorted(model.poses) == [0, 1, 2, 3, 4]      # the rotated camera still registers by PnP
+    errors = aligned_pose_errors([model.poses[m] for m in range(5)], poses)
+    assert errors.rotation_deg.max() < 0.5
+
+
+def test_pure_rotation_is_a_degenerate_configuration_named_for_every_image():
+    base = make_scene(num_points=300, seed=5)
+    poses = [rotated_copy(base.poses[2], angle) for angle in (-4.0, 0.0, 4.0)]
+    rng = np.random.default_rng(1)
+    visible = np.ones((300, 3), bool)
+    tracks, _ = observe(base.K, poses, base.points, base.colors, visible, 0.5, 0.0, (800, 600), rng)
+    with pytest.raises(DegenerateConfigurationError) as raised:
+        reconstruct(tracks, base)
+    lines = str(raised.value).splitlines()
+    assert lines[0] == "no model could be started:"
+    assert [line.split(":")[0] for line in lines[1:]] == ["1.png", "2.png", "3.png"]
+    assert all("panoramic" in line or "parallax" in line for line in lines[1:])
+
+
+def test_too_few_matches_for_an_initial_pair_is_a_degenerate_configuration():
+    scene = make_scene(num_points=20, seed=6)
+    with pytest.raises(DegenerateConfigurationError, match="1.png: best pair 1.png|2.png .20 shared tracks.: "
+                                                           "20 shared tracks, need 30"):
+        reconstruct(scene.tracks, scene)
+    scene = make_scene(num_points=100, seed=6)
+    with pytest.raises(DegenerateConfigurationError, match="100 shared tracks, need 200"):
+        reconstruct(scene.tracks, scene, ReconstructionConfig(mapper={"min_initial_pair_inliers": 200}))
+
+
+def test_an_image_that_cannot_be_registered_is_reported_and_the_rest_succeeds():
+    scene = make_scene(num_points=400, noise_px=0.5, seed=8)
+    garbage = scene.tracks.image_index == 4
+    uv = scene.tracks.uv.copy()
+    uv[garbage] = np.random.default_rng(2).uniform([0, 0], [800, 600], (garbage.sum(), 2))
+    model = reconstruct(dataclasses.replace(scene.tracks, uv=uv), scene)
+    assert sorted(model.poses) == [0, 1, 2, 3]
+    assert list(model.unregistered) == [4]
+    assert "inliers among" in model.unregistered[4] or "correspondences" in model.unregistered[4]
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.max() < 0.5
+    assert not np.isin(model.obs_camera, [4]).any()
+
+
+def test_fewer_than_two_images_is_an_input_error():
+    scene = make_scene(num_points=20)
+    one_image = Tracks(image_names=["1.png"], track_index=np.zeros(0, int), image_index=np.zeros(0, int),
+                       uv=np.zeros((0, 2)), colors=np.zeros((0, 3), np.uint8))
+    with pytest.raises(InputError, match="at least 2 images"):
+        reconstruct(one_image, scene)
+
+
+# ------------------------------------------------------------------------------------------------------
+# Object captures, fallbacks and several models
+
+
+def test_the_dlt_absolute_pose_option_registers_the_same_images(noisy_scene, noisy_model):
+    config = ReconstructionConfig(mapper={"absolute_pose": "dlt"})
+    model = reconstruct(noisy_scene.tracks, noisy_scene, config)
+    assert sorted(model.poses) == sorted(noisy_model[0].poses)
+    assert pose_errors(model, noisy_scene).rotation_deg.max() < 0.5
+
+
+@pytest.mark.parametrize("layout, num_cameras, seed", [("ring", 16, 11), ("hemisphere", 16, 12)])
+def test_an_object_capture_in_shuffled_file_order_with_30_percent_outliers_registers_every_image(
+        layout, num_cameras, seed):
+    scene = make_object_scene(num_cameras=num_cameras, layout=layout, num_points=1500, noise_px=0.5,
+                              outlier_fraction=0.3, seed=seed, shuffle=True, width=1280, height=960)
+    models = reconstruct_models(scene.tracks, scene.K, CONFIG)
+    assert len(models) == 1
+    model = models[0]
+    assert sorted(model.poses) == list(range(num_cameras)), model.unregistered
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.mean() < 0.2
+    assert errors.rotation_deg.max() < 0.4
+    assert errors.center.max() < 0.01 * scene.scene_size
+    assert np.bincount(model.obs_point).mean() > 3        # tracks continue beyond their first pair
+
+
+def test_two_disconnected_groups_of_images_give_two_models():
+    first = make_scene(num_cameras=5, num_points=300, noise_px=0.5, seed=13)
+    second = make_scene(num_cameras=4, num_points=300, noise_px=0.5, seed=14)
+    a, b = first.tracks, second.tracks
+    tracks = Tracks(
+        image_names=[f"a{m}.png" for m in range(5)] + [f"b{m}.png" for m in range(4)],
+        track_index=np.concatenate([a.track_index, b.track_index + a.num_tracks]),
+        image_index=np.concatenate([a.image_index, b.image_index + 5]),
+        uv=np.concatenate([a.uv, b.uv]), colors=np.concatenate([a.colors, b.colors]))
+    models = reconstruct_models(tracks, first.K, CONFIG)
+    assert [sorted(model.poses) for model in models] == [[0, 1, 2, 3, 4], [5, 6, 7, 8]]
+    assert pose_errors(models[0], first).rotation_deg.max() < 0.5
+    second_errors = aligned_pose_errors([models[1].poses[m] for m in range(5, 9)], second.poses)
+    assert second_errors.rotation_deg.max() < 0.5
+    assert models[0].unregistered[5] == "registered in model 2 (4 images)"
+    assert models[1].unregistered[0] == "registered in model 1 (5 images)"
+    assert run_incremental(tracks, first.K, CONFIG).registration_order == models[0].registration_order
+
+
+def test_a_set_without_a_connected_pair_reports_why_for_each_image():
+    scene = make_scene(num_cameras=3, num_points=200, seed=15)
+    tracks = scene.tracks
+    # Image 3 shares nothing (its observations go to tracks of their own); 1 and 2 share 20 tracks.
+    keep = (tracks.image_index != 2) & (tracks.track_index < 20)
+    lonely = tracks.image_index == 2
+    split = Tracks(image_names=tracks.image_names,
+                   track_index=np.concatenate([tracks.track_index[keep], 1000 + tracks.track_index[lonely]]),
+                   image_index=np.concatenate([tracks.image_index[keep], tracks.image_index[lonely]]),
+                   uv=np.concatenate([tracks.uv[keep], tracks.uv[lonely]]),
+                   colors=np.zeros((1200, 3), np.uint8))
+    with pytest.raises(DegenerateConfigurationError) as raised:
+        reconstruct(split, scene)
+    too_few = "best pair 1.png|2.png (20 shared tracks): 20 shared tracks, need 30 (min_initial_pair_inliers)"
+    assert str(raised.value).splitlines() == [
+        "no model could be started:",
+        f"1.png: {too_few}",
+        f"2.png: {too_few}",
+        "3.png: shares no track with any other image",
+    ]
+
+
+def test_when_the_first_initial_pair_candidate_is_degenerate_the_next_one_starts_the_model():
+    base = make_scene(num_points=400, noise_px=0.5, seed=16)
+    # Images 1 and 2 share a centre (pure rotation) and the most tracks: the first candidate fails.
+    poses = [base.poses[0], rotated_copy(base.poses[0], 4.0), *base.poses[2:]]
+    rng = np.random.default_rng(3)
+    visible = np.ones((400, 5), bool)
+    visible[:, 2:] = rng.random((400, 3)) < 0.8
+    tracks, _ = observe(base.K, poses, base.points, base.colors, visible, 0.5, 0.0, (800, 600), rng)
+    config = ReconstructionConfig(mapper={"initial_pair_candidates": 1})
+    model = reconstruct(tracks, base, config)
+    failures = model.stats.initial_pair_failures
+    assert list(failures)[0] == "1.png|2.png"
+    assert "panoramic" in failures["1.png|2.png"] or "parallax" in failures["1.png|2.png"]
+    assert model.stats.initial_pair not in {("1.png", "2.png")}
+    assert sorted(model.poses) == [0, 1, 2, 3, 4]
+    assert aligned_pose_errors([model.poses[m] for m in range(5)], poses).rotation_deg.max() < 0.5
+
+
+def test_unknown_focal_length_and_radial_distortion_are_recovered_from_the_prior():
+    """A shared simple-radial camera started at COLMAP's prior 1.2 max(w, h) = 960 px (truth 600 px)."""
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
+    prior = Camera("simple-radial", fx=960.0, fy=960.0, cx=400.0, cy=300.0)
+    refine = IntrinsicsRefinement(focal=True, distortion=True)
+    model = run_incremental(scene.tracks, prior, CONFIG, refine=refine)
+    assert len(model.poses) == 8
+    camera = model.cameras[0]
+    assert all(c == camera for c in model.cameras)
+    assert camera.fx == pytest.approx(truth.fx, rel=0.005)
+    assert camera.k1 == pytest.approx(truth.k1, rel=0.10)
+    assert pose_errors(model, scene).rotation_deg.max() < 0.2
+    # the observations dropped while the focal length was wrong are taken back, as measured pixels
+    assert len(model.obs_uv) > 0.95 * len(scene.tracks.uv)
+    assert np.isin(model.obs_uv[:, 0], scene.tracks.uv[:, 0]).all()

@@ -1,0 +1,101 @@
+"""The Scene's named operations: points, observations, track completion and merging, filtering."""
+
+import numpy as np
+import pytest
+
+from estimation.mapper.scene import Scene
+from estimation.synthetic import make_scene
+
+
+@pytest.fixture()
+def posed():
+    """A Scene over a noise-free 5-image scene with every image registered at its true pose."""
+    truth = make_scene(num_points=50, seed=21)
+    scene = Scene(truth.tracks, truth.K)
+    for m, pose in enumerate(truth.poses):
+        scene.register_image(m, pose)
+    return truth, scene
+
+
+def observations_of_track(truth, track):
+    return np.flatnonzero(truth.tracks.track_index == track)
+
+
+def test_a_point_owns_its_observations_and_vanishes_below_two(posed):
+    truth, scene = posed
+    obs = observations_of_track(truth, 0)[:3]
+    [point] = scene.add_points(truth.points[[0]], obs, np.zeros(3, int))
+    assert scene.num_points == 1 and list(scene.obs_point[obs]) == [point] * 3
+    np.testing.assert_allclose(scene.errors(obs), 0.0, atol=1e-9)
+    scene.remove_observations(obs[:1])
+    assert scene.num_points == 1 and scene.obs_point[obs[0]] == -1
+    scene.remove_observations(obs[1:2])
+    assert scene.num_points == 0 and np.all(scene.obs_point[obs] == -1)
+
+
+def test_an_observation_joins_only_a_live_point_of_its_own_track(posed):
+    truth, scene = posed
+    [point] = scene.add_points(truth.points[[0]], observations_of_track(truth, 0)[:2], np.zeros(2, int))
+    with pytest.raises(ValueError, match="its own track"):
+        scene.add_observations(observations_of_track(truth, 1)[:1], [point])
+    with pytest.raises(ValueError, match="already supports"):
+        scene.add_observations(observations_of_track(truth, 0)[:1], [point])
+    scene.add_observations(observations_of_track(truth, 0)[2:3], [point])
+    assert scene.point_observation_counts()[point] == 3
+
+
+def test_complete_tracks_continues_points_into_registered_images_within_the_threshold(posed):
+    truth, scene = posed
+    obs = np.concatenate([observations_of_track(truth, t)[:2] for t in range(10)])
+    scene.add_points(truth.points[:10], obs, np.repeat(np.arange(10), 2))
+    added = scene.complete_tracks(max_error_px=1.0)
+    assert added == 10 * 3
+    assert np.all(scene.point_observation_counts()[:10] == 5)
+
+
+def test_deregistering_an_image_drops_its_observations(posed):
+    truth, scene = posed
+    obs = observations_of_track(truth, 0)
+    scene.add_points(truth.points[[0]], obs, np.zeros(5, int))
+    scene.deregister_image(4)
+    assert not scene.registered[4] and 4 not in scene.order
+    assert scene.point_observation_counts()[0] == 4
+
+
+def test_merge_tracks_joins_the_two_points_of_a_split_track(posed):
+    truth, scene = posed
+    obs = observations_of_track(truth, 3)
+    scene.add_points(np.stack([truth.points[3] + 0.01, truth.points[3] - 0.01]), obs[:4],
+                     np.array([0, 0, 1, 1]))
+    assert scene.merge_tracks(max_error_px=1.0) == 1
+    assert scene.num_points == 1
+    [point] = np.flatnonzero(scene.point_alive)
+    np.testing.assert_allclose(scene.point_xyz[point], truth.points[3], atol=1e-6)
+    assert scene.point_observation_counts()[point] == 4
+
+
+def test_filter_points_drops_far_observations_and_narrow_points(posed):
+    truth, scene = posed
+    obs = observations_of_track(truth, 5)
+    [point] = scene.add_points(truth.points[[5]] + [0.0, 0.0, 0.3], obs, np.zeros(5, int))
+    removed = scene.filter_points(max_error_px=1.0, min_angle_deg=1.0)
+    assert removed == 5 and scene.num_points == 0
+    obs = observations_of_track(truth, 6)
+    scene.add_points(truth.points[[6]], obs, np.zeros(5, int))
+    assert scene.filter_points(max_error_px=1.0, min_angle_deg=179.0) == 5    # no two rays that wide
+
+
+def test_triangulate_tracks_keeps_the_consistent_observations_of_tracks_with_outliers():
+    truth = make_scene(num_points=200, noise_px=0.3, outlier_fraction=0.2, seed=22)
+    scene = Scene(truth.tracks, truth.K)
+    for m, pose in enumerate(truth.poses):
+        scene.register_image(m, pose)
+    added = scene.triangulate_tracks(np.arange(200), max_error_px=2.0, min_angle_deg=1.0,
+                                     hypotheses_per_point=8, rng=np.random.default_rng(0))
+    assert added >= 195
+    used = scene.used_observations()
+    assert np.mean(truth.inlier_mask[used]) > 0.99
+    assert np.mean(scene.obs_point[truth.inlier_mask] >= 0) > 0.97
+    alive = np.flatnonzero(scene.point_alive)
+    errors = np.linalg.norm(scene.point_xyz[alive] - truth.points[scene.point_track[alive]], axis=1)
+    assert np.median(errors) < 0.01

@@ -1,0 +1,123 @@
+"""E by the 5-point solver (in RANSAC) or E = K^T F K, the four pose candidates and chirality, against
+synthetic ground truth."""
+
+import numpy as np
+import pytest
+
+from estimation.config import RansacConfig
+from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.alignment import relative_pose, rotation_angle_deg
+from estimation.synthetic import make_scene
+from estimation.two_view.essential import (
+    choose_relative_pose,
+    essential_from_fundamental,
+    five_point_essential,
+    in_front_of_both,
+    pose_candidates,
+    ransac_essential,
+    to_normalized,
+)
+from estimation.two_view.fundamental import eight_point, ransac_fundamental
+from estimation.types import CameraPose
+
+
+def direction_error_deg(a, b):
+    return np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+
+def test_essential_matrix_has_singular_values_one_one_zero():
+    scene = make_scene(num_points=50, noise_px=1.0)
+    _, uv1, uv2 = scene.tracks.pair_correspondences(0, 1)
+    E = essential_from_fundamental(eight_point(uv1, uv2), scene.K)
+    np.testing.assert_allclose(np.linalg.svd(E, compute_uv=False), [1, 1, 0], atol=1e-12)
+
+
+def test_four_candidates_are_proper_rotations_with_opposite_baselines():
+    scene = make_scene(num_points=50)
+    _, uv1, uv2 = scene.tracks.pair_correspondences(0, 1)
+    candidates = pose_candidates(essential_from_fundamental(eight_point(uv1, uv2), scene.K))
+    assert len(candidates) == 4
+    for pose in candidates:
+        np.testing.assert_allclose(pose.R @ pose.R.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(pose.R) == pytest.approx(1.0)
+        assert np.linalg.norm(pose.t) == pytest.approx(1.0)
+    np.testing.assert_allclose(candidates[0].t, -candidates[1].t)
+    assert rotation_angle_deg(candidates[0].R, candidates[2].R) > 1.0
+
+
+def test_chirality_picks_the_true_pose_from_noise_free_correspondences():
+    scene = make_scene(num_points=200)
+    _, uv1, uv2 = scene.tracks.pair_correspondences(1, 3)
+    E = essential_from_fundamental(eight_point(uv1, uv2), scene.K)
+    chosen = choose_relative_pose(E, scene.K, uv1, uv2)
+    truth = relative_pose(scene.poses[1], scene.poses[3])
+    assert rotation_angle_deg(chosen.pose.R, truth.R) < 1e-6
+    assert direction_error_deg(chosen.pose.center, truth.center) < 1e-6
+    assert chosen.in_front.all()
+    assert sorted(chosen.candidate_scores) == [0, 0, 0, 200]
+
+
+def test_relative_pose_under_noise_and_outliers_is_within_half_a_degree_and_one_percent():
+    scene = make_scene(num_points=500, noise_px=0.5, outlier_fraction=0.3, seed=1)
+    for i, j in [(0, 1), (0, 4), (2, 3)]:
+        _, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+        fundamental = ransac_fundamental(uv1, uv2, RansacConfig())
+        inliers = fundamental.inlier_mask
+        chosen = choose_relative_pose(essential_from_fundamental(fundamental.F, scene.K), scene.K,
+                                      uv1[inliers], uv2[inliers])
+        truth = relative_pose(scene.poses[i], scene.poses[j])
+        # Fix the unobservable scale with the true baseline length (a similarity with two cameras).
+        center = chosen.pose.center * np.linalg.norm(truth.center)
+        assert rotation_angle_deg(chosen.pose.R, truth.R) < 0.5
+        assert np.linalg.norm(center - truth.center) < 0.01 * scene.scene_size
+
+
+def test_in_front_of_both_uses_each_cameras_viewing_direction():
+    # The second camera sits at z = 10 looking back along -z (rotated 180 deg about y).
+    facing_back = CameraPose.from_center(np.diag([-1.0, 1.0, -1.0]), np.array([0.0, 0.0, 10.0]))
+    points = np.array([[0.0, 0.0, 5.0], [0.0, 0.0, 12.0], [0.0, 0.0, -1.0], [3.0, -2.0, 9.0]])
+    np.testing.assert_array_equal(in_front_of_both(facing_back, points), [True, False, False, True])
+
+
+def test_no_correspondences_cannot_choose_a_pose():
+    with pytest.raises(DegenerateConfigurationError):
+        choose_relative_pose(np.eye(3), np.eye(3), np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+def true_essential(scene, i, j):
+    rel = relative_pose(scene.poses[i], scene.poses[j])
+    t = rel.t
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ rel.R
+    return E / np.linalg.norm(E)
+
+
+def test_five_point_solutions_include_the_true_essential_matrix_and_satisfy_its_constraints():
+    scene = make_scene(num_cameras=5, num_points=200, seed=4)
+    rng = np.random.default_rng(0)
+    for i, j in [(0, 1), (0, 4), (2, 3)]:
+        _, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+        samples = np.stack([rng.choice(len(uv1), 5, replace=False) for _ in range(20)])
+        x1, x2 = to_normalized(scene.K, uv1)[samples], to_normalized(scene.K, uv2)[samples]
+        solutions = five_point_essential(x1, x2)
+        assert 20 <= len(solutions) <= 200                       # up to ten real roots per sample
+        for E in solutions:                                       # every root is an essential matrix
+            np.testing.assert_allclose(2 * E @ E.T @ E - np.trace(E @ E.T) * E, 0, atol=1e-8)
+        truth = true_essential(scene, i, j)
+        distance = np.minimum(np.abs(solutions - truth).max(axis=(1, 2)),
+                              np.abs(solutions + truth).max(axis=(1, 2)))
+        assert np.sum(distance < 1e-8) >= 20                      # the truth among each sample's roots
+
+
+def test_five_point_ransac_under_noise_and_30_percent_outliers_is_within_0_2_degrees():
+    scene = make_scene(num_points=500, noise_px=0.5, outlier_fraction=0.3, seed=1)
+    for i, j in [(0, 1), (0, 4), (2, 3)]:
+        track_ids, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+        truly_inlier = scene.inlier_mask.reshape(-1, 5)[track_ids][:, [i, j]].all(axis=1)
+        result = ransac_essential(uv1, uv2, scene.K, scene.K, 1.5, RansacConfig())
+        assert (result.inlier_mask & truly_inlier).sum() / result.inlier_mask.sum() > 0.97
+        assert (result.inlier_mask & truly_inlier).sum() / truly_inlier.sum() > 0.9
+        inliers = result.inlier_mask
+        chosen = choose_relative_pose(result.E, scene.K, uv1[inliers], uv2[inliers])
+        truth = relative_pose(scene.poses[i], scene.poses[j])
+        assert rotation_angle_deg(chosen.pose.R, truth.R) < 0.2
+        assert direction_error_deg(chosen.pose.center, truth.center) < 1.0
