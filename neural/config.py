@@ -55,13 +55,57 @@ class TrainConfig(BaseModel):
     chunk_rays: int = Field(
         8192, ge=1, description="Rays rendered at once outside training; lower it if you run out of memory."
     )
-    white_background: bool = Field(True, description="Composite RGBA data and renders on white (else black).")
+    background: Literal["white", "black", "random"] | None = Field(
+        None,
+        description="Colour behind the scene: white or black (RGBA data composited on it, renders on it), or "
+        "random (a random colour per training ray, so the scene must be opaque; renders on black). "
+        "None: the data's default (white for Blender/npz, random for photographs).",
+    )
+    unbounded: bool | None = Field(
+        None,
+        description="Content beyond the scene box, out to far away (contracted space; fast model). "
+        "None: the data's default (true for `sfmnerf reconstruct` output, false for Blender/npz).",
+    )
+    max_side: int | None = Field(
+        None, ge=8, description="Train on the images shrunk to at most this many pixels on their longer side."
+    )
+    downscale: float | None = Field(None, ge=1, description="Train on the images shrunk by this factor.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _legacy_white_background(cls, data: Any) -> Any:
+        """Runs written before `background` existed stored white_background: true/false."""
+        if isinstance(data, dict) and "white_background" in data:
+            data = dict(data)
+            white = data.pop("white_background")
+            data.setdefault("background", "white" if white else "black")
+        return data
 
     @model_validator(mode="after")
     def _steps_or_minutes(self) -> TrainConfig:
         if self.steps is not None and self.minutes is not None:
             raise ValueError("give steps or minutes, not both")
         return self
+
+    @property
+    def white_background(self) -> bool:
+        """RGBA images are composited on white (else black)."""
+        return self.background in (None, "white")
+
+    def for_data(self, data_defaults: dict[str, Any], model_supports_unbounded: bool) -> TrainConfig:
+        """A copy with background / unbounded filled from the data format's defaults where unset.
+
+        An unbounded scene is the default only for models that render one; asking for it explicitly with
+        another model is an error.
+        """
+        filled = {
+            name: data_defaults[name] for name in ("background", "unbounded") if getattr(self, name) is None
+        }
+        if "unbounded" in filled:
+            filled["unbounded"] = filled["unbounded"] and model_supports_unbounded
+        elif self.unbounded and not model_supports_unbounded:
+            raise ValueError(f"model {self.model!r} does not support unbounded scenes (unbounded: true)")
+        return self.model_copy(update=filled)
 
     def resolved(self, model_defaults: dict[str, Any]) -> TrainConfig:
         """A copy with every None setting filled from the model's defaults, then the generic ones."""

@@ -3,20 +3,23 @@
 Conventions: poses are camera-to-world (4,4) in OpenGL camera axes; intrinsics are pixels; images are
 float32 RGB in [0,1], RGBA composited on white (or black) once, here. A reconstruction's scene is
 re-centred and scaled into the normalized scene frame (recorded as `normalization`), the other formats
-keep their own frame.
+keep their own frame. Images can be loaded at a reduced size (`ImageSize`, intrinsics scaled with them,
+resized files cached by content key), and any scene can be made unbounded (`unbounded_scene`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from PIL import Image
 
+from neural.config import TrainConfig
 from neural.errors import DatasetError
 from neural.scene import SceneInfo, SceneNormalization
 
@@ -32,8 +35,38 @@ POINT_BOX_PERCENTILES = (2.0, 98.0)
 POINT_BOX_PADDING = 1.2
 #: Near/far are this factor outside the closest / farthest sparse point seen in front of any camera.
 DEPTH_MARGIN = 0.8
-#: A reconstruction without listed splits holds out every HOLDOUT_EVERY-th frame for validation.
+#: A reconstruction without listed splits holds out every HOLDOUT_EVERY-th frame for validation (LLFF).
 HOLDOUT_EVERY = 8
+#: An unbounded scene's far bound, in half-sides of its inner cube (contracted to 2 - 1/1000 of the cube).
+UNBOUNDED_FAR_HALF_SIDES = 1000.0
+#: Bumped when the cached resized images would change.
+IMAGE_CACHE_VERSION = 1
+
+DatasetFormat = Literal["blender", "npz", "reconstruction"]
+#: What each format defaults to where TrainConfig leaves it open: synthetic renders sit on a white, bounded
+#: world; photographs have content all around them and no known background.
+FORMAT_DEFAULTS: dict[str, dict[str, Any]] = {
+    "blender": {"background": "white", "unbounded": False},
+    "npz": {"background": "white", "unbounded": False},
+    "reconstruction": {"background": "random", "unbounded": True},
+}
+
+
+@dataclass(frozen=True)
+class ImageSize:
+    """Load images smaller: at most `max_side` pixels on their longer side, or `downscale` times smaller."""
+
+    max_side: int | None = None
+    downscale: float | None = None
+
+    def target(self, width: int, height: int) -> tuple[int, int]:
+        """(W', H') = round(s W), round(s H), s = min(1, max_side / max(W, H)) or 1 / downscale."""
+        scale = 1.0
+        if self.max_side is not None:
+            scale = min(scale, self.max_side / max(width, height))
+        if self.downscale is not None:
+            scale = min(scale, 1.0 / self.downscale)
+        return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 @dataclass
@@ -78,27 +111,79 @@ class Dataset:
         return indices
 
 
-def load_dataset(path: Path | str, white_background: bool = True, within: Path | None = None) -> Dataset:
-    """Blender folder (transforms_{train,val,test}.json), tiny-NeRF .npz, or reconstruction folder.
-
-    A Blender dataset's files must lie inside its folder; a reconstruction's inside `within` when given
-    (the service: the reconstruction's job folder).
-    """
+def dataset_format(path: Path | str) -> DatasetFormat:
+    """Which loader reads `path`: a tiny-NeRF .npz file, a Blender folder or a reconstruction folder."""
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder")
     if path.is_file():
         if path.suffix != ".npz":
             raise DatasetError(f"{path}: expected a .npz file or a dataset folder")
-        return load_npz(path)
+        return "npz"
     if any((path / f"transforms_{split}.json").is_file() for split in SPLITS):
-        return load_blender(path, white_background)
+        return "blender"
     if (path / "transforms.json").is_file():
-        return load_reconstruction(path, white_background, within)
+        return "reconstruction"
     raise DatasetError(
         f"{path}: not a dataset folder (expected transforms_train.json / transforms_val.json, "
         "or transforms.json from `sfmnerf reconstruct`)"
     )
+
+
+def load_dataset(
+    path: Path | str,
+    white_background: bool = True,
+    unbounded: bool = False,
+    image_size: ImageSize | None = None,
+    cache_dir: Path | None = None,
+    within: Path | None = None,
+) -> Dataset:
+    """Blender folder (transforms_{train,val,test}.json), tiny-NeRF .npz, or reconstruction folder.
+
+    A Blender dataset's files must lie inside its folder; a reconstruction's inside `within` when given
+    (the service: the reconstruction's job folder). image_size: load the images smaller (intrinsics scaled
+    to match); resized image files are cached in cache_dir when given. unbounded: the scene reaches beyond
+    its box (see `unbounded_scene`).
+    """
+    path = Path(path)
+    sizing = ImageLoading(white_background, image_size, cache_dir)
+    kind = dataset_format(path)
+    if kind == "npz":
+        dataset = load_npz(path, sizing)
+    elif kind == "blender":
+        dataset = load_blender(path, sizing)
+    else:
+        dataset = load_reconstruction(path, sizing, within)
+    return unbounded_scene(dataset) if unbounded else dataset
+
+
+def load_dataset_for(data: Path | str, config: TrainConfig, cache_dir: Path | None) -> Dataset:
+    """The dataset as a run with this (data-resolved) config trains on it: background, size, scene."""
+    return load_dataset(
+        data,
+        white_background=config.white_background,
+        unbounded=bool(config.unbounded),
+        image_size=ImageSize(config.max_side, config.downscale),
+        cache_dir=cache_dir,
+    )
+
+
+def unbounded_scene(dataset: Dataset) -> Dataset:
+    """The dataset with an unbounded scene: its box grown to hold every camera, far pushed out to
+    UNBOUNDED_FAR_HALF_SIDES half-sides of that box's cube (content beyond the box lives in contracted space).
+    """
+    centres = dataset.poses[:, :3, 3].astype(np.float64)
+    low = np.minimum(np.asarray(dataset.scene.scene_box_min), centres.min(axis=0))
+    high = np.maximum(np.asarray(dataset.scene.scene_box_max), centres.max(axis=0))
+    half_side = 0.5 * float((high - low).max())
+    scene = SceneInfo(
+        near=dataset.scene.near,
+        far=max(UNBOUNDED_FAR_HALF_SIDES * half_side, 2.0 * dataset.scene.far),
+        scene_box_min=tuple(low.tolist()),
+        scene_box_max=tuple(high.tolist()),
+        unbounded=True,
+    )
+    return replace(dataset, scene=scene)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -168,6 +253,71 @@ def load_image(path: Path, white_background: bool) -> np.ndarray:
     return rgb * alpha + background * (1.0 - alpha)
 
 
+def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H,W,C) float image resampled to (height, width, C) by area averaging (PIL's box filter)."""
+    if image.shape[:2] == (height, width):
+        return image
+    channels = [
+        np.asarray(Image.fromarray(np.ascontiguousarray(image[..., c], np.float32), mode="F").resize(
+            (width, height), Image.Resampling.BOX
+        ))
+        for c in range(image.shape[-1])
+    ]  # fmt: skip
+    return np.stack(channels, axis=-1)
+
+
+@dataclass(frozen=True)
+class ImageLoading:
+    """How a loader reads image files: the RGBA background, an optional smaller size, a cache folder."""
+
+    white_background: bool = True
+    image_size: ImageSize | None = None
+    cache_dir: Path | None = None
+
+    def size_for(self, width: int, height: int) -> tuple[int, int]:
+        return (width, height) if self.image_size is None else self.image_size.target(width, height)
+
+    def load(self, path: Path) -> tuple[np.ndarray, tuple[int, int]]:
+        """The image at its loading size and its file's (width, height).
+
+        Resized images are rounded to float16 (whether cached or not, so both give the same values) and,
+        with a cache_dir, kept as CACHE/<key>.npy; the key hashes the file's path, size and mtime, the
+        target size and the background, so a changed file is decoded afresh.
+        """
+        if self.image_size is None:  # full size: load_image's own checks and errors, nothing else
+            image = load_image(path, self.white_background)
+            return image, (image.shape[1], image.shape[0])
+        if not path.is_file():
+            raise DatasetError(f"{path}: image file not found")
+        try:
+            with Image.open(path) as header:
+                original = header.size
+        except (Image.DecompressionBombError, Image.DecompressionBombWarning) as error:
+            raise DatasetError(f"{path}: more pixels than the limit {Image.MAX_IMAGE_PIXELS}") from error
+        except OSError as error:
+            raise DatasetError(f"{path}: cannot read image ({error})") from None
+        width, height = self.size_for(*original)
+        if (width, height) == original:
+            return load_image(path, self.white_background), original
+        cached = None
+        if self.cache_dir is not None:
+            stat = path.stat()
+            key = json.dumps(
+                [IMAGE_CACHE_VERSION, str(path.resolve()), stat.st_size, stat.st_mtime_ns, width, height,
+                 self.white_background]
+            )  # fmt: skip
+            cached = self.cache_dir / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}.npy"
+            if cached.is_file():
+                return np.load(cached).astype(np.float32), original
+        small = resize_image(load_image(path, self.white_background), width, height).astype(np.float16)
+        if cached is not None:
+            self.cache_dir.mkdir(parents=True, exist_ok=True)
+            temporary = cached.with_suffix(".tmp.npy")
+            np.save(temporary, small)
+            temporary.replace(cached)
+        return small.astype(np.float32), original
+
+
 def check_same_size(image: np.ndarray, name: str, first: np.ndarray, first_name: str) -> None:
     """DatasetError naming `name` if its size differs from the first image's."""
     if image.shape != first.shape:
@@ -209,15 +359,20 @@ def synthetic_dataset(
     image_names: list[str],
     source: Path,
     white_background: bool = True,
+    original_size: tuple[int, int] | None = None,
 ) -> Dataset:
-    """A NeRF-synthetic scene: one pinhole focal, principal point at the image centre, the fixed scene box."""
+    """A NeRF-synthetic scene: one pinhole focal, principal point at the image centre, the fixed scene box.
+
+    focal is for images of original_size (width, height; default: as loaded), scaled to the loaded size.
+    """
     height, width = images.shape[1:3]
+    original_width, original_height = original_size or (width, height)
     half = SYNTHETIC_BOX_HALF_SIZE
     return Dataset(
         images=images,
         poses=poses.astype(np.float32),
-        fx=focal,
-        fy=focal,
+        fx=focal * width / original_width,
+        fy=focal * height / original_height,
         cx=width / 2.0,
         cy=height / 2.0,
         scene=SceneInfo(
@@ -234,9 +389,10 @@ def synthetic_dataset(
 # Blender
 
 
-def load_blender(root: Path, white_background: bool = True) -> Dataset:
+def load_blender(root: Path, loading: ImageLoading = ImageLoading()) -> Dataset:
     """transforms_{split}.json (camera_angle_x or fl_x, frames[file_path, transform_matrix]) + RGBA PNGs."""
     images: list[np.ndarray] = []
+    original_sizes: list[tuple[int, int]] = []
     poses: list[np.ndarray] = []
     names: list[str] = []
     splits: dict[str, np.ndarray] = {}
@@ -258,11 +414,13 @@ def load_blender(root: Path, white_background: bool = True) -> Dataset:
             poses.append(
                 check_rigid_pose(require(frame, "transform_matrix", where), f"{where} ({file_path})")
             )
-            images.append(load_image(image_path(root, file_path, where, within=root), white_background))
+            image, original_size = loading.load(image_path(root, file_path, where, within=root))
+            images.append(image)
+            original_sizes.append(original_size)
             names.append(str(file_path))
             check_same_size(images[-1], names[-1], images[0], names[0])
         splits[split] = np.arange(start, len(images))
-        width = images[start].shape[1]
+        width = original_sizes[start][0]
         split_focal = focal_from_meta(meta, width, json_path)
         if focal is not None and not math.isclose(focal, split_focal, rel_tol=1e-4):
             raise DatasetError(
@@ -271,8 +429,9 @@ def load_blender(root: Path, white_background: bool = True) -> Dataset:
         focal = split_focal
     assert focal is not None
     return synthetic_dataset(
-        np.stack(images), np.stack(poses), focal, near, far, splits, names, root, white_background
-    )
+        np.stack(images), np.stack(poses), focal, near, far, splits, names, root, loading.white_background,
+        original_sizes[0],
+    )  # fmt: skip
 
 
 def focal_from_meta(meta: dict[str, Any], width: int, where: Path) -> float:
@@ -288,10 +447,12 @@ def focal_from_meta(meta: dict[str, Any], width: int, where: Path) -> float:
 # tiny-NeRF .npz
 
 
-def load_npz(path: Path) -> Dataset:
+def load_npz(path: Path, loading: ImageLoading = ImageLoading()) -> Dataset:
     """images (N,H,W,3) in [0,1], poses (N,4,4) c2w, focal; optional split (0/1/2: train/val/test), near/far.
 
-    Without `split`, every tenth image (index % 10 == 9) is held out for validation.
+    Without `split`, every tenth image (index % 10 == 9) is held out for validation. RGBA arrays are
+    composited on white (the format's convention); `loading` may shrink the images (never cached: they are
+    in memory already).
     """
     try:
         archive = np.load(path)
@@ -327,7 +488,12 @@ def load_npz(path: Path) -> Dataset:
     if "train" not in splits:
         raise DatasetError(f"{path}: 'split' has no training images (code 0)")
     names = [f"{path.stem}[{i}]" for i in range(count)]
-    return synthetic_dataset(np.clip(images, 0.0, 1.0), checked, focal, near, far, splits, names, path)
+    original_size = (images.shape[2], images.shape[1])
+    width, height = loading.size_for(*original_size)
+    images = np.stack([resize_image(image, width, height) for image in np.clip(images, 0.0, 1.0)])
+    return synthetic_dataset(
+        images, checked, focal, near, far, splits, names, path, original_size=original_size
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -443,9 +609,13 @@ def near_far_from_points(poses: np.ndarray, points: np.ndarray) -> tuple[float, 
 
 
 def load_reconstruction(
-    root: Path, white_background: bool = True, within: Path | None = None
+    root: Path, loading: ImageLoading = ImageLoading(), within: Path | None = None
 ) -> Dataset:
-    """transforms.json (fl_x, fl_y, cx, cy, w, h, frames[file_path, transform_matrix]) + images + points."""
+    """transforms.json (fl_x, fl_y, cx, cy, w, h, frames[file_path, transform_matrix]) + images + points.
+
+    Image files must lie inside `within` when given. Loaded smaller, the intrinsics scale with the image:
+    f' = f W'/W, c' = c W'/W per axis (pixel centres at +0.5 map onto each other because the image edges do).
+    """
     json_path = root / "transforms.json"
     meta = read_json(json_path)
     frames = require(meta, "frames", json_path)
@@ -460,10 +630,10 @@ def load_reconstruction(
         where = f"{json_path} frames[{index}]"
         file_path = require(frame, "file_path", where)
         poses.append(check_rigid_pose(require(frame, "transform_matrix", where), f"{where} ({file_path})"))
-        image = load_image(image_path(root, file_path, where, within), white_background)
-        if image.shape[:2] != (height, width):
+        image, original_size = loading.load(image_path(root, file_path, where, within))
+        if original_size != (width, height):
             raise DatasetError(
-                f"{root / file_path}: image size {image.shape[1]}x{image.shape[0]} differs from "
+                f"{root / file_path}: image size {original_size[0]}x{original_size[1]} differs from "
                 f"w x h = {width}x{height} in {json_path}"
             )
         images.append(image)
@@ -476,18 +646,20 @@ def load_reconstruction(
     scene = SceneInfo(
         near=near, far=far, scene_box_min=tuple(box_low.tolist()), scene_box_max=tuple(box_high.tolist())
     )
+    loaded_width, loaded_height = loading.size_for(width, height)
+    sx, sy = loaded_width / width, loaded_height / height
     return Dataset(
         images=np.stack(images),
         poses=scene_poses.astype(np.float32),
-        fx=fx,
-        fy=fy,
-        cx=cx,
-        cy=cy,
+        fx=fx * sx,
+        fy=fy * sy,
+        cx=cx * sx,
+        cy=cy * sy,
         scene=scene,
         splits=reconstruction_splits(meta, names, json_path),
         image_names=names,
         source=root,
-        white_background=white_background,
+        white_background=loading.white_background,
         normalization=normalization,
     )
 
@@ -495,8 +667,9 @@ def load_reconstruction(
 def reconstruction_splits(meta: dict[str, Any], names: list[str], where: Path) -> dict[str, np.ndarray]:
     """Splits from `train_filenames`/`val_filenames`/`test_filenames` if listed (nerfstudio), else a holdout.
 
-    Without lists, every HOLDOUT_EVERY-th frame is held out for validation; a reconstruction with fewer
-    frames than that validates on its training frames (it has too few photos to spare one).
+    Without lists, the LLFF convention: frames 0, HOLDOUT_EVERY, 2 HOLDOUT_EVERY, ... are held out for
+    validation (at least one, so every reconstruction of two or more frames is evaluated on views it never
+    trained on).
     """
     listed = {split: meta.get(f"{split}_filenames") for split in SPLITS}
     if any(value is not None for value in listed.values()):
@@ -510,9 +683,8 @@ def reconstruction_splits(meta: dict[str, Any], names: list[str], where: Path) -
                 raise DatasetError(f"{where}: {split}_filenames names {missing[0]!r}, which no frame has")
             splits[split] = np.array([index_of[f] for f in files], dtype=np.int64)
         return splits
-    count = len(names)
-    all_indices = np.arange(count)
-    if count < HOLDOUT_EVERY:
-        return {"train": all_indices, "val": all_indices}
-    is_val = all_indices % HOLDOUT_EVERY == HOLDOUT_EVERY - 1
+    all_indices = np.arange(len(names))
+    if len(names) < 2:
+        raise DatasetError(f"{where}: one frame; a held-out view needs at least two")
+    is_val = all_indices % HOLDOUT_EVERY == 0
     return {"train": all_indices[~is_val], "val": all_indices[is_val]}

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neural.data import Dataset, load_dataset
-from neural.inference import Camera, load_run, render_frame, to_uint8
+from neural.data import Dataset, load_dataset_for
+from neural.inference import IMAGE_CACHE_DIR, Camera, load_run, render_frame, to_uint8
 
 
 @dataclass(frozen=True)
@@ -65,15 +65,20 @@ def evaluate(
     split: str = "val",
     checkpoint: str = "latest",
     out_dir: Path | str | None = None,
+    device: str = "auto",
 ) -> EvalResult:
-    """Render every view of `split` of `data` with the run and compare; optionally save renders to out_dir."""
+    """Render every view of `split` of `data` with the run and compare; optionally save renders to out_dir.
+
+    A data path is loaded as the run trained on it (its background and image size, so the views are
+    rendered and compared at the training size).
+    """
     import time
 
-    run = load_run(run_dir, checkpoint)
+    run = load_run(run_dir, checkpoint, device=device)
     dataset = (
         data
         if isinstance(data, Dataset)
-        else load_dataset(data, white_background=run.config.white_background)
+        else load_dataset_for(data, run.config, Path(run_dir) / IMAGE_CACHE_DIR)
     )
     camera = Camera(dataset.width, dataset.height, dataset.fx, dataset.fy, dataset.cx, dataset.cy)
     if out_dir is not None:

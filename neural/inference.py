@@ -26,6 +26,8 @@ from neural.scene import SceneInfo, SceneNormalization
 from neural.video import write_video
 
 RUN_CONFIG_FILE = "config.json"
+#: Resized training images are cached in this folder of the run (evaluating the run reuses them).
+IMAGE_CACHE_DIR = "image_cache"
 #: Orbit cameras sit this many degrees above the plane normal to the mean training "up".
 DEFAULT_ORBIT_ELEVATION_DEG = 30.0
 
@@ -81,8 +83,9 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def background_colour(white: bool, device: torch.device) -> Tensor:
-    return torch.full((3,), 1.0 if white else 0.0, device=device)
+def background_colour(background: str | None, device: torch.device) -> Tensor:
+    """The colour renders are composited on: white, else black (also for runs trained on random colours)."""
+    return torch.full((3,), 1.0 if background in (None, "white") else 0.0, device=device)
 
 
 @torch.no_grad()
@@ -134,8 +137,12 @@ def to_uint8(rgb: Tensor | np.ndarray) -> np.ndarray:
 
 
 def depth_to_uint8(depth: Tensor, scene: SceneInfo) -> np.ndarray:
-    """Depth mapped linearly from [near, far] to [255, 0] (near is bright), as a grey (H,W,3) image."""
-    scaled = 1.0 - (depth - scene.near) / (scene.far - scene.near)
+    """Depth as a grey (H,W,3) image, near bright: linear from [near, far] to [255, 0], or for an unbounded
+    scene (far is very far) as disparity near / depth."""
+    if scene.unbounded:
+        scaled = scene.near / depth.clamp_min(scene.near)
+    else:
+        scaled = 1.0 - (depth - scene.near) / (scene.far - scene.near)
     grey = to_uint8(scaled.clamp(0, 1))
     return np.repeat(grey[..., None], 3, axis=-1)
 
@@ -175,7 +182,7 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
         orbit=info["orbit"],
         step=int(payload["step"]),
         device=target,
-        background=background_colour(config.white_background, target),
+        background=background_colour(config.background, target),
     )
 
 
@@ -204,9 +211,10 @@ def render_view(
     fx: float | None = None,
     fov_x: float | None = None,
     checkpoint: str = "latest",
+    device: str = "auto",
 ) -> np.ndarray:
     """(H,W,3) uint8 render of the camera c2w (4,4, OpenGL camera-to-world, the data's original frame)."""
-    run = load_run(run_dir, checkpoint)
+    run = load_run(run_dir, checkpoint, device=device)
     return to_uint8(render_frame(run, c2w, view_camera(run, width, height, fx, fov_x)).rgb)
 
 
@@ -261,11 +269,12 @@ def render_orbit(
     video_format: str = "gif",
     checkpoint: str = "latest",
     progress: Any = None,
+    device: str = "auto",
 ) -> Path:
     """Render an orbit around the scene: out_dir/orbit_000.png ... and out_dir/orbit.<gif|mp4>; its path."""
     if num_frames < 1:
         raise ValueError(f"an orbit needs at least one frame, got {num_frames}")
-    run = load_run(run_dir, checkpoint)
+    run = load_run(run_dir, checkpoint, device=device)
     width = width or run.camera.width
     height = height or run.camera.height
     camera = view_camera(run, width, height, None, None)

@@ -132,7 +132,11 @@ class OccupancyGrid(torch.nn.Module):
 
     @torch.no_grad()
     def update(
-        self, density: Tensor | DensityFn, step_size: float, alpha_threshold: float, dilation: int = 0
+        self,
+        density: Tensor | DensityFn,
+        step_size: float | Tensor,
+        alpha_threshold: float,
+        dilation: int = 0,
     ) -> Tensor:
         """Occupied iff the cell's opacity bound exceeds alpha_threshold, dilated by `dilation` cells.
 
@@ -226,15 +230,22 @@ class OccupancyGrid(torch.nn.Module):
         density_fn: DensityFn,
         transmittance_threshold: float,
     ) -> PackedSamples:
-        """`march`, then early ray termination: drop the samples behind transmittance_threshold (no grad)."""
+        """`march`, then early ray termination (`drop_occluded`)."""
         samples = self.march(origins, directions, near, far, step_size, jitter)
-        if transmittance_threshold <= 0 or samples.t.numel() == 0:
-            return samples
-        with torch.no_grad():
-            optical_depth = density_fn(samples.positions) * samples.deltas
-            transmittance = packed_transmittance(optical_depth, samples.ray_indices, origins.shape[0])
-            keep = (transmittance > transmittance_threshold).nonzero(as_tuple=True)[0]
-        return PackedSamples(*(field[keep] for field in samples))
+        return drop_occluded(samples, origins.shape[0], density_fn, transmittance_threshold)
+
+
+def drop_occluded(
+    samples: PackedSamples, num_rays: int, density_fn: DensityFn, transmittance_threshold: float
+) -> PackedSamples:
+    """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold."""
+    if transmittance_threshold <= 0 or samples.t.numel() == 0:
+        return samples
+    with torch.no_grad():
+        optical_depth = density_fn(samples.positions) * samples.deltas
+        transmittance = packed_transmittance(optical_depth, samples.ray_indices, num_rays)
+        keep = (transmittance > transmittance_threshold).nonzero(as_tuple=True)[0]
+    return PackedSamples(*(field[keep] for field in samples))
 
 
 class PackedRender(NamedTuple):
@@ -273,8 +284,11 @@ def render_packed_samples(
     return PackedRender(colour, depth, opacity, sigma, weights)
 
 
-def cell_alpha_bound(vertex_sigma: Tensor, step_size: float) -> Tensor:
-    """1 - exp(-max sigma over each cell's 8 vertices * step): one sample step's opacity bound; (X,Y,Z)."""
+def cell_alpha_bound(vertex_sigma: Tensor, step_size: float | Tensor) -> Tensor:
+    """1 - exp(-max sigma over each cell's 8 vertices * step): one sample step's opacity bound; (X,Y,Z).
+
+    step_size: one world length for every cell, or one per cell (X,Y,Z) where the steps differ.
+    """
     cell_max = F.max_pool3d(vertex_sigma[None, None], kernel_size=2, stride=1)[0, 0]
     return -torch.expm1(-cell_max * step_size)
 

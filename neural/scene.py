@@ -10,12 +10,17 @@ import numpy as np
 
 @dataclass(frozen=True)
 class SceneInfo:
-    """Ray bounds (near, far: distances along unit directions) and the axis-aligned box holding the scene."""
+    """Ray bounds (near, far: distances along unit directions) and the axis-aligned box holding the scene.
+
+    unbounded: the box is only the region of interest; content reaches out to `far` all around it (models
+    that support this contract the space beyond the box, see neural.contraction).
+    """
 
     near: float
     far: float
     scene_box_min: tuple[float, float, float]
     scene_box_max: tuple[float, float, float]
+    unbounded: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.near < self.far:
@@ -29,6 +34,7 @@ class SceneInfo:
             "far": self.far,
             "scene_box_min": list(self.scene_box_min),
             "scene_box_max": list(self.scene_box_max),
+            "unbounded": self.unbounded,
         }
 
     @classmethod
@@ -38,6 +44,7 @@ class SceneInfo:
             far=float(data["far"]),
             scene_box_min=tuple(float(v) for v in data["scene_box_min"]),
             scene_box_max=tuple(float(v) for v in data["scene_box_max"]),
+            unbounded=bool(data.get("unbounded", False)),
         )
 
 

@@ -27,9 +27,10 @@ from neural.checkpoints import (
     save_checkpoint,
 )
 from neural.config import TrainConfig
-from neural.data import Dataset, load_dataset
+from neural.data import FORMAT_DEFAULTS, Dataset, dataset_format, load_dataset_for
 from neural.errors import CheckpointError
 from neural.inference import (
+    IMAGE_CACHE_DIR,
     RUN_CONFIG_FILE,
     Camera,
     background_colour,
@@ -212,11 +213,13 @@ class Trainer:
         self.progress = progress
         self.metrics_callback = metrics_callback
         self.should_stop = should_stop
-        self.dataset = load_dataset(data, white_background=config.white_background)
         model_type, _ = model_classes(config.model)
-        self.config = config.resolved(model_type.train_defaults)
+        self.config = config.resolved(model_type.train_defaults).for_data(
+            FORMAT_DEFAULTS[dataset_format(data)], model_type.supports_unbounded
+        )
+        self.dataset = load_dataset_for(data, self.config, run_dir / IMAGE_CACHE_DIR)
         self.device = resolve_device(self.config.device)
-        self.background = background_colour(self.config.white_background, self.device)
+        self.background = background_colour(self.config.background, self.device)
         self.sampler = RayBatchSampler(self.dataset, self.dataset.split("train"), self.device)
         self.val_index = self._first_val_index()
         camera = Camera(
@@ -326,8 +329,13 @@ class Trainer:
         lr = set_learning_rate(self.optimizer, learning_rate_factor(self.step, config))
         crop = config.precrop_fraction if self.step < config.precrop_steps else None
         origins, directions, target = self.sampler.sample(config.batch_rays, self.generator, crop)
+        background = self.background
+        if config.background == "random":  # nothing may show through: the scene must be opaque
+            background = torch.rand(
+                (origins.shape[0], 3), generator=self.generator, device=self.device
+            )
         out = self.model.render_rays(
-            origins, directions, self.dataset.near, self.dataset.far, self.background, train=True,
+            origins, directions, self.dataset.near, self.dataset.far, background, train=True,
             generator=self.generator,
         )  # fmt: skip
         mse = torch.mean((out.rgb - target) ** 2)

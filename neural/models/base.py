@@ -41,6 +41,8 @@ class RadianceModel(torch.nn.Module):
     #: Training settings this model works best with (keys of neural.config.MODEL_DEFAULTABLE), used
     #: where the user's TrainConfig leaves them unset.
     train_defaults: ClassVar[dict[str, Any]] = {}
+    #: Whether the model renders `SceneInfo.unbounded` scenes (content beyond the scene box).
+    supports_unbounded: ClassVar[bool] = False
     config: BaseModel
 
     def __init__(self, scene: SceneInfo) -> None:

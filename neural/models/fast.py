@@ -8,6 +8,10 @@ Speed comes from (1) an occupancy grid, recomputed from the density grid itself,
 (2) a coarse-to-fine schedule that upsamples the grids and refits them to the occupied box, with the sample
 spacing tied to the voxel size, and (3) early ray termination and skipping the colour of samples with
 negligible weight. Everything is learned from RGB images alone; no masks, no assumed background.
+Unbounded scenes (`SceneInfo.unbounded`): the grids cover contracted space [-2, 2]^3 (neural.contraction:
+the scene box's cube is kept as it is, everything beyond is squeezed into the shell), points are contracted
+before every grid lookup, and rays are sampled at equal steps in contracted space
+(neural.sampling.contracted_space_samples: uniform in the cube, disparity-linear beyond it).
 """
 
 from __future__ import annotations
@@ -20,9 +24,17 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
+from neural.contraction import CONTRACTED_RADIUS, InnerCube
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
-from neural.occupancy import OccupancyGrid, cell_alpha_bound, render_packed_samples
+from neural.occupancy import (
+    OccupancyGrid,
+    PackedSamples,
+    cell_alpha_bound,
+    drop_occluded,
+    render_packed_samples,
+)
 from neural.rendering import packed_distortion
+from neural.sampling import contracted_space_samples
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
 SH_C0 = 0.28209479177387814
@@ -110,6 +122,7 @@ class FastModel(RadianceModel):
     """Density and SH-colour voxel grids over the scene box with occupancy-based empty-space skipping."""
 
     model_name: ClassVar[str] = "fast"
+    supports_unbounded: ClassVar[bool] = True
     # Grids take large Adam steps (DVGO uses 0.1); the raw density is a log-density, so 0.3 per step moves
     # sigma by ~35%. steps: the default length when neither steps nor minutes is given.
     train_defaults: ClassVar[dict[str, Any]] = {
@@ -124,8 +137,16 @@ class FastModel(RadianceModel):
     def __init__(self, scene: SceneInfo, config: FastModelConfig | None = None) -> None:
         super().__init__(scene)
         self.config = config or FastModelConfig()
-        box_min = torch.tensor(scene.scene_box_min, dtype=torch.float32)
-        box_max = torch.tensor(scene.scene_box_max, dtype=torch.float32)
+        # Grid coordinates: the world (scene frame) if bounded, contracted space for an unbounded scene.
+        self.inner_cube = (
+            InnerCube.around(scene.scene_box_min, scene.scene_box_max) if scene.unbounded else None
+        )
+        if self.inner_cube is None:
+            box_min = torch.tensor(scene.scene_box_min, dtype=torch.float32)
+            box_max = torch.tensor(scene.scene_box_max, dtype=torch.float32)
+        else:
+            box_max = torch.full((3,), CONTRACTED_RADIUS)
+            box_min = -box_max
         shape, voxel_size = grid_shape_for(box_min, box_max, self.config.initial_voxels)
         self.register_buffer("box_min", box_min)
         self.register_buffer("box_max", box_max)
@@ -135,7 +156,7 @@ class FastModel(RadianceModel):
         cells = (shape[0] - 1, shape[1] - 1, shape[2] - 1)
         self.occupancy = OccupancyGrid(box_min, box_max, cells)
         # sigma = exp(raw + shift): raw = 0 gives one sample step the opacity `initial_alpha`.
-        initial_sigma = -math.log(1.0 - self.config.initial_alpha) / (self.config.step_ratio * voxel_size)
+        initial_sigma = -math.log(1.0 - self.config.initial_alpha) / (self.unit_length * self.step_size)
         self.density_shift = math.log(initial_sigma)
 
     # ----------------------------------------------------------------------------------------- grids
@@ -145,7 +166,17 @@ class FastModel(RadianceModel):
 
     @property
     def step_size(self) -> float:
+        """Sample spacing in grid coordinates (world units times unit_length for an unbounded scene)."""
         return self.config.step_ratio * float(self.voxel_size)
+
+    @property
+    def unit_length(self) -> float:
+        """World length of one grid-coordinate unit where space is not contracted."""
+        return 1.0 if self.inner_cube is None else self.inner_cube.half_side
+
+    def to_grid_space(self, positions: Tensor) -> Tensor:
+        """World points (N,3) -> grid coordinates: as they are, or contracted for an unbounded scene."""
+        return positions if self.inner_cube is None else self.inner_cube.contract(positions)
 
     @property
     def grid_shape(self) -> tuple[int, int, int]:
@@ -158,7 +189,7 @@ class FastModel(RadianceModel):
         return normalized.flip(-1).reshape(1, 1, 1, -1, 3)
 
     def _sample_grid(self, grid: Tensor, positions: Tensor) -> Tensor:
-        """Trilinear interpolation of a (1,C,X,Y,Z) grid at world points (N,3); (N,C)."""
+        """Trilinear interpolation of a (1,C,X,Y,Z) grid at grid-space points (N,3); (N,C)."""
         values = F.grid_sample(grid, self._grid_coordinates(positions), mode="bilinear", align_corners=True)
         return values.reshape(grid.shape[1], -1).T
 
@@ -168,11 +199,12 @@ class FastModel(RadianceModel):
 
     def density_at(self, positions: Tensor) -> Tensor:
         """sigma(x) = exp(interp(raw)(x) + shift) at world points (N,3); (N,)."""
-        return self.activate_density(self._sample_grid(self.density, positions)[:, 0])
+        return self.activate_density(self._sample_grid(self.density, self.to_grid_space(positions))[:, 0])
 
     def color_at(self, positions: Tensor, directions: Tensor) -> Tensor:
         """c(x, d) = sigmoid(sum_k coef_k(x) Y_k(d)) per channel; (N,3)."""
-        coefficients = self._sample_grid(self.color, positions).reshape(-1, 3, self.num_sh)
+        coefficients = self._sample_grid(self.color, self.to_grid_space(positions))
+        coefficients = coefficients.reshape(-1, 3, self.num_sh)
         basis = sh_basis(directions, self.config.sh_degree)
         return torch.sigmoid((coefficients * basis[:, None, :]).sum(-1))
 
@@ -189,10 +221,7 @@ class FastModel(RadianceModel):
     ) -> RayBundleOutput:
         """Packed volume rendering of the occupied samples of each ray (see module docstring)."""
         jitter = torch.rand(origins.shape[0], generator=generator, device=origins.device) if train else None
-        samples = self.occupancy.sample(
-            origins, directions, near, far, self.step_size, jitter, self.density_at,
-            self.config.transmittance_threshold,
-        )  # fmt: skip
+        samples = self._occupied_samples(origins, directions, near, far, jitter)
         out = render_packed_samples(
             samples, directions, self.density_at, self.color_at, background,
             self.config.color_weight_threshold,
@@ -204,6 +233,27 @@ class FastModel(RadianceModel):
             )
             extra_loss = distortion if extra_loss is None else extra_loss + distortion
         return RayBundleOutput(rgb=out.rgb, depth=out.depth, opacity=out.opacity, extra_loss=extra_loss)
+
+    def _occupied_samples(
+        self, origins: Tensor, directions: Tensor, near: float, far: float, jitter: Tensor | None
+    ) -> PackedSamples:
+        """Samples in occupied cells (world units), marched through the box or spaced for contraction, then
+        early ray termination (samples behind transmittance_threshold dropped)."""
+        threshold = self.config.transmittance_threshold
+        if self.inner_cube is None:
+            return self.occupancy.sample(
+                origins, directions, near, far, self.step_size, jitter, self.density_at, threshold
+            )
+        scale = self.inner_cube.half_side
+        unit = contracted_space_samples(
+            self.inner_cube.to_unit(origins), directions, near / scale, far / scale, self.step_size, jitter
+        )
+        positions = origins[unit.ray_indices] + directions[unit.ray_indices] * (unit.t * scale)[:, None]
+        keep = self.occupancy.query(self.inner_cube.contract(positions))
+        samples = PackedSamples(
+            unit.ray_indices[keep], unit.t[keep] * scale, unit.deltas[keep] * scale, positions[keep]
+        )
+        return drop_occluded(samples, origins.shape[0], self.density_at, threshold)
 
     def _regularizer(self) -> Tensor | None:
         terms = []
@@ -232,14 +282,35 @@ class FastModel(RadianceModel):
 
         The occupancy cells are the grid's voxels and sigma is monotonic in the interpolated raw density, so
         the max over a cell's vertices bounds every sample inside it: no skipped sample can be denser than
-        the threshold.
+        the threshold. The step is the longest world length a sample stands for in the cell
+        (`_cell_world_steps`: longer in the outer shell of contracted space).
         """
         vertex_sigma = self.activate_density(self.density)[0, 0]
-        self.occupancy.update(vertex_sigma, self.step_size, self.config.occupancy_alpha_threshold)
+        self.occupancy.update(vertex_sigma, self._cell_world_steps(), self.config.occupancy_alpha_threshold)
 
     def _cell_alpha(self) -> Tensor:
         """Upper bound of one sample step's opacity in each cell: from the max sigma of its 8 vertices."""
-        return cell_alpha_bound(self.activate_density(self.density)[0, 0], self.step_size)
+        return cell_alpha_bound(self.activate_density(self.density)[0, 0], self._cell_world_steps())
+
+    def _cell_world_steps(self) -> float | Tensor:
+        """The longest world length a sample stands for in each cell (X-1,Y-1,Z-1), or one number.
+
+        Contracted space: a step ds at contracted max norm rho > 1 is about r^2 ds long in unit coordinates,
+        r = 1 / (2 - rho) the uncontracted norm; taken at each cell's outer corner, and capped at the far end.
+        """
+        if self.inner_cube is None:
+            return self.step_size
+        resolution = torch.tensor(self.occupancy.resolution, device=self.density.device)
+        axes = [
+            torch.linspace(float(low), float(high), int(n) + 1, device=self.density.device)
+            for low, high, n in zip(self.box_min, self.box_max, resolution, strict=True)
+        ]
+        outer = [torch.maximum(axis[:-1].abs(), axis[1:].abs()) for axis in axes]
+        rho = torch.maximum(outer[0][:, None, None], outer[1][None, :, None])
+        rho = torch.maximum(rho, outer[2][None, None, :])
+        far_unit = self.scene.far / self.inner_cube.half_side
+        radius = torch.where(rho > 1.0, 1.0 / (CONTRACTED_RADIUS - rho).clamp_min(1.0 / far_unit), 1.0)
+        return self.step_size * self.unit_length * radius.square()
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""

@@ -42,6 +42,12 @@ def nerf() -> None:
     "--chunk-rays", type=int, default=None, help="Rays rendered at once; lower it on out-of-memory."
 )
 @click.option("--precrop-steps", type=int, default=None, help="First steps drawing rays from image centres.")
+@click.option("--background", type=click.Choice(["white", "black", "random"]), default=None,
+              help="Behind the scene (default: white for Blender/npz, random for photographs).")  # fmt: skip
+@click.option("--unbounded/--bounded", default=None,
+              help="Content beyond the scene box, contracted (default: unbounded for photos).")  # fmt: skip
+@click.option("--max-side", type=int, default=None, help="Train on images shrunk to this longer side (px).")
+@click.option("--downscale", type=float, default=None, help="Train on images shrunk by this factor.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its latest checkpoint.")
 def train_command(data: Path, run_dir: Path, resume: bool, **options: Any) -> None:
     """Train a radiance field on DATA (Blender folder, tiny-NeRF .npz or `sfmnerf reconstruct` output)."""
@@ -132,7 +138,7 @@ def camera_for_transforms(default: Camera, meta: dict[str, Any], path: Path | st
 @click.option("--orbit", type=int, default=None, help="Render an orbit of this many frames instead.")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--width", type=int, default=None, help="Default: the training images' width.")
-@click.option("--height", type=int, default=None, help="Default: keeps the training aspect ratio.")
+@click.option("--height", type=int, default=None, help="Default: the poses file's aspect.")
 @click.option("--depth", is_flag=True, help="Also write <name>_depth.png (near bright, far dark).")
 @click.option("--checkpoint", default="latest", show_default=True, help="latest, best or a step number.")
 @click.option("--format", "video_format", type=click.Choice(["gif", "mp4"]), default="gif", show_default=True)
@@ -162,15 +168,16 @@ def render_command(
             bar = tqdm(total=orbit, desc="orbit", unit="frame")
             video = render_orbit(
                 run_dir, orbit, out_dir, width, height, video_format=video_format, checkpoint=checkpoint,
-                progress=lambda stage, fraction: bar.update(round(fraction * orbit) - bar.n),
+                progress=lambda stage, fraction: bar.update(round(fraction * orbit) - bar.n), device=device,
             )  # fmt: skip
             bar.close()
             click.echo(f"wrote {orbit} frames and {video}")
             return
         run = load_run(run_dir, checkpoint, device=device)
         meta, frames = frames_from_transforms(poses)
-        width = width or int(meta.get("w", run.camera.width))
-        height = height or int(meta.get("h", round(width * run.camera.height / run.camera.width)))
+        width = width or run.camera.width  # the training size: a photo's transforms.json has its full size
+        aspect = float(meta["h"]) / float(meta["w"]) if "w" in meta and "h" in meta else None
+        height = height or round(width * (aspect or run.camera.height / run.camera.width))
         camera = camera_for_transforms(view_camera(run, width, height, None, None), meta, poses)
         out_dir.mkdir(parents=True, exist_ok=True)
         for frame in tqdm(frames, desc="render", unit="frame"):
@@ -195,14 +202,23 @@ def render_command(
               help="Where to write the metrics; default RUN/eval_<split>.json.")  # fmt: skip
 @click.option("--save-renders", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also save the rendered images here.")  # fmt: skip
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
 def eval_command(
-    run_dir: Path, data: Path, split: str, checkpoint: str, json_path: Path | None, save_renders: Path | None
+    run_dir: Path,
+    data: Path,
+    split: str,
+    checkpoint: str,
+    json_path: Path | None,
+    save_renders: Path | None,
+    device: str,
 ) -> None:
-    """PSNR and SSIM of the run's renders of DATA's split, per image and mean; printed and saved as JSON."""
+    """PSNR and SSIM of the run's renders of DATA's split (default: the held-out val views, never trained
+    on), at the training image size; per image and mean, printed and saved as JSON. No LPIPS: its backbone
+    weights cannot be installed offline (see README)."""
     from neural import evaluate
 
     try:
-        result = evaluate(run_dir, data, split, checkpoint=checkpoint, out_dir=save_renders)
+        result = evaluate(run_dir, data, split, checkpoint=checkpoint, out_dir=save_renders, device=device)
     except USER_ERRORS as error:
         raise click.ClickException(str(error)) from None
     click.echo(f"{'image':<24} {'PSNR (dB)':>10} {'SSIM':>8}")

@@ -1,4 +1,5 @@
-"""A tiny analytic scene for the NeRF tests: three coloured boxes on white, seen from a ring of cameras."""
+"""Tiny analytic scenes for the NeRF tests: three coloured boxes on white, seen from a ring of cameras, and
+the same boxes inside a textured sphere far away (an unbounded scene: no white world around it)."""
 
 from __future__ import annotations
 
@@ -44,18 +45,54 @@ def render_boxes(origins: torch.Tensor, directions: torch.Tensor) -> torch.Tenso
     return colour
 
 
-def ring_views(num_views: int, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Rays (origins, directions) and true colours of `num_views` cameras on a ring, size x size pixels."""
-    focal = 0.5 * size / math.tan(math.radians(25.0))
+def ring_views(
+    num_views: int, size: int, half_fov_deg: float = 25.0, offset: float = 0.0, truth=None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rays (origins, directions) and true colours (`truth`, default render_boxes) of `num_views` cameras on
+    a ring, size x size pixels; offset turns the ring by that fraction of the angle between views."""
+    focal = 0.5 * size / math.tan(math.radians(half_fov_deg))
     origins, directions = [], []
     for k in range(num_views):
-        angle = 2 * math.pi * k / num_views
+        angle = 2 * math.pi * (k + offset) / num_views
         position = 3.0 * torch.tensor([math.cos(angle), math.sin(angle), 0.6 if k % 2 else -0.3])
         rays = generate_rays(look_at_pose(position), size, size, focal)
         origins.append(rays.origins)
         directions.append(rays.directions)
     origins, directions = torch.cat(origins), torch.cat(directions)
-    return origins, directions, render_boxes(origins, directions)
+    return origins, directions, (truth or render_boxes)(origins, directions)
+
+
+#: The unbounded scene: the boxes inside a textured sphere of this radius around the origin.
+SPHERE_RADIUS = 30.0
+UNBOUNDED_SCENE = SceneInfo(
+    near=0.2, far=3000.0, scene_box_min=(-3.0, -3.0, -3.0), scene_box_max=(3.0, 3.0, 3.0), unbounded=True
+)
+
+
+def sphere_texture(points: torch.Tensor) -> torch.Tensor:
+    """A smooth colour pattern over the directions of points (N,3) from the origin; (N,3) in [0.15, 0.85]."""
+    unit = points / points.norm(dim=-1, keepdim=True)
+    longitude, latitude = torch.atan2(unit[:, 1], unit[:, 0]), torch.asin(unit[:, 2].clamp(-1, 1))
+    return torch.stack(
+        [
+            0.5 + 0.35 * torch.sin(3 * longitude) * torch.cos(latitude),
+            0.5 + 0.35 * torch.cos(2 * latitude),
+            0.5 + 0.3 * torch.sin(2 * longitude + latitude),
+        ],
+        dim=-1,
+    )
+
+
+def render_boxes_in_sphere(origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+    """Ground truth of the unbounded scene: the first box hit, else the sphere's texture where the ray
+    leaves the sphere (t = -o.d + sqrt((o.d)^2 - |o|^2 + R^2) for rays from inside)."""
+    along = (origins * directions).sum(dim=-1)
+    t_sphere = -along + torch.sqrt(along**2 - (origins**2).sum(dim=-1) + SPHERE_RADIUS**2)
+    colour = render_boxes(origins, directions)
+    background = (colour == WHITE).all(dim=-1)
+    far_points = origins[background] + directions[background] * t_sphere[background, None]
+    colour[background] = sphere_texture(far_points)
+    return colour
 
 
 def psnr(rendered: torch.Tensor, truth: torch.Tensor) -> float:

@@ -88,7 +88,7 @@ def test_reconstruction_folder_is_normalized_and_rays_hit_the_sparse_points(tmp_
     scene, poses, points = write_reconstruction(tmp_path, binary_ply)
     dataset = load_dataset(tmp_path)
     assert dataset.images.shape == (5, 60, 80, 3)
-    assert len(dataset.split("train")) == 5 and len(dataset.split("val")) == 5  # too few to hold out
+    assert list(dataset.split("val")) == [0] and list(dataset.split("train")) == [1, 2, 3, 4]  # LLFF
     normalized = dataset.normalization.points_to_scene(points)
     inside = np.all(
         (normalized >= dataset.scene.scene_box_min) & (normalized <= dataset.scene.scene_box_max), 1
@@ -252,3 +252,81 @@ def test_reconstruction_image_of_wrong_size_and_missing_points(tmp_path):
     (tmp_path / "points.ply").unlink()
     with pytest.raises(DatasetError, match=r"no points\.ply or sparse/points3D\.txt"):
         load_dataset(tmp_path)
+
+
+# -------------------------------------------------------------------------------- images at a smaller size
+def test_downscaled_loading_keeps_the_intrinsics_consistent_with_the_image(tmp_path):
+    """A white dot drawn where a known 3D point projects at full size is found where the scaled intrinsics
+    project it at the reduced size (also for an aspect that does not divide evenly)."""
+    from neural.data import ImageSize
+
+    scene, poses, points = write_reconstruction(tmp_path)
+    full = load_dataset(tmp_path)
+    index, point = 2, np.array([0.05, -0.1, 0.02])  # near the scene's centre, in the normalized frame
+
+    def project(dataset):
+        c2w = dataset.poses[index].astype(np.float64)
+        camera = c2w[:3, :3].T @ (point - c2w[:3, 3])  # OpenGL camera axes: looks down -z, y up
+        u = dataset.fx * camera[0] / -camera[2] + dataset.cx  # continuous pixel coordinates
+        v = dataset.fy * -camera[1] / -camera[2] + dataset.cy
+        return np.array([u, v])
+
+    u, v = project(full)
+    image = np.zeros((60, 80, 3), np.uint8)
+    rows, cols = np.mgrid[0:60, 0:80] + 0.5
+    image[(np.abs(cols - u) < 2.0) & (np.abs(rows - v) < 2.0)] = 255  # a 4x4 px dot centred on (u, v)
+    Image.fromarray(image).save(tmp_path / "images/3.png")
+
+    for size in (ImageSize(downscale=2), ImageSize(max_side=50)):
+        small = load_dataset(tmp_path, image_size=size)
+        width, height = size.target(80, 60)
+        assert small.images.shape == (5, height, width, 3)
+        assert (small.fx, small.cx) == pytest.approx((full.fx * width / 80, full.cx * width / 80))
+        assert (small.fy, small.cy) == pytest.approx((full.fy * height / 60, full.cy * height / 60))
+        brightness = small.images[index].mean(axis=-1)
+        rows, cols = np.mgrid[0:height, 0:width] + 0.5
+        centroid = np.array([(cols * brightness).sum(), (rows * brightness).sum()]) / brightness.sum()
+        np.testing.assert_allclose(centroid, project(small), atol=0.1)
+        np.testing.assert_allclose(project(small), [u * width / 80, v * height / 60], atol=1e-6)
+
+
+def test_resized_images_are_cached_by_content_and_give_the_same_values(tmp_path):
+    from neural.data import ImageSize
+
+    write_reconstruction(tmp_path / "sfm")
+    cache = tmp_path / "cache"
+    first = load_dataset(tmp_path / "sfm", image_size=ImageSize(max_side=40), cache_dir=cache)
+    cached_files = sorted(cache.glob("*.npy"))
+    assert len(cached_files) == 5
+    again = load_dataset(tmp_path / "sfm", image_size=ImageSize(max_side=40), cache_dir=cache)
+    np.testing.assert_array_equal(first.images, again.images)
+    uncached = load_dataset(tmp_path / "sfm", image_size=ImageSize(max_side=40))
+    np.testing.assert_array_equal(first.images, uncached.images)
+    # a changed photo is decoded afresh (its cache key follows the file)
+    Image.fromarray(np.full((60, 80, 3), 200, np.uint8)).save(tmp_path / "sfm/images/1.png")
+    changed = load_dataset(tmp_path / "sfm", image_size=ImageSize(max_side=40), cache_dir=cache)
+    assert len(list(cache.glob("*.npy"))) == 6
+    np.testing.assert_allclose(changed.images[0], 200 / 255, atol=1e-3)
+
+
+def test_blender_and_npz_scale_their_focal_with_the_image(shared_data):
+    from neural.data import ImageSize
+
+    blender = load_dataset(shared_data / "lego_200", image_size=ImageSize(max_side=50))
+    assert blender.images.shape[1:3] == (50, 50) and blender.fx == pytest.approx(LEGO_FOCAL_200 / 4)
+    assert (blender.cx, blender.cy) == (25.0, 25.0)
+    npz = load_dataset(shared_data / "lego_tiny.npz", image_size=ImageSize(downscale=4))
+    assert npz.images.shape[1:3] == (25, 25) and npz.fx == pytest.approx(138.888879 / 4, rel=1e-6)
+
+
+# ---------------------------------------------------------------------------------------- unbounded scenes
+def test_unbounded_scene_holds_every_camera_in_its_box_and_reaches_far(tmp_path):
+    write_reconstruction(tmp_path)
+    bounded = load_dataset(tmp_path)
+    unbounded = load_dataset(tmp_path, unbounded=True)
+    assert not bounded.scene.unbounded and unbounded.scene.unbounded
+    centres = unbounded.poses[:, :3, 3]
+    assert (centres >= np.array(unbounded.scene.scene_box_min) - 1e-6).all()
+    assert (centres <= np.array(unbounded.scene.scene_box_max) + 1e-6).all()
+    assert unbounded.scene.far > 100 * bounded.scene.far and unbounded.near == bounded.near
+    np.testing.assert_array_equal(unbounded.images, bounded.images)

@@ -11,7 +11,15 @@ from neural.models import build_model
 from neural.models.fast import FastModel, FastModelConfig
 from neural.occupancy import OccupancyGrid, ray_box_intersection
 from neural.rendering import volume_render, volume_render_packed
-from tests.neural.box_scene import SCENE, WHITE, fit, psnr, ring_views
+from tests.neural.box_scene import (
+    SCENE,
+    UNBOUNDED_SCENE,
+    WHITE,
+    fit,
+    psnr,
+    render_boxes_in_sphere,
+    ring_views,
+)
 
 
 def small_config(**overrides) -> FastModelConfig:
@@ -42,6 +50,38 @@ def test_fast_model_overfits_a_tiny_box_scene_above_30_db_from_rgb_alone():
     assert model.occupancy.occupied_fraction() < 0.5
     face_centres = torch.tensor([[-0.35, -0.5, -0.15], [0.6, 0.0, 0.0], [0.0, -0.35, 0.6]])
     assert model.occupancy.query(face_centres).all()
+
+
+def test_unbounded_model_fits_boxes_inside_a_textured_far_sphere_above_25_db_on_random_backgrounds():
+    """No white world: the sphere 30 units out (10x the cameras' distance) lives in contracted space, and a
+    random background colour per ray makes every ray end on something."""
+    torch.manual_seed(0)
+    origins, directions, colours = ring_views(6, 24, half_fov_deg=40.0, truth=render_boxes_in_sphere)
+    model = build_model("fast", UNBOUNDED_SCENE, **small_config(final_voxels=40**3).model_dump())
+    generator = torch.Generator().manual_seed(0)
+    optimizer = torch.optim.Adam(model.param_groups(0.3))
+    for step in range(90):
+        if model.on_train_step(step):
+            optimizer = torch.optim.Adam(model.param_groups(0.3))
+        index = torch.randint(0, origins.shape[0], (1024,), generator=generator)
+        background = torch.rand((1024, 3), generator=generator)
+        out = model.render_rays(
+            origins[index], directions[index], UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far, background, True,
+            generator,
+        )  # fmt: skip
+        loss = torch.mean((out.rgb - colours[index]) ** 2)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        out = model.render_rays(
+            origins, directions, UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far, torch.zeros(3), train=False
+        )
+    assert psnr(out.rgb, colours) > 25.0
+    assert out.opacity.mean() > 0.99  # the far sphere is opaque: the black render background hardly shows
+    # the far sphere is far: rays that miss the boxes end beyond the cameras' ring (radius 3)
+    misses = (render_boxes_in_sphere(origins, directions) != torch.tensor([0.9, 0.1, 0.1])).all(-1)
+    assert out.depth[misses].median() > 6.0
 
 
 def test_render_rays_returns_one_colour_depth_and_opacity_per_ray_and_a_white_empty_scene():

@@ -192,3 +192,38 @@ def test_render_intrinsics_follow_the_transforms_file_scaled_to_the_requested_si
     assert blender.fx == pytest.approx(400.0) and (blender.cx, blender.cy) == (200.0, 150.0)
     with pytest.raises(ValueError, match="'fl_x' needs 'w'"):
         camera_for_transforms(default, {"fl_x": 10.0}, "t.json")
+
+
+def test_cli_photo_options_are_recorded_and_eval_and_render_default_to_the_training_size(tmp_path):
+    from tests.neural.test_data import write_reconstruction
+
+    write_reconstruction(tmp_path / "sfm")  # 80x60 photos, frame 0 held out
+    runner = CliRunner()
+    run = tmp_path / "run"
+    result = runner.invoke(
+        main,
+        ["nerf", "train", str(tmp_path / "sfm"), "--out", str(run), "--steps", "1", "--batch-rays", "32",
+         "--device", "cpu", "--bounded", "--background", "black", "--max-side", "40"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    config = json.loads((run / "config.json").read_text())
+    assert (config["train"]["unbounded"], config["train"]["background"]) == (False, "black")
+    assert not config["scene"]["unbounded"] and config["train"]["max_side"] == 40
+    assert len(list((run / "image_cache").glob("*.npy"))) == 5  # the resized photos, cached in the run
+
+    result = runner.invoke(
+        main,
+        ["nerf", "eval", str(run), "--data", str(tmp_path / "sfm"), "--device", "cpu", "--save-renders",
+         str(tmp_path / "heldout")],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    report = json.loads((run / "eval_val.json").read_text())
+    assert [image["name"] for image in report["per_image"]] == ["1"]  # images/1.png: frame 0, held out
+    assert Image.open(tmp_path / "heldout/1.png").size == (40, 30)
+    result = runner.invoke(
+        main,
+        ["nerf", "render", str(run), "--poses", str(tmp_path / "sfm/transforms.json"), "--out",
+         str(tmp_path / "renders"), "--device", "cpu"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert Image.open(tmp_path / "renders/1.png").size == (40, 30)  # not the file's 80x60

@@ -51,3 +51,53 @@ def test_all_zero_weights_sample_uniformly_without_nan():
     samples = sample_pdf(bins, torch.zeros(3, 10), 1000, deterministic=False)
     assert torch.isfinite(samples).all()
     assert abs(samples.mean().item() - 0.5) < 0.05
+
+
+# ------------------------------------------------------------------------------- contracted (unbounded) space
+def test_contracted_space_samples_are_uniform_inside_the_cube_and_disparity_linear_beyond():
+    from neural.sampling import contracted_space_samples
+
+    origins = torch.zeros(1, 3)
+    directions = torch.tensor([[1.0, 0.0, 0.0]])
+    samples = contracted_space_samples(origins, directions, near=0.0, far=1000.0, step=0.05)
+    inside = samples.t < 1.0
+    torch.testing.assert_close(samples.t[inside], 0.025 + 0.05 * torch.arange(20.0))
+    torch.testing.assert_close(samples.deltas[inside], torch.full((20,), 0.05))
+    # beyond the cube, equal steps in 1/(t - 1 + 1) = 1/t: disparity-linear, widening with distance
+    disparity = 1.0 / samples.t[~inside]
+    steps = disparity[:-1] - disparity[1:]
+    assert (samples.deltas[~inside][1:] > samples.deltas[~inside][:-1]).all()
+    assert samples.t.numel() < 45  # about 1/step samples for the whole unbounded outside
+    assert steps.max() < 0.051
+    # the bins tile [near, far]
+    torch.testing.assert_close(samples.deltas.sum(), torch.tensor(1000.0), rtol=1e-4, atol=0)
+
+
+def test_sampling_in_contracted_space_reaches_a_far_wall_a_box_march_misses():
+    """A ray from the scene's centre towards a wall 500 units away: the sample bins cover the wall."""
+    from neural.contraction import contract
+    from neural.occupancy import OccupancyGrid
+    from neural.sampling import contracted_space_samples
+
+    generator = torch.Generator().manual_seed(2)
+    directions = torch.randn(64, 3, generator=generator)
+    directions[:, 0] = directions[:, 0].abs() + 3.0  # all towards +x
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    origins = torch.rand(64, 3, generator=generator) * 0.4 - 0.2
+    wall_t = (500.0 - origins[:, 0]) / directions[:, 0]
+    samples = contracted_space_samples(origins, directions, near=0.05, far=5000.0, step=0.02)
+    # the bins tile each ray from near: a sample's bin ends at near + the sum of its ray's deltas so far
+    ends = torch.cumsum(samples.deltas.double(), 0)
+    first = torch.searchsorted(samples.ray_indices, torch.arange(64))
+    upper = 0.05 + ends - (ends - samples.deltas.double())[first][samples.ray_indices]
+    lower = upper - samples.deltas
+    # every ray has exactly one sample whose bin holds the wall, out in the contracted shell
+    holds = (lower <= wall_t[samples.ray_indices]) & (wall_t[samples.ray_indices] <= upper)
+    assert torch.equal(samples.ray_indices[holds], torch.arange(64))
+    at_wall = contract(samples.positions[holds]).abs().amax(dim=-1)
+    assert (at_wall > 1.9).all() and (at_wall < 2.0).all()
+    # with about 1/step samples per ray beyond the cube, not thousands
+    assert torch.bincount(samples.ray_indices).max() < 2.0 / 0.02 + 1.5 * 3**0.5 / 0.02
+    # a box march over the inner cube never gets there
+    box = OccupancyGrid(-torch.ones(3), torch.ones(3), (8, 8, 8))
+    assert box.march(origins, directions, 0.05, 5000.0, 0.02).t.max() < 2.0

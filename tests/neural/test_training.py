@@ -214,3 +214,67 @@ def test_a_corrupt_checkpoint_is_still_an_error_when_nothing_moved(tmp_path):
     saved.write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match="not a readable checkpoint"):
         checkpoints.load_named_checkpoint(tmp_path, "latest")
+
+
+# ------------------------------------------------------------------------------------------- held-out views
+@pytest.mark.parametrize("data_kind", ["npz", "reconstruction"])
+def test_held_out_views_never_reach_a_training_batch(data_kind, tiny_npz, tmp_path, monkeypatch):
+    from tests.neural.test_data import write_reconstruction
+
+    if data_kind == "npz":
+        data = tiny_npz
+    else:
+        data = tmp_path / "sfm"
+        write_reconstruction(data)
+    dataset = load_dataset(data)
+    train_views, held_out = set(dataset.split("train")), set(dataset.split("val"))
+    assert held_out and not train_views & held_out
+    batches = []
+    real_sample = RayBatchSampler.sample
+
+    def recording_sample(self, *args, **kwargs):
+        batch = real_sample(self, *args, **kwargs)
+        batches.append(batch)
+        return batch
+
+    monkeypatch.setattr(RayBatchSampler, "sample", recording_sample)
+    grids = dict(initial_voxels=8**3, final_voxels=8**3, upsample_steps=[1000])
+    train(data, tmp_path / "run", TrainConfig(model="fast", model_options=grids, steps=3, batch_rays=2000,
+                                              device="cpu", val_every=1))  # fmt: skip
+    assert len(batches) == 3
+    origins = torch.cat([batch[0] for batch in batches]).double()
+    colours = torch.cat([batch[2] for batch in batches])
+    centres = torch.as_tensor(dataset.poses[:, :3, 3]).double()
+    camera_of_ray = torch.cdist(origins, centres).argmin(dim=1)
+    assert set(camera_of_ray.tolist()) == train_views  # every training view, and no held-out one
+    # and every target colour is a training image's pixel
+    train_pixels = torch.as_tensor(dataset.images[sorted(train_views)].reshape(-1, 3))
+    nearest = torch.cdist(colours, train_pixels, compute_mode="donot_use_mm_for_euclid_dist").min(1).values
+    assert nearest.max() == 0
+
+
+def test_a_reconstruction_trains_unbounded_on_random_backgrounds_by_default_and_records_it(tmp_path):
+    from tests.neural.test_data import write_reconstruction
+
+    write_reconstruction(tmp_path / "sfm")
+    grids = dict(initial_voxels=8**3, final_voxels=8**3, upsample_steps=[1000])
+    config = TrainConfig(model="fast", model_options=grids, steps=1, batch_rays=64, device="cpu", max_side=40)
+    train(tmp_path / "sfm", tmp_path / "run", config)
+    config = json.loads((tmp_path / "run/config.json").read_text())
+    assert config["train"]["background"] == "random" and config["train"]["unbounded"] is True
+    assert config["scene"]["unbounded"] is True and config["train"]["max_side"] == 40
+    assert (config["camera"]["width"], config["camera"]["height"]) == (40, 30)
+    # the vanilla model renders bounded scenes only: the default follows it, asking for more is an error
+    vanilla = TrainConfig(model="vanilla", model_options=TINY_VANILLA, steps=1, batch_rays=16, device="cpu")
+    train(tmp_path / "sfm", tmp_path / "vanilla", vanilla)
+    assert json.loads((tmp_path / "vanilla/config.json").read_text())["scene"]["unbounded"] is False
+    with pytest.raises(ValueError, match="does not support unbounded scenes"):
+        train(tmp_path / "sfm", tmp_path / "bad", vanilla.model_copy(update={"unbounded": True}))
+
+
+def test_synthetic_data_keeps_the_white_bounded_world_and_old_run_configs_still_load(tiny_npz, tmp_path):
+    train(tiny_npz, tmp_path / "run", tiny_config(steps=1))
+    config = json.loads((tmp_path / "run/config.json").read_text())
+    assert config["train"]["background"] == "white" and config["train"]["unbounded"] is False
+    legacy = {k: v for k, v in config["train"].items() if k not in ("background", "unbounded")}
+    assert TrainConfig.model_validate({**legacy, "white_background": False}).background == "black"

@@ -1,0 +1,202 @@
+"""NeRF on real photographs: Strecha's fountain-P11 and Herz-Jesus-P8 through `sfmnerf reconstruct`, then the
+fast model trained at <= --max-side px in two configurations, scored on held-out views only.
+
+Configurations (both the fast model with its default settings otherwise):
+- `unbounded`: what `sfmnerf nerf train` chooses for reconstructions: contracted unbounded scene, random
+  background during training (renders on black);
+- `box`: the configuration before it: the sparse points' box with a white background.
+
+Each scene is reconstructed once with SIFT and its calibration.txt (`sfmnerf reconstruct`, full-size
+images: the command has no image-size option), into OUT/sfm/SCENE (kept and reused on a second run). Each
+(scene, configuration) trains in its own subprocess (so its peak RSS is its own) for --minutes of wall-clock
+time, then is evaluated (`neural.evaluate`) on the held-out split (LLFF: every 8th image from the first;
+never trained on): PSNR and SSIM at the training size. The held-out renders are written as
+OUT/SCENE/CONFIG/heldout/NAME.png beside NAME_truth.png, and one 800x600 frame is rendered and timed.
+Prints a table and writes OUT/results.json.
+
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf_real.py --minutes 3 --out /tmp/bench_real
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+STRECHA = REPO.parent / "shared" / "data" / "strecha"
+SCENES = ("fountain-P11", "Herz-Jesus-P8")
+#: TrainConfig settings of each configuration (the rest: the fast model's defaults).
+CONFIGURATIONS: dict[str, dict] = {
+    "unbounded": {},  # the reconstruction's defaults: unbounded, random background
+    "box": {"unbounded": False, "background": "white"},
+}
+RENDER_SIZE = (800, 600)
+
+
+def load_average() -> str:
+    return " ".join(f"{value:.2f}" for value in os.getloadavg())
+
+
+def reconstruct(scene: str, out: Path) -> dict:
+    """`sfmnerf reconstruct` of the scene into OUT/sfm/SCENE unless it is there; its report and seconds."""
+    folder = out / "sfm" / scene
+    seconds = None
+    if not (folder / "transforms.json").is_file():
+        start = time.perf_counter()
+        command = ["sfmnerf", "reconstruct", str(STRECHA / scene), "--out", str(folder), "--features", "sift"]
+        subprocess.run(command, check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+        seconds = time.perf_counter() - start
+    report = json.loads((folder / "report.json").read_text())
+    return {
+        "scene": scene,
+        "folder": str(folder),
+        "seconds": seconds,
+        "registered": f"{report['images_registered']}/{report['images_total']}",
+        "points": report["points"],
+    }
+
+
+def run_one(scene: str, configuration: str, out: Path, minutes: float, max_side: int, device: str) -> dict:
+    """Train, evaluate and time one (scene, configuration); called in the subprocess."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from neural import TrainConfig, evaluate, load_run, train
+    from neural.data import load_dataset_for
+    from neural.inference import IMAGE_CACHE_DIR, render_frame, to_uint8, view_camera
+
+    data = out / "sfm" / scene
+    run_dir = out / scene / configuration
+    load_before = load_average()
+    config = TrainConfig(
+        model="fast",
+        minutes=minutes,
+        max_side=max_side,
+        device=device,
+        val_every=10**9,  # validation renders would count as training time
+        checkpoint_every=10**9,
+        log_every=50,
+        **CONFIGURATIONS[configuration],
+    )
+    result = train(data, run_dir, config)
+    load_after = load_average()
+    heldout = run_dir / "heldout"
+    metrics = evaluate(run_dir, data, split="val", out_dir=heldout, device=device)
+    run = load_run(run_dir, device=device)
+    dataset = load_dataset_for(data, run.config, run_dir / IMAGE_CACHE_DIR)
+    for index in dataset.split("val"):
+        name = Path(dataset.image_names[index]).stem
+        Image.fromarray(to_uint8(dataset.images[index])).save(heldout / f"{name}_truth.png")
+
+    pose = dataset.normalization.pose_to_original(dataset.poses[dataset.split("val")[0]])
+    camera = view_camera(run, *RENDER_SIZE, None, None)
+    with torch.no_grad():
+        render_frame(run, pose, camera)  # warm-up
+        start = time.perf_counter()
+        frame = render_frame(run, pose, camera)
+        if run.device.type == "cuda":
+            torch.cuda.synchronize()
+        render_seconds = time.perf_counter() - start
+    Image.fromarray(to_uint8(frame.rgb)).save(run_dir / "render_800x600.png")
+    stored = json.loads((run_dir / "config.json").read_text())
+    return {
+        "scene": scene,
+        "configuration": configuration,
+        "device": str(run.device),
+        "threads": torch.get_num_threads(),
+        "minutes": minutes,
+        "train_seconds": result.seconds,
+        "steps": result.step,
+        "image_size": [dataset.width, dataset.height],
+        "heldout_images": [m.name for m in metrics.per_image],
+        "psnr": metrics.mean_psnr,
+        "ssim": metrics.mean_ssim,
+        "per_image": [{"name": m.name, "psnr": m.psnr, "ssim": m.ssim} for m in metrics.per_image],
+        "render_800x600_seconds": render_seconds,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "peak_cuda_mib": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
+        "train_config": stored["train"],
+        "scene_info": stored["scene"],
+        "load_average_before": load_before,
+        "load_average_after_training": load_after,
+        "num_train_images": int(np.asarray(dataset.split("train")).size),
+    }
+
+
+def print_table(sfm: list[dict], results: list[dict]) -> None:
+    for entry in sfm:
+        took = "reused" if entry["seconds"] is None else f"{entry['seconds']:.0f} s"
+        print(f"sfm {entry['scene']}: {entry['registered']} registered, {entry['points']} points ({took})")
+    header = (
+        f"{'scene':14} {'config':10} {'size':>9} {'min':>4} {'steps':>6} {'held-out PSNR':>13} {'SSIM':>6} "
+        f"{'800x600 s':>9} {'RSS MiB':>8} {'load avg after':>16}"
+    )
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        size = f"{r['image_size'][0]}x{r['image_size'][1]}"
+        print(
+            f"{r['scene']:14} {r['configuration']:10} {size:>9} {r['minutes']:>4g} {r['steps']:>6} "
+            f"{r['psnr']:>13.2f} {r['ssim']:>6.3f} {r['render_800x600_seconds']:>9.2f} "
+            f"{r['peak_rss_mib']:>8.0f} {r['load_average_after_training']:>16}"
+        )
+    print()
+    for r in results:
+        images = ", ".join(f"{m['name']} {m['psnr']:.2f} dB" for m in r["per_image"])
+        print(f"{r['scene']} {r['configuration']}: held-out {images}; {r['num_train_images']} train images")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    parser.add_argument("--configurations", nargs="+", default=list(CONFIGURATIONS), choices=CONFIGURATIONS)
+    parser.add_argument("--minutes", type=float, default=10.0, help="training wall-clock per run")
+    parser.add_argument("--max-side", type=int, default=800, help="training image size (longer side)")
+    parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads (2 cores here)")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    parser.add_argument("--out", type=Path, default=Path("bench_nerf_real_runs"))
+    parser.add_argument("--single", nargs=2, metavar=("SCENE", "CONFIGURATION"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.single:  # the subprocess of one (scene, configuration)
+        import torch
+
+        torch.set_num_threads(args.threads)
+        scene, configuration = args.single
+        result = run_one(scene, configuration, args.out, args.minutes, args.max_side, args.device)
+        (args.out / f"result_{scene}_{configuration}.json").write_text(json.dumps(result, indent=2))
+        return
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(f"== reconstructing (load average {load_average()})", flush=True)
+    sfm = [reconstruct(scene, args.out) for scene in args.scenes]
+    results = []
+    for scene in args.scenes:
+        for configuration in args.configurations:
+            run_dir = args.out / scene / configuration
+            if run_dir.exists():
+                raise SystemExit(f"{run_dir} exists: choose another --out or remove it")
+            print(f"== {scene} {configuration} (load average {load_average()})", flush=True)
+            command = [
+                sys.executable, __file__, "--single", scene, configuration, "--out", str(args.out),
+                "--minutes", str(args.minutes), "--max-side", str(args.max_side), "--threads",
+                str(args.threads), "--device", args.device,
+            ]  # fmt: skip
+            subprocess.run(command, check=True, cwd=REPO)
+            results.append(json.loads((args.out / f"result_{scene}_{configuration}.json").read_text()))
+    (args.out / "results.json").write_text(json.dumps({"sfm": sfm, "runs": results}, indent=2))
+    print()
+    print_table(sfm, results)
+
+
+if __name__ == "__main__":
+    main()
