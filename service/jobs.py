@@ -202,7 +202,9 @@ def run_evaluation(context: JobContext) -> dict[str, Any]:
     split, max_side): output/<image>.png per view and output/metrics.json (PSNR, SSIM per view and mean)."""
     import json
 
-    from neural import evaluate, load_dataset
+    from neural import TrainConfig, evaluate
+    from neural.data import load_dataset_for
+    from neural.inference import IMAGE_CACHE_DIR, read_run_config
     from service.scenes import downscaled
 
     nerf_job = context.store.get(context.job.source_job_id)
@@ -210,10 +212,12 @@ def run_evaluation(context: JobContext) -> dict[str, Any]:
         raise ValueError(f"the NeRF job {context.job.source_job_id} was deleted")
     shutil.rmtree(context.output_dir, ignore_errors=True)
     context.progress("rendering held-out views", 0.0)
-    white = nerf_job.params.get("train_config", {}).get("white_background", True)
-    dataset = load_dataset(nerf_dataset_path(context.settings, nerf_job), white_background=white)
+    run_dir = output_dir(context.settings, nerf_job.id)
+    config = TrainConfig.model_validate(read_run_config(run_dir)["train"])  # as the run trained on its data
+    data = nerf_dataset_path(context.settings, nerf_job)
+    dataset = load_dataset_for(data, config, run_dir / IMAGE_CACHE_DIR)
     result = evaluate(
-        output_dir(context.settings, nerf_job.id),
+        run_dir,
         downscaled(dataset, context.job.params["max_side"]),
         context.job.params["split"],
         out_dir=context.output_dir,
