@@ -19,6 +19,7 @@ from service.db import JobState, JobStore
 from service.deps import SettingsDep, StoreDep, require_token
 from service.executor import make_executor
 from service.models import HealthOut, InfoOut, ReadyOut
+from service.renders import RenderQueue
 from service.routes import jobs, nerf, reconstructions
 from service.settings import ServiceSettings
 from service.uploads import UploadRejected
@@ -84,13 +85,15 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store = JobStore(settings.resolved_database_url)
+        store = JobStore(settings.resolved_database_url)  # applies the schema migrations
         executor = make_executor(settings, store)
         app.state.store, app.state.executor = store, executor
+        app.state.renders = RenderQueue(settings)
         executor.start()
         try:
             yield
         finally:
+            app.state.renders.stop()
             executor.stop()
             store.dispose()
 

@@ -2,6 +2,7 @@
 
 import click
 
+from service.commands.db import db
 from service.commands.nerf import nerf
 from service.commands.reconstruct import reconstruct
 from service.commands.serve import serve
@@ -16,3 +17,4 @@ def main() -> None:
 main.add_command(reconstruct)
 main.add_command(nerf)
 main.add_command(serve)
+main.add_command(db)

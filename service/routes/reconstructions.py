@@ -9,14 +9,15 @@ import zipfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
 from service.db import JobKind, JobState, new_job_id
 from service.deps import ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.jobs import input_dir, job_dir, output_dir
 from service.models import ErrorOut, JobOut, ReconstructionOut
-from service.routes.jobs import NOT_FOUND, accepted
+from service.params import ReconstructionParams
+from service.routes.jobs import NO_SPACE, NOT_FOUND, accepted, require_disk_space
+from service.runner import input_dir, job_dir, output_dir
 from service.uploads import (
     UploadRejected,
     inside,
@@ -114,7 +115,8 @@ def _store_inputs(
     "",
     response_model=JobOut,
     status_code=202,
-    responses=REJECTED,
+    responses={**REJECTED, **NO_SPACE},
+    dependencies=[Depends(require_disk_space)],
     summary="Upload images (+ match files, calibration) and start a reconstruction",
 )
 def create_reconstruction(
@@ -167,7 +169,9 @@ def create_reconstruction(
         config["ransac"]["threshold_px"] = ransac_threshold_px
     if ba_max_iterations is not None:
         config["bundle_adjustment"]["max_iterations"] = ba_max_iterations
-    job = store.create(JobKind.reconstruction, {"config": config}, job_id=job_id, webhook_url=webhook_url)
+    job = store.create(
+        JobKind.reconstruction, ReconstructionParams(config=config), job_id=job_id, webhook_url=webhook_url
+    )
     executor.submit(job_id)
     return accepted(response, JobOut.from_job(job))
 

@@ -2,7 +2,9 @@
 
 `execute(store, job_id, attempt, settings)` runs the job whose attempt the caller claimed: it reports
 progress and log lines into the job store, heartbeats, stops when cancelled, and writes the final state.
-The heavy libraries (`estimation`, `neural`) are imported inside the job functions.
+`complete_job` is the one way a job's end is recorded (by the job itself, its supervisor or a reaper):
+the fenced state change, the closing log line and the webhook. The heavy libraries (`estimation`,
+`neural`) are imported inside the job functions.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from typing import Any
 
 from service import webhooks
 from service.db import Job, JobKind, JobState, JobStore
+from service.params import NerfParams, ReconstructionParams, VideoParams, parse_params
 from service.settings import ServiceSettings
 
 PROGRESS_WRITE_INTERVAL_SECONDS = 0.5
@@ -40,8 +43,41 @@ def output_dir(settings: ServiceSettings, job_id: str) -> Path:
     return job_dir(settings, job_id) / "output"
 
 
-class JobCancelled(Exception):
-    """Raised inside a job when the store says it was cancelled or taken over."""
+def announce_end(
+    store: JobStore, settings: ServiceSettings, job_id: str, line: str, *, wait: bool = False
+) -> None:
+    """The closing log line of a job that just ended, and its webhook (sent in the background unless
+    `wait`: a job process that exits right after must deliver first)."""
+    store.append_log(job_id, [line])
+    webhooks.notify(store, job_id, settings, background=not wait)
+
+
+def complete_job(
+    store: JobStore,
+    settings: ServiceSettings,
+    job_id: str,
+    attempt: int,
+    state: JobState,
+    *,
+    error: str | None = None,
+    result: dict | None = None,
+    wait: bool = False,
+) -> bool:
+    """Ends a running attempt (fenced by `attempt`) and announces it; False if it no longer owns the job."""
+    if not store.finish(job_id, attempt, state, error=error, result=result):
+        return False
+    shown = f" ({error})" if error and state != JobState.succeeded else ""
+    announce_end(store, settings, job_id, f"finished: {state}{shown}", wait=wait)
+    return True
+
+
+def runtime_exceeded(settings: ServiceSettings, kind: str) -> str:
+    """The error of a job stopped at its kind's maximum runtime."""
+    minutes = settings.max_runtime_seconds(kind) / 60.0
+    return (
+        f"the {kind} job ran longer than its maximum runtime of {minutes:g} minutes "
+        f"(SFMNERF_MAX_RUNTIME_{kind.upper()}_MINUTES) and was stopped"
+    )
 
 
 @dataclass
@@ -56,6 +92,11 @@ class JobContext:
     _last_stage: str | None = None
     _last_write: float = 0.0
     _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def params(self) -> Any:
+        """The job's typed parameters (service.params: one model per job kind)."""
+        return parse_params(self.job.kind, self.job.params)
 
     @property
     def input_dir(self) -> Path:
@@ -116,7 +157,8 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
     """estimation.reconstruct on the uploaded folder; the report stays in output/report.json."""
     from estimation import ReconstructionConfig, reconstruct
 
-    config = ReconstructionConfig.model_validate(context.job.params.get("config", {}))
+    params: ReconstructionParams = context.params
+    config = ReconstructionConfig.model_validate(params.config)
     shutil.rmtree(context.output_dir, ignore_errors=True)  # a re-run starts from scratch
     result = reconstruct(context.input_dir, context.output_dir, config, progress=context.progress)
     model = result.model
@@ -129,9 +171,10 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
 
 def nerf_dataset_path(settings: ServiceSettings, job: Job) -> Path:
     """Where a NeRF job's training data lives: its upload, or its source reconstruction's output."""
-    if job.source_job_id:
+    params: NerfParams = parse_params(job.kind, job.params)
+    if job.source_job_id or params.dataset is None:
         return output_dir(settings, job.source_job_id)
-    return job_dir(settings, job.id) / job.params["dataset"]
+    return job_dir(settings, job.id) / params.dataset
 
 
 def run_nerf(context: JobContext) -> dict[str, Any]:
@@ -145,7 +188,7 @@ def run_nerf(context: JobContext) -> dict[str, Any]:
         config = None
     else:
         shutil.rmtree(run_dir, ignore_errors=True)
-        config = TrainConfig.model_validate(context.job.params.get("train_config", {}))
+        config = TrainConfig.model_validate(context.params.train_config)
 
     def on_metrics(metrics: dict) -> None:
         context.log(
@@ -169,15 +212,16 @@ def run_video(context: JobContext) -> dict[str, Any]:
     """neural.render_orbit of the source NeRF job's latest checkpoint into output/."""
     from neural import render_orbit
 
-    params = context.job.params
+    params: VideoParams = context.params
     shutil.rmtree(context.output_dir, ignore_errors=True)
     context.progress("rendering orbit", 0.0)
     path = render_orbit(
         output_dir(context.settings, context.job.source_job_id),
-        params["num_frames"],
+        params.num_frames,
         context.output_dir,
-        params["width"],
-        params["height"],
+        params.width,
+        params.height,
+        progress=context.progress,
     )
     return {
         "file": str(Path(path).resolve().relative_to(job_dir(context.settings, context.job.id).resolve()))
@@ -236,16 +280,28 @@ def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSetting
     except Exception as exc:  # any other failure ends the job with its reason, never a stuck job
         error = f"{type(exc).__name__}: {exc}"
         context.log(traceback.format_exc())
+        if _over_max_runtime(job, settings):  # Celery's soft time limit interrupted it
+            error = runtime_exceeded(settings, job.kind)
     finally:
         stop_heartbeat.set()
         root.removeHandler(handler)
         root.setLevel(previous_level)
     if state == JobState.cancelled:
         error = "cancelled"
-    context.log(f"finished: {state}" + (f" ({error})" if error and state == JobState.failed else ""))
-    if store.finish(
-        job_id, attempt, state, error=error if state != JobState.succeeded else None, result=result
+    if complete_job(
+        store,
+        settings,
+        job_id,
+        attempt,
+        state,
+        error=error if state != JobState.succeeded else None,
+        result=result,
+        wait=True,
     ):
-        webhooks.notify(store, job_id, settings, background=False)
         return state
     return None
+
+
+def _over_max_runtime(job: Job, settings: ServiceSettings) -> bool:
+    started = job.started_at.timestamp() if job.started_at else time.time()
+    return time.time() - started >= settings.max_runtime_seconds(job.kind)
