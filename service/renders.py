@@ -20,7 +20,7 @@ import multiprocessing
 import os
 import uuid
 from collections import OrderedDict
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +53,10 @@ class RenderSpec:
 
     job_id: str
     run_dir: str
+    which: str
+    """The checkpoint asked for: "latest", "best" or a step."""
     step: int
+    """The step `which` named when the request came in (the trainer may have saved a newer one since)."""
     c2w: tuple[tuple[float, ...], ...]
     width: int
     height: int
@@ -61,7 +64,7 @@ class RenderSpec:
     fov_x: float | None
 
     def cache_key(self) -> str:
-        fields = {k: v for k, v in asdict(self).items() if k != "run_dir"}
+        fields = {k: v for k, v in asdict(self).items() if k not in ("run_dir", "which")}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:32]
 
 
@@ -76,23 +79,31 @@ def _init_render_process(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
-def _loaded_run(run_dir: str, step: int) -> Any:
-    """The run restored at `step`, from this process's small LRU of loaded models."""
+def _loaded_run(run_dir: str, which: str) -> Any:
+    """The run restored from checkpoint `which`, from this process's small LRU of loaded models."""
     from neural.checkpoints import resolve_checkpoint
+    from neural.errors import CheckpointError
     from neural.inference import load_run
 
-    path = resolve_checkpoint(Path(run_dir), str(step))
-    key = (run_dir, step, path.stat().st_mtime_ns)
-    if key not in _models:
-        _models[key] = load_run(run_dir, str(step), device="auto")
+    try:
+        path = resolve_checkpoint(Path(run_dir), which)
+        key = (str(path), path.stat().st_mtime_ns)
+    except (CheckpointError, OSError):  # the trainer replaced it just now: load_run resolves again
+        key = None
+    if key is None or key not in _models:
+        run = load_run(run_dir, which, device="auto")
+        if key is None:
+            return run
+        _models[key] = run
         while len(_models) > MODELS_KEPT_PER_PROCESS:
             _models.popitem(last=False)
     _models.move_to_end(key)
     return _models[key]
 
 
-def render_png(spec: RenderSpec, out_path: str | None = None) -> bytes:
-    """The PNG of the view (written to out_path too, atomically, when given). Raises RenderFailed."""
+def render_png(spec: RenderSpec, cache_dir: str | None = None) -> bytes:
+    """The PNG of the view; kept in cache_dir (atomically, under the step really rendered) when given.
+    Raises RenderFailed."""
     import numpy as np
     from PIL import Image
 
@@ -100,7 +111,7 @@ def render_png(spec: RenderSpec, out_path: str | None = None) -> bytes:
     from neural.inference import render_frame, to_uint8, view_camera
 
     try:
-        run = _loaded_run(spec.run_dir, spec.step)
+        run = _loaded_run(spec.run_dir, spec.which)
     except CheckpointError as error:
         raise RenderFailed(f"checkpoint: {str(error).replace(spec.run_dir, 'the run')}") from None
     camera = view_camera(run, spec.width, spec.height, spec.fx, spec.fov_x)
@@ -108,8 +119,8 @@ def render_png(spec: RenderSpec, out_path: str | None = None) -> bytes:
     buffer = io.BytesIO()
     Image.fromarray(pixels).save(buffer, format="PNG")
     png = buffer.getvalue()
-    if out_path is not None:
-        _write_atomically(Path(out_path), png)
+    if cache_dir is not None:
+        _write_atomically(Path(cache_dir) / f"{replace(spec, step=run.step).cache_key()}.png", png)
     return png
 
 
@@ -120,10 +131,11 @@ def _write_atomically(path: Path, data: bytes) -> None:
     partial.replace(path)
 
 
-def run_render_task(spec: dict, out_path: str, error_path: str) -> None:
+def run_render_task(spec: dict, out_path: str, error_path: str, cache_dir: str | None) -> None:
     """The Celery render task: the PNG (or the error message) lands in the shared data folder."""
     try:
-        render_png(RenderSpec(**{**spec, "c2w": tuple(map(tuple, spec["c2w"]))}), out_path)
+        png = render_png(RenderSpec(**{**spec, "c2w": tuple(map(tuple, spec["c2w"]))}), cache_dir)
+        _write_atomically(Path(out_path), png)
     except RenderFailed as error:
         _write_atomically(Path(error_path), error.detail.encode())
 
@@ -145,14 +157,17 @@ class RenderQueue:
             self._pool.shutdown(wait=False, cancel_futures=True)
             self._pool = None
 
-    def cache_path(self, spec: RenderSpec) -> Path:
-        return self.settings.jobs_dir / spec.job_id / CACHE_DIR / f"{spec.cache_key()}.png"
-
-    def cached(self, spec: RenderSpec) -> bytes | None:
+    def cache_dir(self, spec: RenderSpec) -> Path | None:
+        """Where a job's renders are kept; None when the cache is off."""
         if self.settings.render_cache_per_job == 0:
             return None
+        return self.settings.jobs_dir / spec.job_id / CACHE_DIR
+
+    def cached(self, spec: RenderSpec) -> bytes | None:
+        if (folder := self.cache_dir(spec)) is None:
+            return None
         try:
-            return self.cache_path(spec).read_bytes()
+            return (folder / f"{spec.cache_key()}.png").read_bytes()
         except OSError:
             return None
 
@@ -163,19 +178,19 @@ class RenderQueue:
         if self._in_flight >= self.settings.render_queue_size:
             raise RenderBusy
         self._in_flight += 1
+        cache_dir = self.cache_dir(spec)
         try:
-            out_path = self.cache_path(spec) if self.settings.render_cache_per_job else None
             if self.settings.executor == "celery":
-                png = await self._render_with_celery(spec)
+                png = await self._render_with_celery(spec, cache_dir)
             else:
-                png = await self._render_locally(spec, out_path)
+                png = await self._render_locally(spec, cache_dir)
         finally:
             self._in_flight -= 1
-        if out_path is not None:
-            await asyncio.to_thread(self._trim_cache, out_path.parent)
+        if cache_dir is not None:
+            await asyncio.to_thread(self._trim_cache, cache_dir)
         return png
 
-    async def _render_locally(self, spec: RenderSpec, out_path: Path | None) -> bytes:
+    async def _render_locally(self, spec: RenderSpec, cache_dir: Path | None) -> bytes:
         if self._pool is None:
             self._pool = concurrent.futures.ProcessPoolExecutor(
                 max_workers=self.settings.render_workers,
@@ -183,7 +198,7 @@ class RenderQueue:
                 initializer=_init_render_process,
                 initargs=(self.settings.threads_per_job(),),
             )
-        future = self._pool.submit(render_png, spec, str(out_path) if out_path else None)
+        future = self._pool.submit(render_png, spec, str(cache_dir) if cache_dir else None)
         try:
             return await asyncio.wait_for(asyncio.wrap_future(future), self.settings.render_timeout_seconds)
         except concurrent.futures.process.BrokenProcessPool:
@@ -196,27 +211,25 @@ class RenderQueue:
                 504,
             ) from None
 
-    async def _render_with_celery(self, spec: RenderSpec) -> bytes:
+    async def _render_with_celery(self, spec: RenderSpec, cache_dir: Path | None) -> bytes:
         from service.celery_app import make_celery
 
         if self._celery is None:
             self._celery = make_celery(self.settings)
-        out_path = self.cache_path(spec).with_name(f"{uuid.uuid4().hex}.png")
+        out_path = self.settings.jobs_dir / spec.job_id / "render-answers" / f"{uuid.uuid4().hex}.png"
         error_path = out_path.with_suffix(".error")
         self._celery.send_task(
             RENDER_TASK,
-            args=[{**asdict(spec)}, str(out_path), str(error_path)],
+            args=[asdict(spec), str(out_path), str(error_path), str(cache_dir) if cache_dir else None],
             expires=self.settings.render_timeout_seconds,
+            time_limit=self.settings.render_timeout_seconds,
         )
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.settings.render_timeout_seconds
         try:
             while loop.time() < deadline:
                 if out_path.is_file():
-                    png = out_path.read_bytes()
-                    if self.settings.render_cache_per_job:
-                        out_path.replace(self.cache_path(spec))
-                    return png
+                    return out_path.read_bytes()
                 if error_path.is_file():
                     raise RenderFailed(error_path.read_text())
                 await asyncio.sleep(CELERY_POLL_SECONDS)
@@ -240,13 +253,14 @@ class RenderQueue:
 
 
 def spec_from_request(job_id: str, run_dir: Path, step: int, request: Any) -> RenderSpec:
-    """The RenderSpec of a RenderRequest (service.models) resolved to a checkpoint step."""
+    """The RenderSpec of a RenderRequest (service.models) whose checkpoint is at `step` right now."""
     import math
 
     c2w = request.camera_to_world()
     return RenderSpec(
         job_id=job_id,
         run_dir=os.fspath(run_dir),
+        which=str(request.checkpoint),
         step=step,
         c2w=tuple(tuple(float(v) for v in row) for row in c2w),
         width=request.width,

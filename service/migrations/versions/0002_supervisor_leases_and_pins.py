@@ -24,15 +24,14 @@ def upgrade() -> None:
         sa.Column("started_at", UTCDateTime, nullable=False),
         sa.Column("heartbeat_at", UTCDateTime, nullable=False),
     )
-    with op.batch_alter_table("jobs") as jobs:
-        jobs.add_column(sa.Column("supervisor_id", sa.String(64)))
-        jobs.add_column(sa.Column("pinned", sa.Boolean, nullable=False, server_default=sa.false()))
-        jobs.create_index("ix_jobs_supervisor_id", ["supervisor_id"])
+    # Plain ADD COLUMN (SQLite too): a batch rebuild of `jobs` would cascade-delete every job's log lines.
+    op.add_column("jobs", sa.Column("supervisor_id", sa.String(64)))
+    op.add_column("jobs", sa.Column("pinned", sa.Boolean, nullable=False, server_default=sa.false()))
+    op.create_index("ix_jobs_supervisor_id", "jobs", ["supervisor_id"])
 
 
 def downgrade() -> None:
-    with op.batch_alter_table("jobs") as jobs:
-        jobs.drop_index("ix_jobs_supervisor_id")
-        jobs.drop_column("pinned")
-        jobs.drop_column("supervisor_id")
+    op.drop_index("ix_jobs_supervisor_id", "jobs")
+    op.drop_column("jobs", "pinned")
+    op.drop_column("jobs", "supervisor_id")
     op.drop_table("supervisors")

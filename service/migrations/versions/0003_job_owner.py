@@ -14,12 +14,10 @@ depends_on = None
 
 
 def upgrade() -> None:
-    with op.batch_alter_table("jobs") as jobs:
-        jobs.add_column(sa.Column("owner", sa.String(200)))
-        jobs.create_index("ix_jobs_owner", ["owner"])
+    op.add_column("jobs", sa.Column("owner", sa.String(200)))
+    op.create_index("ix_jobs_owner", "jobs", ["owner"])
 
 
 def downgrade() -> None:
-    with op.batch_alter_table("jobs") as jobs:
-        jobs.drop_index("ix_jobs_owner")
-        jobs.drop_column("owner")
+    op.drop_index("ix_jobs_owner", "jobs")
+    op.drop_column("jobs", "owner")
