@@ -57,7 +57,12 @@ def test_a_database_from_before_migrations_is_upgraded_and_keeps_its_jobs(tmp_pa
             {"points": 2810},
             {"config": {"features": "matches"}},
         )
-        assert (waiting.state, waiting.source_job_id, waiting.pinned, waiting.owner) == ("queued", "a1", False, None)
+        assert (waiting.state, waiting.source_job_id, waiting.pinned, waiting.owner) == (
+            "queued",
+            "a1",
+            False,
+            None,
+        )
         assert store.read_logs("a1", 0, 10) == ["stage: tracks (0%)"]
         assert store.claim_next(5, "local", store.register_supervisor()) == [("b2", 1)]  # new columns work
         with store.engine.connect() as connection:
