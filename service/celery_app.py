@@ -18,7 +18,7 @@ import socket
 from typing import Any
 
 from celery import Celery
-from celery.exceptions import TimeLimitExceeded
+from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 from celery.signals import task_failure
 
 from service.renders import RENDER_TASK, run_render_task
@@ -66,7 +66,7 @@ def _worker_name(task: Any) -> str:
 
 def _run_job(task: Any, job_id: str) -> str | None:
     """Claims the queued job and runs it; a delivery that cannot claim it runs nothing."""
-    from service.runner import execute
+    from service.runner import TimeLimit, execute
 
     settings = ServiceSettings()
     store = _store(settings)
@@ -74,7 +74,9 @@ def _run_job(task: Any, job_id: str) -> str | None:
     if attempt is None:
         _another_delivery(store, settings, task, job_id)
         return None
-    state = execute(store, job_id, attempt, settings)
+    soft_limit = (task.request.timelimit or (None, None))[1]
+    limit = TimeLimit(SoftTimeLimitExceeded, soft_limit) if soft_limit else None
+    state = execute(store, job_id, attempt, settings, limit)
     return str(state) if state else None
 
 
@@ -139,7 +141,7 @@ def _mark_failed(
     job = store.get(args[0])
     if job is not None and job.state == JobState.running and job.task_id == task_id:
         if isinstance(exception, TimeLimitExceeded):
-            reason = runtime_exceeded(settings, job.kind)
+            reason = runtime_exceeded(job.kind, settings.max_runtime_seconds(job.kind))
         else:
             reason = f"the Celery worker process failed: {type(exception).__name__}: {exception}"
         complete_job(store, settings, job.id, job.attempt, JobState.failed, error=reason, wait=True)

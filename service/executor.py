@@ -101,11 +101,11 @@ class _JobProcess:
 
 
 class _Every:
-    """True once per `seconds` (a periodic chore inside a polling loop)."""
+    """True once per `seconds`, the first time `seconds` after it was made (a chore in a polling loop)."""
 
     def __init__(self, seconds: float) -> None:
         self.seconds = seconds
-        self._last = -float("inf")
+        self._last = time.monotonic()
 
     def due(self) -> bool:
         now = time.monotonic()
@@ -223,7 +223,9 @@ class LocalExecutor:
             if running.stop_reason is None and now - running.started > self.settings.max_runtime_seconds(
                 running.kind
             ):
-                running.stop_reason = runtime_exceeded(self.settings, running.kind)
+                running.stop_reason = runtime_exceeded(
+                    running.kind, self.settings.max_runtime_seconds(running.kind)
+                )
             if running.stop_reason:
                 self._terminate(running)
 
@@ -299,12 +301,12 @@ class CeleryExecutor:
         self.settings = settings
         self.store = store
         self.celery = make_celery(settings)
+        self._housekeeping = _Every(HOUSEKEEPING_SECONDS)
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
         self._stopping.clear()
-        self._housekeeping = _Every(HOUSEKEEPING_SECONDS)
         self._thread = threading.Thread(target=self._reap_loop, name="sfmnerf-reaper", daemon=True)
         self._thread.start()
 

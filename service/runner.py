@@ -18,7 +18,7 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from service import webhooks
 from service.db import Job, JobKind, JobState, JobStore
@@ -71,9 +71,9 @@ def complete_job(
     return True
 
 
-def runtime_exceeded(settings: ServiceSettings, kind: str) -> str:
-    """The error of a job stopped at its kind's maximum runtime."""
-    minutes = settings.max_runtime_seconds(kind) / 60.0
+def runtime_exceeded(kind: str, seconds: float) -> str:
+    """The error of a job stopped at its kind's maximum runtime (`seconds`)."""
+    minutes = seconds / 60.0
     return (
         f"the {kind} job ran longer than its maximum runtime of {minutes:g} minutes "
         f"(SFMNERF_MAX_RUNTIME_{kind.upper()}_MINUTES) and was stopped"
@@ -256,7 +256,17 @@ def _expected_error_types() -> tuple[type[Exception], ...]:
     return InputError, DatasetError, CheckpointError
 
 
-def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSettings) -> JobState | None:
+class TimeLimit(NamedTuple):
+    """An executor's runtime limit that interrupts a job by raising `error_type` inside it (Celery's
+    soft time limit): the job then fails with the maximum-runtime reason."""
+
+    error_type: type[BaseException]
+    seconds: float
+
+
+def execute(
+    store: JobStore, job_id: str, attempt: int, settings: ServiceSettings, time_limit: TimeLimit | None = None
+) -> JobState | None:
     """Runs one claimed attempt of a job to its end and records the outcome; returns the final state."""
     job = store.get(job_id)
     if job is None or job.attempt != attempt or job.state != JobState.running:
@@ -279,9 +289,10 @@ def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSetting
         error = str(exc)
     except Exception as exc:  # any other failure ends the job with its reason, never a stuck job
         error = f"{type(exc).__name__}: {exc}"
-        context.log(traceback.format_exc())
-        if _over_max_runtime(job, settings):  # Celery's soft time limit interrupted it
-            error = runtime_exceeded(settings, job.kind)
+        if time_limit is not None and isinstance(exc, time_limit.error_type):
+            error = runtime_exceeded(job.kind, time_limit.seconds)
+        else:
+            context.log(traceback.format_exc())
     finally:
         stop_heartbeat.set()
         root.removeHandler(handler)
@@ -300,8 +311,3 @@ def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSetting
     ):
         return state
     return None
-
-
-def _over_max_runtime(job: Job, settings: ServiceSettings) -> bool:
-    started = job.started_at.timestamp() if job.started_at else time.time()
-    return time.time() - started >= settings.max_runtime_seconds(job.kind)
