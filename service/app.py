@@ -78,6 +78,40 @@ def _package_version() -> str:
         return "unknown"
 
 
+JOB_OPERATIONS = {
+    "GetJob": ("get", "/v1/jobs/{job_id}"),
+    "GetLogs": ("get", "/v1/jobs/{job_id}/logs"),
+    "CancelJob": ("post", "/v1/jobs/{job_id}/cancel"),
+    "RetryJob": ("post", "/v1/jobs/{job_id}/retry"),
+    "PinJob": ("put", "/v1/jobs/{job_id}/pin"),
+    "UnpinJob": ("delete", "/v1/jobs/{job_id}/pin"),
+    "DeleteJob": ("delete", "/v1/jobs/{job_id}"),
+}
+"""What a client can do with a job id an answer gave it (OpenAPI links, followed by clients and fuzzers)."""
+JOB_ID_SOURCES = {
+    ("post", "/v1/reconstructions", "202"): "$response.body#/id",
+    ("post", "/v1/nerf", "202"): "$response.body#/id",
+    ("post", "/v1/nerf/{job_id}/video", "202"): "$response.body#/id",
+    ("post", "/v1/jobs/{job_id}/retry", "202"): "$response.body#/id",
+    ("post", "/v1/jobs/{job_id}/cancel", "200"): "$response.body#/id",
+    ("get", "/v1/jobs/{job_id}", "200"): "$response.body#/id",
+    ("put", "/v1/jobs/{job_id}/pin", "200"): "$response.body#/id",
+    ("get", "/v1/jobs", "200"): "$response.body#/items/0/id",
+}
+
+
+def add_job_links(schema: dict[str, Any]) -> dict[str, Any]:
+    """Adds OpenAPI links from every answer that names a job to the operations on that job."""
+    paths = schema["paths"]
+    for (method, path, code), source in JOB_ID_SOURCES.items():
+        response = paths[path][method]["responses"][code]
+        response["links"] = {
+            name: {"operationId": paths[target][verb]["operationId"], "parameters": {"job_id": source}}
+            for name, (verb, target) in JOB_OPERATIONS.items()
+        }
+    return schema
+
+
 def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     """The service: routes, job store and executor (started and stopped with the app's lifespan)."""
     settings = settings or ServiceSettings()
@@ -157,4 +191,11 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     for router in (jobs.router, reconstructions.router, nerf.router):
         app.include_router(router, dependencies=[Depends(require_token)])
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            app.openapi_schema = add_job_links(FastAPI.openapi(app))
+        return app.openapi_schema
+
+    app.openapi = openapi
     return app
