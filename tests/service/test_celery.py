@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import os
 import shutil
 import signal
@@ -10,12 +11,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import redis
 from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.celery_app import make_celery
+from service.renders import RenderFailed, RenderQueue, RenderSpec
 from service.settings import ServiceSettings
 from tests.service.conftest import make_settings, unity_hall_files, wait_for_job
 from tests.service.servers import free_port
@@ -208,3 +211,17 @@ def test_a_message_redelivered_while_its_job_runs_never_runs_it_twice(tmp_path, 
     assert job["state"] == "succeeded" and job["attempt"] == 1, job
     assert sum(line.startswith("attempt ") for line in lines) == 1, lines
     assert any("second delivery of this job's task was ignored" in line for line in lines), lines
+
+
+def test_a_render_goes_to_a_celery_worker_and_its_error_comes_back(celery_setup, tmp_path):
+    """The Celery render path end to end (API -> broker -> worker -> shared folder -> API), with a run
+    folder that has no checkpoint: the worker's message is the answer, without any server path."""
+    client, _ = celery_setup
+    settings = client.app.state.settings
+    run_dir = settings.jobs_dir / "norun" / "output"
+    run_dir.mkdir(parents=True)
+    spec = RenderSpec("norun", str(run_dir), "latest", 1, tuple(map(tuple, np.eye(4))), 8, 8, None, None)
+    with pytest.raises(RenderFailed) as failed:
+        asyncio.run(RenderQueue(settings).render(spec))
+    assert failed.value.status_code == 422 and failed.value.detail.startswith("checkpoint:")
+    assert str(run_dir) not in failed.value.detail
