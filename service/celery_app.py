@@ -1,7 +1,8 @@
 """Celery: the same job functions on as many worker machines as needed, with a Redis broker.
 
 Start a worker with `celery -A service.celery_app worker --concurrency 1` and the same SFMNERF_* settings
-as the API (database URL, data folder on a shared volume, broker URL, executor=celery). Long jobs:
+as the API (database URL, data folder on a shared volume, broker URL, executor=celery), and a render
+worker with `-Q renders` (renders never queue behind a long job). Long jobs:
 acks_late and prefetch 1, so a worker takes one job at a time and a job is acknowledged when it ends; the
 broker's visibility timeout lies above the longest allowed job (Redis would otherwise hand a still-running
 job's message to another worker after 1 hour). A message delivered again (visibility timeout, or a worker
@@ -25,6 +26,7 @@ from service.renders import RENDER_TASK, run_render_task
 from service.settings import ServiceSettings
 
 RUN_JOB_TASK = "sfmnerf.run_job"
+RENDER_QUEUE = "renders"
 VISIBILITY_MARGIN_SECONDS = 3600.0
 """The default visibility timeout: the longest maximum runtime of any job kind plus this margin."""
 
@@ -46,6 +48,8 @@ def make_celery(settings: ServiceSettings) -> Celery:
         # process gone and records the job failed (it does not run it again).
         task_reject_on_worker_lost=True,
         task_ignore_result=True,  # state and results live in the job store
+        # Renders never wait behind a long job: their own queue, served by `worker -Q renders`.
+        task_routes={RENDER_TASK: {"queue": RENDER_QUEUE}},
         broker_connection_retry_on_startup=True,
         worker_hijack_root_logger=False,
         broker_transport_options={

@@ -75,6 +75,8 @@ def start_worker(env: dict[str, str], concurrency: int = 1) -> subprocess.Popen:
             "-A",
             "service.celery_app",
             "worker",
+            "-Q",
+            "celery,renders",  # jobs and renders: one worker serves both here
             "--pool",
             "prefork",
             "--concurrency",
