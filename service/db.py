@@ -11,6 +11,7 @@ lease expired is taken over. The schema is created and upgraded by the Alembic m
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import os
 import socket
@@ -157,14 +158,23 @@ def _make_engine(url: str) -> Engine:
 
 def upgrade_database(engine: Engine) -> None:
     """Brings the schema to the newest migration; a database made before migrations existed (a `jobs`
-    table, no `alembic_version`) is first stamped with the initial revision, so its jobs are kept."""
+    table, no `alembic_version`) is first stamped with the initial revision, so its jobs are kept.
+    Processes starting together take turns (a file lock beside a SQLite file, an advisory lock on
+    PostgreSQL), so a new database is created once."""
     from alembic import command
     from alembic.config import Config
+    from filelock import FileLock
     from sqlalchemy import inspect
 
     config = Config()
     config.set_main_option("script_location", str(Path(__file__).with_name("migrations")))
-    with engine.begin() as connection:
+    database = engine.url.database if engine.dialect.name == "sqlite" else None
+    with (
+        FileLock(f"{database}.migrate.lock") if database else contextlib.nullcontext(),
+        engine.begin() as connection,
+    ):
+        if engine.dialect.name == "postgresql":
+            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": MIGRATION_LOCK_KEY})
         config.attributes["connection"] = connection
         tables = inspect(connection).get_table_names()
         if "jobs" in tables and "alembic_version" not in tables:
@@ -172,6 +182,8 @@ def upgrade_database(engine: Engine) -> None:
         command.upgrade(config, "head")
 
 
+MIGRATION_LOCK_KEY = 0x5F4D4E52
+"""PostgreSQL advisory lock held while one process migrates."""
 INITIAL_REVISION = "0001"
 """The migration that creates the schema as it was before migrations (jobs and job_logs)."""
 

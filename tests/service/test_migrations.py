@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import sqlite3
+import subprocess
+import sys
 from pathlib import Path
 
 from alembic.autogenerate import compare_metadata
@@ -92,3 +94,16 @@ def test_sfmnerf_db_upgrade_migrates_the_configured_database(tmp_path, monkeypat
     with sqlite3.connect(tmp_path / "cli.sqlite") as connection:
         assert connection.execute("SELECT version_num FROM alembic_version").fetchone() == ("0003",)
         assert connection.execute("SELECT count(*) FROM jobs").fetchone() == (2,)
+
+
+def test_processes_starting_together_on_a_new_database_create_it_once(tmp_path):
+    url = f"sqlite:///{tmp_path / 'fresh.sqlite'}"
+    code = f"from service.db import JobStore; JobStore({url!r}).dispose()"
+    root = Path(__file__).resolve().parents[2]
+    processes = [
+        subprocess.Popen([sys.executable, "-c", code], cwd=root, stderr=subprocess.PIPE) for _ in range(4)
+    ]
+    errors = [p.communicate(timeout=120)[1].decode() for p in processes]
+    assert [p.returncode for p in processes] == [0] * 4, errors
+    with sqlite3.connect(tmp_path / "fresh.sqlite") as connection:
+        assert connection.execute("SELECT version_num FROM alembic_version").fetchall() == [("0003",)]
