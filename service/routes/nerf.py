@@ -339,7 +339,7 @@ def queue_video(
     _check_render_size(request.width * request.height, settings)
     if request.pixels > settings.max_video_pixels:
         raise HTTPException(
-            status.HTTP_413_REQUEST_ENTITY_TOO_LARGE,
+            413,
             f"num_frames x width x height = {request.pixels} pixels, more than the video budget "
             f"SFMNERF_MAX_VIDEO_PIXELS={settings.max_video_pixels}",
         )
