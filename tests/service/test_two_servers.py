@@ -42,11 +42,12 @@ def test_two_servers_on_one_folder_run_each_job_exactly_once_and_kill_none(tmp_p
             ids = [a.post("/v1/reconstructions", files=unity).json()["id"]]
             ids += [a.post("/v1/reconstructions", **quick).json()["id"] for _ in range(JOBS - 1)]
             wait_for_job(a, ids[0], until=started_working)
+            first_pid = job_pid(tmp_path / "data", ids[0])
             # A second server starting on the same folder used to kill this worker and re-run its job.
             second_port = free_port()
             second = start_server(tmp_path / "data", second_port)
             with httpx.Client(base_url=f"http://127.0.0.1:{second_port}", timeout=30) as b:
-                assert process_alive(job_pid(tmp_path / "data", ids[0]))
+                assert process_alive(first_pid)
                 jobs = [wait_for_job(a if i % 2 else b, job_id) for i, job_id in enumerate(ids)]
                 assert jobs[0]["state"] == "succeeded", jobs[0]
                 assert all(job["error"].startswith("degenerate initial pair") for job in jobs[1:]), jobs
@@ -59,9 +60,10 @@ def test_two_servers_on_one_folder_run_each_job_exactly_once_and_kill_none(tmp_p
                 # Cancel on the server that may not own the job: the owner stops it, and `cancelled`
                 # is recorded once its process has exited.
                 pair = [a.post("/v1/reconstructions", files=unity).json()["id"] for _ in range(2)]
+                pids = []
                 for job_id in pair:
                     wait_for_job(b, job_id, until=started_working)
-                pids = [job_pid(tmp_path / "data", job_id) for job_id in pair]
+                    pids.append(job_pid(tmp_path / "data", job_id))
                 for job_id, pid in zip(pair, pids, strict=True):
                     assert b.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
                     assert wait_for_job(b, job_id, timeout=10)["state"] == "cancelled"
