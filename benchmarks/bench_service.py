@@ -1,20 +1,27 @@
-"""Service benchmark: job-status latency under load, and API overhead against the CLI on Unity Hall.
+"""Service benchmark: job-status latency under load (polling clients, then render clients), and API
+overhead against the CLI on Unity Hall.
 
 1. `sfmnerf serve` runs in its own process (embedded defaults, a temporary data folder, loopback port).
    While a Unity Hall reconstruction runs, 50 concurrent clients poll GET /v1/jobs/{id}: requests per second
    and latency percentiles over that window.
    Then the server's CPU time per request with one client on an idle service (the per-request cost).
-2. Upload -> finished Unity Hall through the API (POST, then polling every 50 ms) against
+2. Renders: a tiny NeRF is trained through the API; then, for each count in --render-clients, that many
+   clients POST /v1/nerf/{id}/render at 200x200 (a new camera each time, so no render is cached) for
+   --render-seconds while 4 clients poll GET /v1/jobs/{id}: the status latency percentiles, and how the
+   renders were answered (200, 503 + Retry-After, errors). --compare-root runs the same section against
+   another checkout's service (e.g. /work/main, the code before renders left the API) in the same run.
+3. Upload -> finished Unity Hall through the API (POST, then polling every 50 ms) against
    `sfmnerf reconstruct` on the same input (a fresh process each time, as the API's job is), median of N runs,
    API and CLI runs interleaved.
-3. A Unity Hall scene (POST /v1/scenes): seconds from the upload to the first orbit frame on disk and to the
+4. A Unity Hall scene (POST /v1/scenes): seconds from the upload to the first orbit frame on disk and to the
    end, and each stage's seconds (its child jobs, first start to last end), against `sfmnerf scene` with the
    same options (its own per-stage timing, a fresh process).
-4. The web app's job page of a reconstruction with a 10,000-point cloud in headless Chromium (Debian's
+5. The web app's job page of a reconstruction with a 10,000-point cloud in headless Chromium (Debian's
    /usr/bin/chromium, SwiftShader WebGL): first contentful paint, and the moment the 3D view is drawn with
    its controls attached (the page's `sfmnerf:view3d-ready` mark), median of N fresh page loads.
 
-    python benchmarks/bench_service.py [--runs 3] [--clients 50] [--scene-steps 200] [--page-loads 5]
+    python benchmarks/bench_service.py [--runs 3] [--clients 50] [--render-clients 8 60]
+        [--compare-root ../main] [--only-renders] [--scene-steps 200] [--page-loads 5]
 
 The load generator shares the machine with the server and the job: numbers are for this machine and load.
 """
@@ -23,8 +30,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import io
 import json
 import os
+import random
 import shutil
 import statistics
 import subprocess
@@ -45,6 +54,32 @@ from tests.service.conftest import unity_hall_files  # noqa: E402
 from tests.service.servers import free_port, start_server  # noqa: E402
 
 UNITY_HALL = ROOT.parent / "shared" / "data" / "unity_hall"
+LEGO_TINY = ROOT.parent / "shared" / "data" / "lego_tiny.npz"
+RENDER_SIDE = 200
+STATUS_POLLERS = 4
+TINY_SIDE = 20
+TINY_NERF = {
+    "model": "vanilla",
+    "steps": "60",
+    "batch_rays": "64",
+    "device": "cpu",
+    "options": json.dumps(
+        {
+            "checkpoint_every": 30,
+            "val_every": 1000,
+            "seed": 0,
+            "model_options": {
+                "depth": 2,
+                "width": 32,
+                "colour_width": 16,
+                "coarse_samples": 16,
+                "fine_samples": 16,
+                "position_bands": 4,
+                "direction_bands": 2,
+            },
+        }
+    ),
+}
 POLL_SECONDS = 0.05
 JOB_TIMEOUT_SECONDS = 600.0
 CHROMIUM = "/usr/bin/chromium"
@@ -85,6 +120,94 @@ async def poll_under_load(base_url: str, job_id: str, clients: int) -> tuple[lis
         began = time.perf_counter()
         await asyncio.gather(*(one_client() for _ in range(clients)))
         return latencies, time.perf_counter() - began, errors
+
+
+def tiny_nerf_npz() -> bytes:
+    """10 Lego views (8 train, 2 val) at 20x20 in tiny-NeRF .npz format: a NeRF trained in seconds."""
+    source = np.load(LEGO_TINY)
+    step = source["images"].shape[1] // TINY_SIDE
+    picked = np.r_[np.flatnonzero(source["split"] == 0)[:8], np.flatnonzero(source["split"] == 1)[:2]]
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        images=source["images"][picked][:, ::step, ::step],
+        poses=source["poses"][picked],
+        focal=float(source["focal"]) / step,
+        split=np.r_[np.zeros(8, int), np.ones(2, int)],
+    )
+    return buffer.getvalue()
+
+
+async def status_under_renders(base_url: str, job_id: str, clients: int, seconds: float) -> dict:
+    """`clients` render loops and STATUS_POLLERS status loops for `seconds`; latencies and answer counts."""
+    latencies: list[float] = []
+    answers: dict[str, int] = {}
+    deadline = time.perf_counter() + seconds
+    limits = httpx.Limits(max_connections=clients + STATUS_POLLERS + 4)
+    async with httpx.AsyncClient(base_url=base_url, limits=limits, timeout=120) as client:
+
+        async def renderer() -> None:
+            rng = random.Random()
+            while time.perf_counter() < deadline:
+                camera = {
+                    "eye": [rng.uniform(2, 4), rng.uniform(-4, -2), rng.uniform(0.5, 2)],
+                    "look_at": [0.0, 0.0, 0.0],
+                    "width": RENDER_SIDE,
+                    "height": RENDER_SIDE,
+                }
+                try:
+                    response = await client.post(f"/v1/nerf/{job_id}/render", json=camera)
+                    key = str(response.status_code)
+                    if response.status_code in (429, 503):
+                        await asyncio.sleep(float(response.headers.get("Retry-After", "1")))
+                except httpx.HTTPError as error:
+                    key = type(error).__name__
+                answers[key] = answers.get(key, 0) + 1
+
+        async def poller() -> None:
+            while time.perf_counter() < deadline:
+                start = time.perf_counter()
+                try:
+                    await client.get(f"/v1/jobs/{job_id}")
+                    latencies.append(time.perf_counter() - start)
+                except httpx.HTTPError:
+                    answers["status error"] = answers.get("status error", 0) + 1
+                await asyncio.sleep(0.05)
+
+        await asyncio.gather(
+            *(renderer() for _ in range(clients)), *(poller() for _ in range(STATUS_POLLERS))
+        )
+    return {"latencies": latencies, "answers": answers}
+
+
+def render_section(root: Path, counts: list[int], seconds: float) -> list[tuple[int, dict]]:
+    """The render-load rows for the service in source tree `root`."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
+        port = free_port()
+        server = start_server(Path(tmp) / "data", port, root=root)
+        base_url = f"http://127.0.0.1:{port}"
+        try:
+            with httpx.Client(base_url=base_url, timeout=60) as client:
+                files = {"dataset": ("tiny.npz", tiny_nerf_npz(), "application/octet-stream")}
+                job_id = client.post("/v1/nerf", files=files, data=TINY_NERF).json()["id"]
+                assert wait_finished(client, job_id)["state"] == "succeeded"
+            for count in counts:
+                rows.append((count, asyncio.run(status_under_renders(base_url, job_id, count, seconds))))
+        finally:
+            server.terminate()
+            server.wait(timeout=60)
+    return rows
+
+
+def print_render_rows(label: str, rows: list[tuple[int, dict]]) -> None:
+    for count, row in rows:
+        ms = np.array(row["latencies"]) * 1000
+        answers = ", ".join(f"{k}: {v}" for k, v in sorted(row["answers"].items()))
+        print(
+            f"| {label} | {count} | {len(ms)} | {np.percentile(ms, 50):.1f} | {np.percentile(ms, 99):.1f} | "
+            f"{ms.max():.1f} | {answers} |"
+        )
 
 
 def server_cpu_seconds(pid: int) -> float:
@@ -223,8 +346,33 @@ def main() -> None:
     parser.add_argument("--orbit-frames", type=int, default=12, help="Orbit frames of the scene runs.")
     parser.add_argument("--page-loads", type=int, default=5, help="Fresh loads of the job page.")
     parser.add_argument("--page-points", type=int, default=10_000, help="Points in the page's cloud.")
+    parser.add_argument(
+        "--render-clients", type=int, nargs="+", default=[8, 60], help="Render client counts."
+    )
+    parser.add_argument("--render-seconds", type=float, default=30.0, help="Window of each render load.")
+    parser.add_argument(
+        "--compare-root", type=Path, default=None, help="Another checkout to run side by side."
+    )
+    parser.add_argument("--only-renders", action="store_true", help="Only the render section.")
     args = parser.parse_args()
     scene_options = {"steps": str(args.scene_steps), "orbit_frames": str(args.orbit_frames)}
+    roots = [("this tree", ROOT)] + (
+        [(str(args.compare_root), args.compare_root.resolve())] if args.compare_root else []
+    )
+    render_rows = [
+        (label, render_section(root, args.render_clients, args.render_seconds)) for label, root in roots
+    ]
+    print(
+        f"GET /v1/jobs/{{id}} ({STATUS_POLLERS} pollers) while N clients render {RENDER_SIDE}x{RENDER_SIDE} "
+        f"views of a tiny NeRF, {args.render_seconds:g} s per row"
+    )
+    print("| service | render clients | status requests | p50 ms | p99 ms | max ms | render answers |")
+    print("|---|---:|---:|---:|---:|---:|---|")
+    for label, rows in render_rows:
+        print_render_rows(label, rows)
+    print()
+    if args.only_renders:
+        return
     files = unity_hall_files(UNITY_HALL)
     with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
         port = free_port()

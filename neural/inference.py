@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -280,16 +281,19 @@ def render_orbit(
     camera = view_camera(run, width, height, None, None)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    frames = []
     from PIL import Image
 
-    for index, c2w_scene in enumerate(orbit_poses(run.orbit, num_frames, elevation_deg)):
-        pose = torch.as_tensor(c2w_scene, dtype=torch.float32, device=run.device)
-        frame = to_uint8(
-            render_image(run.model, pose, camera, run.scene, run.background, run.config.chunk_rays).rgb
-        )
-        Image.fromarray(frame).save(out_dir / f"orbit_{index:03d}.png")
-        frames.append(frame)
-        if progress is not None:
-            progress("render", (index + 1) / num_frames)
-    return write_video(frames, out_dir / f"orbit.{video_format}")
+    poses = orbit_poses(run.orbit, num_frames, elevation_deg)
+
+    def frames() -> Iterator[np.ndarray]:  # rendered one at a time as the encoder asks for them
+        for index, c2w_scene in enumerate(poses):
+            pose = torch.as_tensor(c2w_scene, dtype=torch.float32, device=run.device)
+            frame = to_uint8(
+                render_image(run.model, pose, camera, run.scene, run.background, run.config.chunk_rays).rgb
+            )
+            Image.fromarray(frame).save(out_dir / f"orbit_{index:03d}.png")
+            if progress is not None:
+                progress("render", (index + 1) / num_frames)
+            yield frame
+
+    return write_video(frames(), out_dir / f"orbit.{video_format}")

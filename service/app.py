@@ -21,6 +21,7 @@ from service.db import JobState, JobStore
 from service.deps import SettingsDep, StoreDep, current_client, visible_job
 from service.executor import make_executor
 from service.models import HealthOut, InfoOut, ReadyOut
+from service.renders import RenderQueue
 from service.routes import jobs, nerf, previews, reconstructions, scenes, web
 from service.scenes import SceneRunner, SceneSupervisor
 from service.settings import ServiceSettings
@@ -95,10 +96,11 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        store = JobStore(settings.resolved_database_url)
+        store = JobStore(settings.resolved_database_url)  # applies the schema migrations
         sweep_orphan_folders(settings.jobs_dir, store)
         executor = make_executor(settings, store)
         app.state.store, app.state.executor = store, executor
+        app.state.renders = RenderQueue(settings)
         scene_supervisor = SceneSupervisor(SceneRunner(store, executor, settings))
         executor.start()
         scene_supervisor.start()
@@ -106,6 +108,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             yield
         finally:
             scene_supervisor.stop()
+            app.state.renders.stop()
             executor.stop()
             store.dispose()
 

@@ -3,6 +3,7 @@
 import click
 
 from service.commands.calibrate import calibrate
+from service.commands.db import db
 from service.commands.nerf import nerf
 from service.commands.reconstruct import reconstruct
 from service.commands.scene import scene
@@ -20,3 +21,4 @@ main.add_command(nerf)
 main.add_command(serve)
 main.add_command(calibrate)
 main.add_command(scene)
+main.add_command(db)

@@ -3,14 +3,21 @@
 SQLite (the default, a file in the data folder) and PostgreSQL both work. Several processes write to it:
 the API, the local job processes and Celery workers. Every write a job process makes is fenced by the
 job's `attempt` number, so a worker that lost its job (cancelled, re-queued after a restart) cannot
-overwrite the state its successor writes.
+overwrite the state its successor writes. Each local supervisor (one per API process) holds a lease row
+in `supervisors` that it refreshes; a running job names its supervisor, and only a job whose supervisor's
+lease expired is taken over. The schema is created and upgraded by the Alembic migrations in
+`service/migrations` (`upgrade_database`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import enum
+import os
+import socket
 from collections.abc import Iterable, Sequence
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 from typing import Any
 from uuid import uuid4
 
@@ -28,6 +35,7 @@ from sqlalchemy import (
     delete,
     event,
     func,
+    or_,
     select,
     text,
     update,
@@ -103,7 +111,21 @@ class Job(Base):
     worker: Mapped[str | None] = mapped_column(String(200), default=None)
     pid: Mapped[int | None] = mapped_column(Integer, default=None)
     task_id: Mapped[str | None] = mapped_column(String(100), default=None)
+    supervisor_id: Mapped[str | None] = mapped_column(String(64), index=True, default=None)
+    pinned: Mapped[bool] = mapped_column(Boolean, default=False)
     owner: Mapped[str | None] = mapped_column(String(64), index=True, default=None)
+
+
+class Supervisor(Base):
+    """A local executor's lease: it owns the jobs it claimed while its heartbeat is fresh."""
+
+    __tablename__ = "supervisors"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    host: Mapped[str] = mapped_column(String(255))
+    pid: Mapped[int] = mapped_column(Integer)
+    started_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
+    heartbeat_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utcnow)
 
 
 class LogLine(Base):
@@ -155,16 +177,50 @@ def _make_engine(url: str) -> Engine:
     return create_engine(url, pool_pre_ping=True)
 
 
+def upgrade_database(engine: Engine) -> None:
+    """Brings the schema to the newest migration; a database made before migrations existed (a `jobs`
+    table, no `alembic_version`) is first stamped with the initial revision, so its jobs are kept.
+    Processes starting together take turns (a file lock beside a SQLite file, an advisory lock on
+    PostgreSQL), so a new database is created once."""
+    from alembic import command
+    from alembic.config import Config
+    from filelock import FileLock
+    from sqlalchemy import inspect
+
+    config = Config()
+    config.set_main_option("script_location", str(Path(__file__).with_name("migrations")))
+    database = engine.url.database if engine.dialect.name == "sqlite" else None
+    with (
+        FileLock(f"{database}.migrate.lock") if database else contextlib.nullcontext(),
+        engine.begin() as connection,
+    ):
+        if engine.dialect.name == "postgresql":
+            connection.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": MIGRATION_LOCK_KEY})
+        config.attributes["connection"] = connection
+        tables = inspect(connection).get_table_names()
+        if "jobs" in tables and "alembic_version" not in tables:
+            command.stamp(config, INITIAL_REVISION)
+        command.upgrade(config, "head")
+
+
+MIGRATION_LOCK_KEY = 0x5F4D4E52
+"""PostgreSQL advisory lock held while one process migrates."""
+INITIAL_REVISION = "0001"
+"""The migration that creates the schema as it was before migrations (jobs and job_logs)."""
+
+
 class JobStore:
-    """All reads and writes of jobs and their logs; safe to use from several threads and processes."""
+    """All reads and writes of jobs and their logs; safe to use from several threads and processes.
 
-    def __init__(self, url: str) -> None:
+    `migrate`: upgrade the schema first (the API and CLI do; job processes open an upgraded database).
+    """
+
+    def __init__(self, url: str, *, migrate: bool = True) -> None:
         if url.startswith("sqlite:///"):
-            from pathlib import Path
-
             Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
         self.engine = _make_engine(url)
-        Base.metadata.create_all(self.engine)
+        if migrate:
+            upgrade_database(self.engine)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
 
     def dispose(self) -> None:
@@ -180,7 +236,7 @@ class JobStore:
     def create(
         self,
         kind: JobKind,
-        params: dict,
+        params: Any,
         *,
         job_id: str | None = None,
         source_job_id: str | None = None,
@@ -188,11 +244,13 @@ class JobStore:
         webhook_url: str | None = None,
         owner: str | None = None,
     ) -> Job:
+        from service.params import parse_params
+
         job = Job(
             id=job_id or new_job_id(),
             kind=str(kind),
             state=JobState.queued,
-            params=params,
+            params=parse_params(kind, params).model_dump(mode="json"),
             source_job_id=source_job_id,
             retry_of=retry_of,
             webhook_url=webhook_url,
@@ -253,30 +311,55 @@ class JobStore:
 
     # ---- state transitions ----------------------------------------------------------------------------
 
-    def claim(self, job_id: str, worker: str, pid: int | None = None) -> int | None:
-        """queued -> running for one worker; returns the new attempt number, None if not claimable."""
+    def claim(
+        self, job_id: str, worker: str, pid: int | None = None, supervisor_id: str | None = None
+    ) -> int | None:
+        """queued -> running for one worker; returns the new attempt number, None if not claimable.
+
+        One conditional UPDATE: of several claimers (API processes, Celery deliveries) exactly one wins."""
         with self._sessions.begin() as session:
-            job = session.get(Job, job_id, with_for_update=True)
-            if job is None or job.state != JobState.queued or job.cancel_requested:
-                return None
-            now = utcnow()
-            attempt = job.attempt + 1
-            result = session.execute(
-                update(Job)
-                .where(Job.id == job_id, Job.state == JobState.queued, Job.attempt == job.attempt)
-                .values(
-                    state=JobState.running,
-                    attempt=attempt,
-                    started_at=now,
-                    heartbeat_at=now,
-                    finished_at=None,
-                    error=None,
-                    worker=worker,
-                    pid=pid,
-                    stage="starting",
-                )
+            return self._claim(session, job_id, worker, pid, supervisor_id)
+
+    def claim_next(self, limit: int, worker: str, supervisor_id: str) -> list[tuple[str, int]]:
+        """Claims up to `limit` queued jobs, oldest first: [(job id, attempt)]. PostgreSQL skips rows
+        another supervisor is claiming (FOR UPDATE SKIP LOCKED); on SQLite the conditional UPDATE decides."""
+        with self._sessions.begin() as session:
+            query = (
+                select(Job.id)
+                .where(Job.state == JobState.queued, Job.cancel_requested.is_(False))
+                .order_by(Job.created_at)
+                .limit(limit)
+                .with_for_update(skip_locked=True)
             )
-            return attempt if result.rowcount == 1 else None
+            claimed = []
+            for job_id in session.scalars(query).all():
+                attempt = self._claim(session, job_id, worker, None, supervisor_id)
+                if attempt is not None:
+                    claimed.append((job_id, attempt))
+            return claimed
+
+    @staticmethod
+    def _claim(
+        session: Any, job_id: str, worker: str, pid: int | None, supervisor_id: str | None
+    ) -> int | None:
+        now = utcnow()
+        return session.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.state == JobState.queued, Job.cancel_requested.is_(False))
+            .values(
+                state=JobState.running,
+                attempt=Job.attempt + 1,
+                started_at=now,
+                heartbeat_at=now,
+                finished_at=None,
+                error=None,
+                worker=worker,
+                pid=pid,
+                stage="starting",
+                supervisor_id=supervisor_id,
+            )
+            .returning(Job.attempt)
+        ).scalar_one_or_none()
 
     def set_process(self, job_id: str, attempt: int, pid: int | None, worker: str) -> None:
         self._update_running(job_id, attempt, pid=pid, worker=worker)
@@ -317,7 +400,14 @@ class JobStore:
     def requeue(self, job_id: str, attempt: int, *, resume: bool) -> bool:
         """running -> queued (the service restarted under it); a NeRF job resumes from its checkpoint."""
         return self._update_running(
-            job_id, attempt, state=JobState.queued, resume=resume, pid=None, stage="re-queued", worker=None
+            job_id,
+            attempt,
+            state=JobState.queued,
+            resume=resume,
+            pid=None,
+            stage="re-queued",
+            worker=None,
+            supervisor_id=None,
         )
 
     def request_cancel(self, job_id: str) -> Job | None:
@@ -335,10 +425,88 @@ class JobStore:
                 job.cancel_requested = True
             return job
 
-    def cancel_requested_running(self) -> list[Job]:
+    def cancel_requested_running(self, supervisor_id: str) -> list[Job]:
+        """Running jobs of this supervisor that a client (on any API process) asked to cancel."""
         with self._sessions() as session:
-            query = select(Job).where(Job.state == JobState.running, Job.cancel_requested.is_(True))
+            query = select(Job).where(
+                Job.state == JobState.running,
+                Job.cancel_requested.is_(True),
+                Job.supervisor_id == supervisor_id,
+            )
             return list(session.scalars(query).all())
+
+    def running_longer_than(self, kind: str, seconds: float, supervisor_id: str | None = None) -> list[Job]:
+        """Running jobs of a kind started more than `seconds` ago (of one supervisor when given)."""
+        query = select(Job).where(
+            Job.state == JobState.running,
+            Job.kind == kind,
+            Job.started_at < utcnow() - timedelta(seconds=seconds),
+        )
+        if supervisor_id is not None:
+            query = query.where(Job.supervisor_id == supervisor_id)
+        with self._sessions() as session:
+            return list(session.scalars(query).all())
+
+    def set_pinned(self, job_id: str, pinned: bool) -> Job | None:
+        with self._sessions.begin() as session:
+            job = session.get(Job, job_id)
+            if job is not None:
+                job.pinned = pinned
+            return job
+
+    def expired(self, finished_before: datetime, limit: int = 100) -> list[str]:
+        """Finished, unpinned jobs that ended before the cut-off, oldest first."""
+        with self._sessions() as session:
+            query = (
+                select(Job.id)
+                .where(
+                    Job.state.in_(list(TERMINAL_STATES)),
+                    Job.pinned.is_(False),
+                    Job.finished_at < finished_before,
+                )
+                .order_by(Job.finished_at)
+                .limit(limit)
+            )
+            return list(session.scalars(query).all())
+
+    # ---- supervisor leases ----------------------------------------------------------------------------
+
+    def register_supervisor(self) -> str:
+        """A new lease for this process; returns its id."""
+        supervisor = Supervisor(id=uuid4().hex, host=socket.gethostname(), pid=os.getpid())
+        with self._sessions.begin() as session:
+            session.add(supervisor)
+        return supervisor.id
+
+    def renew_lease(self, supervisor_id: str) -> None:
+        with self._sessions.begin() as session:
+            session.execute(
+                update(Supervisor).where(Supervisor.id == supervisor_id).values(heartbeat_at=utcnow())
+            )
+
+    def release_lease(self, supervisor_id: str) -> None:
+        with self._sessions.begin() as session:
+            session.execute(delete(Supervisor).where(Supervisor.id == supervisor_id))
+
+    def orphaned_running(self, lease_timeout: timedelta) -> list[Job]:
+        """Running local jobs whose supervisor is gone: no lease row, a lease not renewed within
+        `lease_timeout`, or a lease of a process on this host that no longer exists (killed just now)."""
+        with self._sessions() as session:
+            leases = {s.id: s for s in session.scalars(select(Supervisor)).all()}
+            query = select(Job).where(
+                Job.state == JobState.running,
+                or_(Job.supervisor_id.is_not(None), Job.worker.like("local%")),
+            )
+            jobs = list(session.scalars(query).all())
+        cutoff = utcnow() - lease_timeout
+        host = socket.gethostname()
+
+        def alive(lease: Supervisor | None) -> bool:
+            if lease is None or lease.heartbeat_at < cutoff:
+                return False
+            return lease.host != host or process_exists(lease.pid)
+
+        return [job for job in jobs if not alive(leases.get(job.supervisor_id or ""))]
 
     def stale_running(self, older_than: timedelta) -> list[Job]:
         cutoff = utcnow() - older_than
@@ -372,9 +540,12 @@ class JobStore:
             return session.get(Scene, scene_id)
 
     def list_scenes(
-        self, *, state: str | None = None, limit: int = 50, offset: int = 0
+        self, *, state: str | None = None, owner: str | None = None, limit: int = 50, offset: int = 0
     ) -> tuple[list[Scene], int]:
+        """Scenes newest first; only `owner`'s (the owner of their reconstruction job) when given."""
         query = select(Scene) if state is None else select(Scene).where(Scene.state == state)
+        if owner is not None:
+            query = query.join(Job, Job.id == Scene.reconstruction_job_id).where(Job.owner == owner)
         with self._sessions() as session:
             total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
             rows = session.scalars(
@@ -422,3 +593,18 @@ class JobStore:
 
 def new_job_id() -> str:
     return uuid4().hex
+
+
+def process_exists(pid: int) -> bool:
+    """Whether a process of this host has this pid (a zombie, exited but not yet reaped, counts as gone)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:  # no /proc: the signal test is all there is
+        return True

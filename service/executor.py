@@ -1,10 +1,17 @@
 """Executors: where jobs run. `local` (default): one supervised process per job; `celery`: Celery workers.
 
 The local executor's supervisor thread starts queued jobs in fresh processes (`python -m service.worker`)
-up to the configured concurrency, kills the process of a cancelled job, and marks a job whose process died
-failed with the reason. A crash, an out-of-memory kill or a long NeRF run stays inside its own process.
-On start it re-queues the jobs a previous service left running (NeRF jobs resume from their checkpoint);
-on stop it kills its job processes and re-queues their jobs the same way, so a restart loses no job.
+up to the configured concurrency, kills the process of a cancelled job or of one over its kind's maximum
+runtime, and records how a job whose process ended without a result ended (cancelled or failed with the
+reason) once that process has exited. A crash, an out-of-memory kill or a long NeRF run stays inside its
+own process.
+
+One owner per job: each supervisor holds a lease row (renewed several times per
+SFMNERF_SUPERVISOR_LEASE_SECONDS) and claims jobs under it; several API processes on one database each
+run their own jobs and never touch another's. A job whose supervisor's lease lapsed (or whose supervisor
+process on this host is gone, e.g. after kill -9) is re-queued by any live supervisor, at start and
+periodically (NeRF jobs resume from their checkpoint). On stop a supervisor kills its own job processes and
+re-queues their jobs the same way, so a restart loses no job.
 """
 
 from __future__ import annotations
@@ -23,13 +30,15 @@ from pathlib import Path
 from typing import IO, Protocol
 from uuid import uuid4
 
-from service import webhooks
 from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore
-from service.jobs import job_dir
+from service.housekeeping import HOUSEKEEPING_SECONDS, expire_finished_jobs
+from service.runner import announce_end, complete_job, job_dir, runtime_exceeded
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 
 log = logging.getLogger(__name__)
 SUPERVISOR_POLL_SECONDS = 0.25
+HARD_LIMIT_MARGIN_SECONDS = 30.0
+"""Celery's hard time limit lies this far beyond a job's soft limit (its maximum runtime)."""
 WORKER_LOG_NAME = "worker.log"
 WORKER_LOG_TAIL_BYTES = 600
 
@@ -83,27 +92,48 @@ def _tail(path: Path) -> str:
 class _JobProcess:
     process: subprocess.Popen
     attempt: int
+    kind: str
     log_file: IO[bytes]
+    started: float
     terminate_sent_at: float | None = None
+    stop_reason: str | None = None
+    """Why the supervisor stopped it (the maximum runtime); None: it ended by itself or was cancelled."""
+
+
+class _Every:
+    """True once per `seconds`, the first time `seconds` after it was made (a chore in a polling loop)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self._last = time.monotonic()
+
+    def due(self) -> bool:
+        now = time.monotonic()
+        if now - self._last < self.seconds:
+            return False
+        self._last = now
+        return True
 
 
 class LocalExecutor:
-    """Runs each job in its own process, at most `settings.concurrency` at a time."""
+    """Runs each job in its own process, at most `settings.concurrency` at a time per API process."""
 
     def __init__(self, settings: ServiceSettings, store: JobStore) -> None:
         self.settings = settings
         self.store = store
+        self.supervisor_id: str | None = None
         self._processes: dict[str, _JobProcess] = {}
         self._wake = threading.Event()
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
+        self._lease = _Every(settings.supervisor_lease_seconds / 3)
+        self._housekeeping = _Every(HOUSEKEEPING_SECONDS)
 
     # ---- lifecycle -----------------------------------------------------------------------------------
 
     def start(self) -> None:
-        for job in self.store.running():
-            _kill_stray_worker(job)
-            requeue_after_restart(self.store, job, "the service restarted")
+        self.supervisor_id = self.store.register_supervisor()
+        self._take_over_orphans()
         self._stopping.clear()
         self._thread = threading.Thread(target=self._loop, name="sfmnerf-supervisor", daemon=True)
         self._thread.start()
@@ -121,34 +151,44 @@ class LocalExecutor:
             if job is not None and job.attempt == running.attempt:
                 requeue_after_restart(self.store, job, "the service stopped")
         self._processes.clear()
+        if self.supervisor_id:
+            self.store.release_lease(self.supervisor_id)
 
     def submit(self, job_id: str) -> None:
         self._wake.set()
 
     def cancel(self, job_id: str) -> None:
-        self._wake.set()
+        self._wake.set()  # the owner (this or another API process) sees the job's cancel flag
 
     def problem(self) -> str | None:
         if self._thread is None or not self._thread.is_alive():
             return "the job supervisor is not running"
         return None
 
-    def pid_of(self, job_id: str) -> int | None:
-        running = self._processes.get(job_id)
-        return running.process.pid if running else None
-
     # ---- the supervisor loop --------------------------------------------------------------------------
 
     def _loop(self) -> None:
         while not self._stopping.is_set():
             try:
+                if self._lease.due():
+                    self.store.renew_lease(self.supervisor_id)
+                    self._take_over_orphans()
                 self._reap()
-                self._kill_cancelled()
+                self._stop_cancelled_and_overdue()
                 self._start_queued()
+                if self._housekeeping.due():
+                    expire_finished_jobs(self.store, self.settings)
             except Exception:  # a database hiccup must not end supervision
                 log.exception("job supervisor iteration failed")
             self._wake.wait(SUPERVISOR_POLL_SECONDS)
             self._wake.clear()
+
+    def _take_over_orphans(self) -> None:
+        """Re-queues running jobs whose supervisor is gone (its lease lapsed or its process died)."""
+        lease = timedelta(seconds=self.settings.supervisor_lease_seconds)
+        for job in self.store.orphaned_running(lease):
+            _kill_stray_worker(job)
+            requeue_after_restart(self.store, job, "the service that ran it stopped")
 
     def _reap(self) -> None:
         for job_id, running in list(self._processes.items()):
@@ -161,49 +201,67 @@ class LocalExecutor:
             if job is None or job.attempt != running.attempt:
                 continue
             if job.state in TERMINAL_STATES:  # it recorded its own end; its webhook is sent from here
-                webhooks.enqueue_delivery(self.store, job_id, self.settings)
+                announce_end(self.store, self.settings, job_id, None)
                 continue
             if job.state != JobState.running:
                 continue
-            if job.cancel_requested:
+            if running.stop_reason:
+                state, error = JobState.failed, running.stop_reason
+            elif job.cancel_requested:
                 state, error = JobState.cancelled, "cancelled"
             else:
                 state = JobState.failed
                 error = describe_exit(returncode, job_dir(self.settings, job_id) / WORKER_LOG_NAME)
-            if self.store.finish(job_id, running.attempt, state, error=error):
-                self.store.append_log(job_id, [f"finished: {state} ({error})"])
-                webhooks.enqueue_delivery(self.store, job_id, self.settings)
+            complete_job(self.store, self.settings, job_id, running.attempt, state, error=error)
 
-    def _kill_cancelled(self) -> None:
-        for job in self.store.cancel_requested_running():
+    def _stop_cancelled_and_overdue(self) -> None:
+        for job in self.store.cancel_requested_running(self.supervisor_id):
             running = self._processes.get(job.id)
-            if running is None:  # claimed but never started, or not ours: nothing to kill
-                if self.store.finish(job.id, job.attempt, JobState.cancelled, error="cancelled"):
-                    webhooks.enqueue_delivery(self.store, job.id, self.settings)
-                continue
-            now = time.monotonic()
-            if running.terminate_sent_at is None:
-                running.process.terminate()
-                running.terminate_sent_at = now
-            elif now - running.terminate_sent_at >= self.settings.cancel_grace_seconds:
-                running.process.kill()
+            if running is None:  # claimed but its process never started: nothing to wait for
+                complete_job(
+                    self.store, self.settings, job.id, job.attempt, JobState.cancelled, error="cancelled"
+                )
+            else:
+                self._terminate(running)
+        now = time.monotonic()
+        for running in self._processes.values():
+            if running.stop_reason is None and now - running.started > self.settings.max_runtime_seconds(
+                running.kind
+            ):
+                running.stop_reason = runtime_exceeded(
+                    running.kind, self.settings.max_runtime_seconds(running.kind)
+                )
+            if running.stop_reason:
+                self._terminate(running)
+
+    def _terminate(self, running: _JobProcess) -> None:
+        """SIGTERM, then SIGKILL after the grace period; its end is recorded when it has exited (_reap)."""
+        now = time.monotonic()
+        if running.terminate_sent_at is None:
+            running.process.terminate()
+            running.terminate_sent_at = now
+        elif now - running.terminate_sent_at >= self.settings.cancel_grace_seconds:
+            running.process.kill()
 
     def _start_queued(self) -> None:
         free = self.settings.concurrency - len(self._processes)
         if free <= 0:
             return
-        for job_id in self.store.queued_ids(free):
-            attempt = self.store.claim(job_id, worker="local")
-            if attempt is None:
-                continue
+        for job_id, attempt in self.store.claim_next(free, worker="local", supervisor_id=self.supervisor_id):
             try:
                 self._spawn(job_id, attempt)
             except OSError as error:
-                self.store.finish(
-                    job_id, attempt, JobState.failed, error=f"cannot start a job process: {error}"
+                complete_job(
+                    self.store,
+                    self.settings,
+                    job_id,
+                    attempt,
+                    JobState.failed,
+                    error=f"cannot start a job process: {error}",
                 )
 
     def _spawn(self, job_id: str, attempt: int) -> None:
+        job = self.store.get(job_id)
         folder = job_dir(self.settings, job_id)
         folder.mkdir(parents=True, exist_ok=True)
         log_file = open(folder / WORKER_LOG_NAME, "ab")  # noqa: SIM115 (closed when the process is reaped)
@@ -219,7 +277,9 @@ class LocalExecutor:
             env=env,
             cwd=str(Path(__file__).resolve().parents[1]),
         )
-        self._processes[job_id] = _JobProcess(process=process, attempt=attempt, log_file=log_file)
+        self._processes[job_id] = _JobProcess(
+            process=process, attempt=attempt, kind=job.kind, log_file=log_file, started=time.monotonic()
+        )
         self.store.set_process(job_id, attempt, process.pid, worker="local")
 
 
@@ -246,6 +306,7 @@ class CeleryExecutor:
         self.settings = settings
         self.store = store
         self.celery = make_celery(settings)
+        self._housekeeping = _Every(HOUSEKEEPING_SECONDS)
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -262,9 +323,19 @@ class CeleryExecutor:
     def submit(self, job_id: str) -> None:
         from service.celery_app import RUN_JOB_TASK
 
+        job = self.store.get(job_id)
         task_id = f"{job_id}-{uuid4().hex[:8]}"
         self.store.set_task_id(job_id, task_id)
-        self.celery.send_task(RUN_JOB_TASK, args=[job_id], task_id=task_id)
+        limit = self.settings.max_runtime_seconds(job.kind)
+        # The soft limit interrupts the job (it fails with the reason); the hard one kills a job that
+        # does not stop, and the task_failure handler records the same reason.
+        self.celery.send_task(
+            RUN_JOB_TASK,
+            args=[job_id],
+            task_id=task_id,
+            soft_time_limit=limit,
+            time_limit=limit + self.settings.cancel_grace_seconds + HARD_LIMIT_MARGIN_SECONDS,
+        )
 
     def cancel(self, job_id: str) -> None:
         job = self.store.get(job_id)
@@ -272,9 +343,9 @@ class CeleryExecutor:
             return
         if job.state == JobState.running:
             self.celery.control.revoke(job.task_id, terminate=True, signal="SIGKILL")
-            if self.store.finish(job.id, job.attempt, JobState.cancelled, error="cancelled"):
-                self.store.append_log(job.id, ["finished: cancelled (its worker process was killed)"])
-                webhooks.enqueue_delivery(self.store, job.id, self.settings)
+            complete_job(
+                self.store, self.settings, job.id, job.attempt, JobState.cancelled, error="cancelled"
+            )
         else:
             self.celery.control.revoke(job.task_id)
 
@@ -295,8 +366,9 @@ class CeleryExecutor:
                         f"the worker ({job.worker}) stopped sending heartbeats for "
                         f"{self.settings.heartbeat_timeout_seconds:g} s: it died or lost the database"
                     )
-                    if self.store.finish(job.id, job.attempt, JobState.failed, error=error):
-                        webhooks.enqueue_delivery(self.store, job.id, self.settings)
+                    complete_job(self.store, self.settings, job.id, job.attempt, JobState.failed, error=error)
+                if self._housekeeping.due():
+                    expire_finished_jobs(self.store, self.settings)
             except Exception:
                 log.exception("heartbeat reaper iteration failed")
 

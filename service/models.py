@@ -9,6 +9,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.db import Job, JobKind, JobState
+from service.params import VideoParams
 
 JOB_ID_EXAMPLE = "3f2b8c1d9e7a4b6c8d0e1f2a3b4c5d6e"
 
@@ -38,6 +39,7 @@ class JobOut(BaseModel):
                     "retry_of": None,
                     "webhook_url": None,
                     "worker": "local",
+                    "pinned": False,
                     "result": None,
                     "links": {
                         "self": f"/v1/jobs/{JOB_ID_EXAMPLE}",
@@ -65,6 +67,9 @@ class JobOut(BaseModel):
     retry_of: str | None = Field(None, description="The job this one retries.")
     webhook_url: str | None = None
     worker: str | None = Field(None, description="The process running the job.")
+    pinned: bool = Field(
+        False, description="Kept past SFMNERF_JOB_RETENTION_MINUTES (PUT/DELETE /v1/jobs/{id}/pin)."
+    )
     result: dict[str, Any] | None = Field(None, description="A short summary of the outcome.")
     links: dict[str, str]
 
@@ -92,6 +97,7 @@ class JobOut(BaseModel):
             retry_of=job.retry_of,
             webhook_url=job.webhook_url,
             worker=job.worker,
+            pinned=bool(job.pinned),
             result=job.result,
             links=links,
         )
@@ -266,10 +272,8 @@ def look_at_c2w(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarr
     return c2w
 
 
-class VideoRequest(BaseModel):
-    num_frames: int = Field(36, ge=1, le=720, examples=[36])
-    width: int = Field(200, ge=8, le=4096, examples=[200])
-    height: int = Field(200, ge=8, le=4096, examples=[200])
+class VideoRequest(VideoParams):
+    """An orbit video of the latest checkpoint (the video job's parameters)."""
 
 
 class HealthOut(BaseModel):

@@ -48,13 +48,48 @@ def binary_as_format(schema: Any) -> Any:
     return schema
 
 
+JOB_OPERATIONS = {
+    "GetJob": ("get", "/v1/jobs/{job_id}"),
+    "GetLogs": ("get", "/v1/jobs/{job_id}/logs"),
+    "CancelJob": ("post", "/v1/jobs/{job_id}/cancel"),
+    "RetryJob": ("post", "/v1/jobs/{job_id}/retry"),
+    "PinJob": ("put", "/v1/jobs/{job_id}/pin"),
+    "UnpinJob": ("delete", "/v1/jobs/{job_id}/pin"),
+    "DeleteJob": ("delete", "/v1/jobs/{job_id}"),
+}
+"""What a client can do with a job id an answer gave it (OpenAPI links, followed by clients and fuzzers)."""
+JOB_ID_SOURCES = {
+    ("post", "/v1/reconstructions", "202"): "$response.body#/id",
+    ("post", "/v1/nerf", "202"): "$response.body#/id",
+    ("post", "/v1/nerf/{job_id}/video", "202"): "$response.body#/id",
+    ("post", "/v1/jobs/{job_id}/retry", "202"): "$response.body#/id",
+    ("post", "/v1/jobs/{job_id}/cancel", "200"): "$response.body#/id",
+    ("get", "/v1/jobs/{job_id}", "200"): "$response.body#/id",
+    ("put", "/v1/jobs/{job_id}/pin", "200"): "$response.body#/id",
+    ("get", "/v1/jobs", "200"): "$response.body#/items/0/id",
+}
+
+
+def add_job_links(schema: dict[str, Any]) -> dict[str, Any]:
+    """Adds OpenAPI links from every answer that names a job to the operations on that job."""
+    paths = schema["paths"]
+    for (method, path, code), source in JOB_ID_SOURCES.items():
+        response = paths[path][method]["responses"][code]
+        response["links"] = {
+            name: {"operationId": paths[target][verb]["operationId"], "parameters": {"job_id": source}}
+            for name, (verb, target) in JOB_OPERATIONS.items()
+        }
+    return schema
+
+
 def install(app: FastAPI) -> None:
-    """Replaces app.openapi with one whose file fields say `format: binary` (computed once, cached)."""
+    """Replaces app.openapi with one whose file fields say `format: binary` and whose answers that name a
+    job link to the operations on it (computed once, cached)."""
     build = app.openapi
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            app.openapi_schema = binary_as_format(build())
+            app.openapi_schema = binary_as_format(add_job_links(build()))
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

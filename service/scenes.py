@@ -20,10 +20,12 @@ from typing import Any
 from fastapi import HTTPException, Response
 from pydantic import BaseModel, Field
 
+from service.auth import ANONYMOUS, Client
 from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore, Scene, utcnow
 from service.executor import Executor
-from service.jobs import output_dir
 from service.models import VideoRequest
+from service.params import EvaluationParams
+from service.runner import output_dir
 from service.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
@@ -49,6 +51,18 @@ class SceneOptions(BaseModel):
     held_out_max_side: int = Field(
         200, ge=8, le=4096, description="Held-out views are rendered downscaled to at most this side."
     )
+
+
+def scene_owner(store: JobStore, scene: Scene) -> str | None:
+    """The client a scene belongs to: the owner of its reconstruction job (the client that created it)."""
+    job = store.get(scene.reconstruction_job_id) if scene.reconstruction_job_id else None
+    return job.owner if job is not None else None
+
+
+def owner_client(owner: str | None) -> Client:
+    """Who a scene's child jobs are created as: its owner without admin rights (the anonymous admin of a
+    service without tokens when it has none)."""
+    return ANONYMOUS if owner is None else Client(name=owner, admin=False)
 
 
 def registration_problem(report: dict[str, Any], minimum: int) -> str | None:
@@ -150,7 +164,8 @@ class SceneRunner:
         config = SceneOptions.model_validate(scene.params).train_config
         try:
             job = create_nerf(
-                Response(), self.store, self.executor, self.settings, dataset=None,
+                Response(), self.store, owner_client(scene_owner(self.store, scene)), self.executor,
+                self.settings, dataset=None,
                 reconstruction_id=scene.reconstruction_job_id, model=config["model"], steps=None,
                 minutes=None, batch_rays=None, device=None, options=json.dumps(config), webhook_url=None,
             )  # fmt: skip
@@ -180,8 +195,9 @@ class SceneRunner:
         if scene.evaluation_job_id is None:
             job = self.store.create(
                 JobKind.evaluation,
-                {"split": "val", "max_side": options.held_out_max_side},
+                EvaluationParams(split="val", max_side=options.held_out_max_side),
                 source_job_id=scene.nerf_job_id,
+                owner=scene_owner(self.store, scene),
             )
             self.executor.submit(job.id)
             values["evaluation_job_id"] = job.id

@@ -33,6 +33,12 @@ class ServiceSettings(BaseSettings):
         "local", description="local: job processes supervised by the API; celery: Celery workers via broker."
     )
     broker_url: str = Field("redis://127.0.0.1:6379/0", description="Celery broker URL (executor=celery).")
+    broker_visibility_timeout_seconds: float | None = Field(
+        None,
+        gt=0,
+        description="Redis visibility timeout of Celery messages; default: the longest maximum runtime "
+        "of a job kind plus one hour, so a long job's message is never handed to a second worker.",
+    )
     concurrency: int = Field(1, ge=1, description="Jobs run at the same time by the local executor.")
     job_threads: int | None = Field(
         None,
@@ -88,6 +94,44 @@ class ServiceSettings(BaseSettings):
     heartbeat_timeout_seconds: float = Field(
         120.0, gt=0, description="A celery job silent for this long is marked failed (its worker died)."
     )
+    supervisor_lease_seconds: float = Field(
+        15.0,
+        gt=0,
+        description="A local supervisor (one per API process) renews its lease 3 times in this period; "
+        "its running jobs are taken over by another API process on the same database once it lapses.",
+    )
+    max_runtime_reconstruction_minutes: float = Field(
+        120.0, gt=0, description="A reconstruction job running longer fails with this reason."
+    )
+    max_runtime_nerf_minutes: float = Field(
+        1440.0, gt=0, description="A NeRF training job running longer fails with this reason."
+    )
+    max_runtime_video_minutes: float = Field(
+        120.0, gt=0, description="An orbit video job running longer fails with this reason."
+    )
+    job_retention_minutes: float = Field(
+        2880.0,
+        gt=0,
+        description="Finished jobs and their files are deleted this long after they ended, unless pinned.",
+    )
+    min_free_disk_bytes: int = Field(
+        1 * 2**30, ge=0, description="New jobs and uploads are refused (507) below this free space."
+    )
+    render_workers: int = Field(
+        1, ge=1, description="Long-lived render processes of the local executor (each caches a model)."
+    )
+    render_queue_size: int = Field(
+        8, ge=1, description="Renders waiting or running at once; more are answered 503 with Retry-After."
+    )
+    render_timeout_seconds: float = Field(120.0, gt=0, description="A render taking longer fails (504).")
+    render_cache_per_job: int = Field(
+        64, ge=0, description="Renders kept per NeRF job to answer identical requests (0: no cache)."
+    )
+    max_video_pixels: int = Field(
+        50_000_000,
+        ge=1,
+        description="Budget of one orbit video: frames x width x height (e.g. 36 frames of 200x200 = 1.44M).",
+    )
     webhook_attempts: int = Field(5, ge=1, description="Attempts to deliver a job's webhook.")
     webhook_backoff_seconds: float = Field(
         1.0, ge=0, description="First delay between webhook attempts; doubles after each failure."
@@ -132,7 +176,16 @@ class ServiceSettings(BaseSettings):
             "max_zip_uncompressed_bytes": self.max_zip_uncompressed_bytes,
             "max_json_bytes": self.max_json_bytes,
             "max_render_pixels": self.max_render_pixels,
+            "max_video_pixels": self.max_video_pixels,
         }
+
+    def max_runtime_seconds(self, kind: str) -> float:
+        """The longest a job of this kind may run (SFMNERF_MAX_RUNTIME_<KIND>_MINUTES)."""
+        return 60.0 * getattr(self, f"max_runtime_{kind}_minutes")
+
+    @property
+    def longest_job_seconds(self) -> float:
+        return max(self.max_runtime_seconds(kind) for kind in ("reconstruction", "nerf", "video"))
 
     def threads_per_job(self) -> int:
         """CPU threads each local job process may use, so concurrent jobs do not oversubscribe the cores."""

@@ -43,12 +43,12 @@ def main(argv: list[str] | None = None) -> int:
     job_id, attempt, parent_pid = (argv or sys.argv[1:])[:3]
     die_with_parent(int(parent_pid))
     from service.db import JobStore
-    from service.jobs import execute
+    from service.runner import execute
 
     settings = ServiceSettings.model_validate_json(os.environ[WORKER_SETTINGS_ENV])
-    store = JobStore(settings.resolved_database_url)
+    store = JobStore(settings.resolved_database_url, migrate=False)
     try:
-        execute(store, job_id, int(attempt), settings)
+        execute(store, job_id, int(attempt), settings, webhook=False)  # the executor sends the webhook
     finally:
         store.dispose()
     return 0

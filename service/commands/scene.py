@@ -59,7 +59,7 @@ def scene(
     from estimation import InputError, ReconstructionConfig, reconstruct
     from neural import TrainConfig, evaluate, load_dataset, render_orbit, train
     from neural.errors import CheckpointError, DatasetError
-    from service.jobs import EVALUATION_FILE
+    from service.runner import EVALUATION_FILE
     from service.scenes import SceneOptions, downscaled, orbit_size, registration_problem
 
     try:

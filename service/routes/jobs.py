@@ -6,19 +6,27 @@ import shutil
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query, Response, status
+from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
 
-from service import webhooks
 from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.jobs import input_dir, job_dir
+from service.housekeeping import delete_job as delete_job_and_files
+from service.housekeeping import disk_space_problem
 from service.models import ErrorOut, JobList, JobOut, LogsOut
+from service.runner import announce_end, input_dir
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 NOT_FOUND = {404: {"model": ErrorOut, "description": "No job with this id."}}
 MAX_PAGE = 500
 MAX_LOG_LINES = 5000
 DELETE_WAIT_SECONDS = 10.0
+NO_SPACE = {507: {"model": ErrorOut, "description": "The server's disk is too full for new work."}}
+
+
+def require_disk_space(settings: SettingsDep) -> None:
+    """507 Insufficient Storage for new work while the disk is below SFMNERF_MIN_FREE_DISK_BYTES."""
+    if (problem := disk_space_problem(settings)) is not None:
+        raise HTTPException(status.HTTP_507_INSUFFICIENT_STORAGE, problem)
 
 
 def accepted(response: Response, job: JobOut) -> JobOut:
@@ -74,8 +82,7 @@ def cancel_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settin
     job = store.request_cancel(job_id)
     executor.cancel(job_id)
     if job is not None and job.state == JobState.cancelled:
-        store.append_log(job_id, ["finished: cancelled before it started"])
-        webhooks.enqueue_delivery(store, job_id, settings)
+        announce_end(store, settings, job_id, "finished: cancelled before it started")
     # The answer shows the outcome when the process ends quickly (it usually does, within a second).
     return JobOut.from_job(_wait_while_running(store, job_id, settings.cancel_grace_seconds + 1.0) or job)
 
@@ -84,7 +91,8 @@ def cancel_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settin
     "/{job_id}/retry",
     response_model=JobOut,
     status_code=202,
-    responses={**NOT_FOUND, 409: {"model": ErrorOut}},
+    responses={**NOT_FOUND, **NO_SPACE, 409: {"model": ErrorOut}},
+    dependencies=[Depends(require_disk_space)],
     summary="Run a failed or cancelled job again with the same inputs (a new job)",
 )
 def retry_job(
@@ -131,9 +139,30 @@ def delete_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settin
         store.request_cancel(job_id)
         executor.cancel(job_id)
         _wait_while_running(store, job_id, DELETE_WAIT_SECONDS)
-    store.delete(job_id)
-    shutil.rmtree(job_dir(settings, job_id), ignore_errors=True)
+    delete_job_and_files(store, settings, job_id)
     return Response(status_code=204)
+
+
+@router.put(
+    "/{job_id}/pin",
+    response_model=JobOut,
+    responses=NOT_FOUND,
+    summary="Keep a job and its files past SFMNERF_JOB_RETENTION_MINUTES",
+)
+def pin_job(job_id: JobIdPath, store: StoreDep) -> JobOut:
+    find_job(store, job_id)
+    return JobOut.from_job(store.set_pinned(job_id, True))
+
+
+@router.delete(
+    "/{job_id}/pin",
+    response_model=JobOut,
+    responses=NOT_FOUND,
+    summary="Let a finished job expire again (SFMNERF_JOB_RETENTION_MINUTES after it ended)",
+)
+def unpin_job(job_id: JobIdPath, store: StoreDep) -> JobOut:
+    find_job(store, job_id)
+    return JobOut.from_job(store.set_pinned(job_id, False))
 
 
 def _wait_while_running(store: JobStore, job_id: str, seconds: float) -> Job | None:

@@ -2,25 +2,25 @@
 
 from __future__ import annotations
 
-import io
 import json
-import math
-import threading
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from neural.config import ModelName
 from service import webhooks
 from service.db import JobKind, JobState, new_job_id
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.jobs import finite_or_none, job_dir, output_dir
 from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
 from service.openapi import file_response
-from service.routes.jobs import NOT_FOUND, accepted
+from service.params import NerfParams
+from service.renders import RenderBusy, RenderFailed, RenderSpec, spec_from_request
+from service.routes.jobs import NO_SPACE, NOT_FOUND, accepted, require_disk_space
 from service.routes.reconstructions import REJECTED
+from service.runner import finite_or_none, job_dir, output_dir
 from service.settings import ServiceSettings
 from service.uploads import (
     extract_zip,
@@ -36,8 +36,6 @@ router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
 NO_CHECKPOINT = {409: {"model": ErrorOut, "description": "The job has no checkpoint yet."}}
 PNG = file_response("image/png", description="The rendered view.")
 DATASET_DIR = "input/dataset"
-_render_lock = threading.Lock()
-"""One render at a time in the API process: a render holds a model and a full image of rays in memory."""
 
 
 def _dataset_errors() -> tuple[type[Exception], ...]:
@@ -111,7 +109,8 @@ def _check_device(device: str, settings: ServiceSettings) -> None:
     "",
     response_model=JobOut,
     status_code=202,
-    responses={**REJECTED, **NOT_FOUND},
+    responses={**REJECTED, **NOT_FOUND, **NO_SPACE},
+    dependencies=[Depends(require_disk_space)],
     summary="Train a NeRF on an uploaded dataset (Blender zip or .npz) or a reconstruction",
 )
 def create_nerf(
@@ -155,7 +154,7 @@ def create_nerf(
     _check_device(config["device"], settings)
     webhook_url = webhooks.check_url(webhook_url, settings)
     job_id = new_job_id()
-    params: dict[str, Any] = {"train_config": config}
+    params = NerfParams(train_config=config)
     source_job_id = None
     if reconstruction_id is not None:
         source = find_job(store, reconstruction_id, JobKind.reconstruction, client)
@@ -170,8 +169,8 @@ def create_nerf(
         )
     with removed_on_failure(job_dir(settings, job_id)):
         if dataset is not None:
-            params["dataset"] = _save_dataset(dataset, job_id, settings)
-            _check_dataset(job_id, job_dir(settings, job_id) / params["dataset"], "dataset", settings)
+            params.dataset = _save_dataset(dataset, job_id, settings)
+            _check_dataset(job_id, job_dir(settings, job_id) / params.dataset, "dataset", settings)
         job = store.create(
             JobKind.nerf,
             params,
@@ -281,48 +280,75 @@ def _require_checkpoint(job_id: str, settings: ServiceSettings) -> Path:
     return run_dir
 
 
+def _check_render_size(pixels: int, settings: ServiceSettings) -> None:
+    if pixels > settings.max_render_pixels:
+        raise HTTPException(
+            422,
+            f"width x height = {pixels} pixels, more than the limit "
+            f"SFMNERF_MAX_RENDER_PIXELS={settings.max_render_pixels}",
+        )
+
+
+def _render_spec(store: Any, settings: ServiceSettings, job_id: str, request: RenderRequest) -> RenderSpec:
+    """The view to render, its checkpoint resolved to a step (the render cache's key); 4xx otherwise."""
+    find_job(store, job_id, JobKind.nerf)
+    _check_render_size(request.width * request.height, settings)
+    run_dir = _require_checkpoint(job_id, settings)
+    checkpoints = _checkpoints(run_dir)
+    which = request.checkpoint
+    for checkpoint in checkpoints:
+        if (
+            (which == "latest" and checkpoint.is_latest)
+            or (which == "best" and checkpoint.is_best)
+            or (which == checkpoint.step)
+        ):
+            return spec_from_request(job_id, run_dir, checkpoint.step, request)
+    raise HTTPException(
+        422, f"checkpoint: no checkpoint {which!r} (have steps {[c.step for c in checkpoints]})"
+    )
+
+
 @router.post(
     "/{job_id}/render",
     response_class=Response,
-    responses={**PNG, **NOT_FOUND, **NO_CHECKPOINT},
+    responses={
+        **PNG,
+        **NOT_FOUND,
+        **NO_CHECKPOINT,
+        503: {"model": ErrorOut, "description": "Every render slot is busy: retry after Retry-After s."},
+    },
     summary="Render a view from the latest (or a chosen) checkpoint; works while training",
 )
-def render(job_id: JobIdPath, request: RenderRequest, store: StoreDep, settings: SettingsDep) -> Response:
-    from PIL import Image
-
-    from neural import render_view
-
-    find_job(store, job_id, JobKind.nerf)
-    if request.width * request.height > settings.max_render_pixels:
-        raise HTTPException(
-            422,
-            f"width x height = {request.width * request.height} pixels, more than the limit "
-            f"SFMNERF_MAX_RENDER_PIXELS={settings.max_render_pixels}",
-        )
-    run_dir = _require_checkpoint(job_id, settings)
+async def render(
+    job_id: JobIdPath, request: RenderRequest, http: Request, store: StoreDep, settings: SettingsDep
+) -> Response:
+    # Runs on the event loop: the checks go to a thread, the render to a render process.
+    spec = await run_in_threadpool(_render_spec, store, settings, job_id, request)
     try:
-        with _render_lock:
-            pixels = render_view(
-                run_dir,
-                request.camera_to_world(),
-                request.width,
-                request.height,
-                fx=request.fx,
-                fov_x=math.radians(request.fov_x_deg) if request.fov_x_deg is not None else None,
-                checkpoint=str(request.checkpoint),
-            )
-    except _dataset_errors() as error:
-        raise HTTPException(422, f"checkpoint: {error}") from None
-    buffer = io.BytesIO()
-    Image.fromarray(pixels).save(buffer, format="PNG")
-    return Response(buffer.getvalue(), media_type="image/png")
+        png = await http.app.state.renders.render(spec)
+    except RenderBusy as busy:
+        raise HTTPException(
+            status.HTTP_503_SERVICE_UNAVAILABLE,
+            f"all {settings.render_queue_size} render slots are busy (SFMNERF_RENDER_QUEUE_SIZE); "
+            f"retry after {busy.retry_after} s",
+            headers={"Retry-After": str(busy.retry_after)},
+        ) from None
+    except RenderFailed as failed:
+        raise HTTPException(failed.status_code, failed.detail) from None
+    return Response(png, media_type="image/png")
 
 
 @router.post(
     "/{job_id}/video",
     response_model=JobOut,
     status_code=202,
-    responses={**NOT_FOUND, **NO_CHECKPOINT},
+    responses={
+        **NOT_FOUND,
+        **NO_CHECKPOINT,
+        **NO_SPACE,
+        413: {"model": ErrorOut, "description": "Over the video budget SFMNERF_MAX_VIDEO_PIXELS."},
+    },
+    dependencies=[Depends(require_disk_space)],
     summary="Queue an orbit video of the latest checkpoint",
 )
 def queue_video(
@@ -334,14 +360,15 @@ def queue_video(
     settings: SettingsDep,
 ) -> JobOut:
     source = find_job(store, job_id, JobKind.nerf)
-    if request.width * request.height > settings.max_render_pixels:
+    _check_render_size(request.width * request.height, settings)
+    if request.pixels > settings.max_video_pixels:
         raise HTTPException(
-            422,
-            f"width x height = {request.width * request.height} pixels, more than the limit "
-            f"SFMNERF_MAX_RENDER_PIXELS={settings.max_render_pixels}",
+            413,
+            f"num_frames x width x height = {request.pixels} pixels, more than the video budget "
+            f"SFMNERF_MAX_VIDEO_PIXELS={settings.max_video_pixels}",
         )
     _require_checkpoint(job_id, settings)
-    job = store.create(JobKind.video, request.model_dump(), source_job_id=job_id, owner=source.owner)
+    job = store.create(JobKind.video, request, source_job_id=job_id, owner=source.owner)
     executor.submit(job.id)
     return accepted(response, JobOut.from_job(job))
 

@@ -7,10 +7,10 @@ from fastapi.responses import FileResponse
 
 from service.db import JobKind
 from service.deps import JobIdPath, SettingsDep, StoreDep, find_job
-from service.jobs import output_dir
 from service.models import ErrorOut
 from service.openapi import file_response
 from service.routes.jobs import NOT_FOUND
+from service.runner import output_dir
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
 VALIDATION_FOLDER = "val"

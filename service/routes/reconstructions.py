@@ -8,16 +8,17 @@ import zipfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
 from service import webhooks
 from service.db import JobKind, JobState, new_job_id
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.jobs import input_dir, job_dir, output_dir
 from service.models import ErrorOut, JobOut, ReconstructionOut
 from service.openapi import file_response
-from service.routes.jobs import NOT_FOUND, accepted
+from service.params import ReconstructionParams
+from service.routes.jobs import NO_SPACE, NOT_FOUND, accepted, require_disk_space
+from service.runner import input_dir, job_dir, output_dir
 from service.uploads import (
     UploadRejected,
     inside,
@@ -126,7 +127,8 @@ def _store_inputs(
     "",
     response_model=JobOut,
     status_code=202,
-    responses=REJECTED,
+    responses={**REJECTED, **NO_SPACE},
+    dependencies=[Depends(require_disk_space)],
     summary="Upload images (+ match files, calibration) and start a reconstruction",
 )
 def create_reconstruction(
@@ -181,7 +183,7 @@ def create_reconstruction(
             config["bundle_adjustment"]["max_iterations"] = ba_max_iterations
         job = store.create(
             JobKind.reconstruction,
-            {"config": config},
+            ReconstructionParams(config=config),
             job_id=job_id,
             webhook_url=webhook_url,
             owner=client.name,

@@ -9,23 +9,42 @@ from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, File, Form, HTTPException, Query, Request, Response, UploadFile, status
+from fastapi import (
+    APIRouter,
+    Depends,
+    File,
+    Form,
+    HTTPException,
+    Query,
+    Request,
+    Response,
+    UploadFile,
+    status,
+)
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
 from service.db import JobState, Scene, new_job_id
-from service.deps import ExecutorDep, SettingsDep, StoreDep
-from service.jobs import EVALUATION_FILE, output_dir
+from service.deps import ClientDep, ExecutorDep, SettingsDep, StoreDep
 from service.models import ErrorOut, JobOut
 from service.openapi import file_response
-from service.routes.jobs import MAX_PAGE, accepted
+from service.routes.jobs import MAX_PAGE, NO_SPACE, accepted, require_disk_space
 from service.routes.nerf import _train_config
 from service.routes.reconstructions import REJECTED, create_reconstruction
-from service.scenes import DONE, STAGE_WEIGHTS, STAGES, SceneOptions, SceneRunner, scene_lock, stage_jobs
+from service.runner import EVALUATION_FILE, output_dir
+from service.scenes import (
+    DONE,
+    STAGE_WEIGHTS,
+    STAGES,
+    SceneOptions,
+    SceneRunner,
+    scene_lock,
+    scene_owner,
+    stage_jobs,
+)
 from service.uploads import UploadRejected, extract_zip, sanitize_filename, save_stream
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 SCENE_NOT_FOUND = {404: {"model": ErrorOut, "description": "No scene with this id."}}
 CONFLICT = {409: {"model": ErrorOut, "description": "Not possible in the scene's state."}}
 ZIP_PHOTO_SUFFIXES = {".png", ".jpg", ".jpeg"}
@@ -145,6 +164,20 @@ def _find(request: Request, scene_id: str) -> Scene:
     return scene
 
 
+def visible_scene(request: Request, store: StoreDep, client: ClientDep) -> None:
+    """404 on every route of a scene of another client (its reconstruction job's owner), exactly as for a
+    scene that does not exist (service.deps.visible_job for scenes)."""
+    scene_id = request.path_params.get("scene_id")
+    if scene_id is None or client.admin:
+        return
+    scene = store.get_scene(scene_id)
+    if scene is None or not client.may_see(scene_owner(store, scene)):
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene_id} not found")
+
+
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[Depends(visible_scene)])
+
+
 def _runner(request: Request) -> SceneRunner:
     state = request.app.state
     return SceneRunner(state.store, state.executor, state.settings)
@@ -170,13 +203,15 @@ def _zip_photos(archive: UploadFile, folder: Path, settings: Any) -> dict[str, l
     "",
     response_model=SceneOut,
     status_code=202,
-    responses=REJECTED,
+    responses={**REJECTED, **NO_SPACE},
+    dependencies=[Depends(require_disk_space)],
     summary="Photos to novel views: reconstruction, NeRF, orbit video and held-out renders",
 )
 def create_scene(
     request: Request,
     response: Response,
     store: StoreDep,
+    client: ClientDep,
     executor: ExecutorDep,
     settings: SettingsDep,
     images: Annotated[
@@ -247,8 +282,8 @@ def create_scene(
         if not images:
             raise HTTPException(422, "images: upload the photos as `images` or as a `photos_zip`")
         reconstruction = create_reconstruction(
-            Response(), store, executor, settings, images=images, matches=matches, calibration=calibration,
-            K=K, features=features, ransac_threshold_px=ransac_threshold_px,
+            Response(), store, client, executor, settings, images=images, matches=matches,
+            calibration=calibration, K=K, features=features, ransac_threshold_px=ransac_threshold_px,
             ba_max_iterations=ba_max_iterations, webhook_url=None,
         )  # fmt: skip
     scene = store.create_scene(
@@ -272,11 +307,13 @@ def create_scene(
 def list_scenes(
     request: Request,
     store: StoreDep,
+    client: ClientDep,
     state: Annotated[JobState | None, Query(description="Only scenes in this state.")] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 50,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
 ) -> SceneList:
-    rows, total = store.list_scenes(state=state, limit=limit, offset=offset)
+    owner = None if client.admin else client.name
+    rows, total = store.list_scenes(state=state, owner=owner, limit=limit, offset=offset)
     return SceneList(items=[_describe(s, request) for s in rows], total=total, limit=limit, offset=offset)
 
 
@@ -309,7 +346,8 @@ def cancel_scene(scene_id: SceneIdPath, request: Request) -> SceneOut:
     "/{scene_id}/retry",
     response_model=SceneOut,
     status_code=202,
-    responses={**SCENE_NOT_FOUND, **CONFLICT},
+    responses={**SCENE_NOT_FOUND, **CONFLICT, **NO_SPACE},
+    dependencies=[Depends(require_disk_space)],
     summary="Run a failed or cancelled scene again from the stage it stopped at",
 )
 def retry_scene(scene_id: SceneIdPath, request: Request, response: Response) -> SceneOut:

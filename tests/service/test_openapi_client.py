@@ -29,7 +29,8 @@ def generated(tmp_path_factory):
     folder = tmp_path_factory.mktemp("client")
     settings = make_settings(folder / "data", api_token=TOKEN, job_threads=1)
     with TestClient(create_app(settings)) as app_client:
-        (folder / "openapi.json").write_text(json.dumps(app_client.get("/openapi.json").json()))
+        schema = app_client.get("/openapi.json", headers={"Authorization": f"Bearer {TOKEN}"}).json()
+        (folder / "openapi.json").write_text(json.dumps(schema))
         command = ["openapi-python-client", "generate", "--path", str(folder / "openapi.json")]
         command += [
             "--config",

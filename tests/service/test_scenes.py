@@ -4,6 +4,7 @@ its progress and links, failure at the stage that failed, cancel, retry from tha
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -20,6 +21,8 @@ from service.app import create_app
 from service.cli import main as cli
 from service.scenes import orbit_size, registration_problem
 from tests.service.conftest import JOB_TIMEOUT_SECONDS, make_settings, unity_hall_files
+
+ALICE, BOB, ADMIN = "alice-token-0123456789", "bob-token-0123456789", "admin-token-0123456789"
 
 QUICK_NERF = {
     "steps": "10",
@@ -45,9 +48,17 @@ def wait_for_scene(
 
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory, shared_data):
-    """One Unity Hall scene run to its end: (client, scene, settings)."""
-    settings = make_settings(tmp_path_factory.mktemp("scenes") / "data", job_threads=1)
-    with TestClient(create_app(settings)) as client:
+    """One Unity Hall scene run to its end, created by client alice: (client as alice, scene, settings)."""
+    folder = tmp_path_factory.mktemp("scenes")
+    clients_file = folder / "clients.txt"
+    clients_file.write_text(
+        "".join(
+            f"{name}:sha256:{hashlib.sha256(token.encode()).hexdigest()}\n"
+            for name, token in [("alice", ALICE), ("bob", BOB)]
+        )
+    )
+    settings = make_settings(folder / "data", job_threads=1, api_token=ADMIN, clients_file=clients_file)
+    with TestClient(create_app(settings), headers={"Authorization": f"Bearer {ALICE}"}) as client:
         response = client.post(
             "/v1/scenes", files=unity_hall_files(shared_data / "unity_hall"), data=QUICK_NERF
         )
@@ -91,6 +102,23 @@ def test_held_out_views_are_rendered_and_scored(finished):
     render = client.get(scene["held_out"][0]["url"])
     assert Image.open(io.BytesIO(render.content)).size == (800 // 20, 600 // 20)
     assert client.get(f"/v1/scenes/{scene['id']}/held-out/..%2Fmetrics.json").status_code == 404
+
+
+@pytest.mark.slow
+def test_a_scene_and_its_child_jobs_belong_to_the_client_that_created_it(finished):
+    client, scene, _ = finished
+    store = client.app.state.store
+    child_ids = [job_id for stage in scene["stages"] for job_id in stage["job_ids"]]
+    assert len(child_ids) == 4 and {store.get(job_id).owner for job_id in child_ids} == {"alice"}
+    bob = {"Authorization": f"Bearer {BOB}"}
+    for method, path in [
+        ("get", ""), ("post", "/cancel"), ("post", "/retry"), ("delete", ""), ("get", "/held-out/1.png")
+    ]:  # fmt: skip
+        response = client.request(method, f"/v1/scenes/{scene['id']}{path}", headers=bob)
+        assert response.status_code == 404, (method, path, response.text)
+        assert response.json()["detail"] == f"scene {scene['id']} not found"
+    assert client.get("/v1/scenes", headers=bob).json()["total"] == 0
+    assert client.get(f"/v1/scenes/{scene['id']}", headers={"Authorization": f"Bearer {ADMIN}"}).is_success
 
 
 def test_scenes_are_listed_newest_first(finished):

@@ -1,4 +1,10 @@
-"""Schema fuzzing with schemathesis: generated requests for every operation of the OpenAPI spec, no 5xx."""
+"""Schema fuzzing with schemathesis: every operation of the OpenAPI spec with generated requests, then
+stateful sequences along the schema's links (create -> get -> cancel -> retry -> pin -> delete); no 5xx.
+
+Each sequence starts from the same database: jobs of every kind in every finished state, so the links
+have real ids to follow from the first step (`GET /v1/jobs`). Generated uploads are rejected before a
+job exists; retries of the seeded jobs are real jobs (without inputs, they fail in their worker process).
+"""
 
 from __future__ import annotations
 
@@ -7,26 +13,72 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import pytest
 import schemathesis
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, Phase, settings
+from sqlalchemy import delete
 
 from service.app import create_app
+from service.db import Job, JobKind, JobState, JobStore
 from tests.service.conftest import make_settings
 
-EXAMPLES_PER_OPERATION = 5
+EXAMPLES_PER_OPERATION = 100
+STATEFUL_SEQUENCES = 50
+# Generation only: no example database and no shrinking replays (the generators learn from the
+# server's answers, which hypothesis would see as flaky data), so a failure is reported as found.
+FUZZ = {
+    "deadline": None,
+    "database": None,
+    "phases": [Phase.explicit, Phase.generate],
+    "suppress_health_check": list(HealthCheck),
+}
 
 _data_dir = Path(tempfile.mkdtemp(prefix="sfmnerf-fuzz-"))
 atexit.register(shutil.rmtree, _data_dir, True)
-# A limit small enough that generated uploads hit it too; a request never starts a real job (every
-# generated dataset or image set is rejected before a job exists).
-app = create_app(make_settings(_data_dir / "data", max_upload_bytes=2_000_000))
+# A limit small enough that generated uploads hit it too.
+_settings = make_settings(_data_dir / "data", max_upload_bytes=2_000_000, cancel_grace_seconds=0.0)
+
+
+def seed(store: JobStore) -> None:
+    """Only finished jobs of each kind and state, with fixed ids: every sequence starts from this state."""
+    with store.engine.begin() as connection:
+        connection.execute(delete(Job))
+    for kind in JobKind:
+        for state in (JobState.succeeded, JobState.failed, JobState.cancelled):
+            job = store.create(kind, {}, job_id=f"seed{kind}{state}")
+            attempt = store.claim(job.id, "seed")
+            store.finish(job.id, attempt, state, error=None if state == JobState.succeeded else "seeded")
+
+
+_store = JobStore(_settings.resolved_database_url)
+seed(_store)
+app = create_app(_settings)
 schema = schemathesis.openapi.from_asgi("/openapi.json", app)
 
 
-@schema.parametrize()
-@settings(max_examples=EXAMPLES_PER_OPERATION, deadline=None, suppress_health_check=list(HealthCheck))
-def test_no_generated_request_gets_a_server_error(case):
-    response = case.call()
+def assert_no_server_error(response, case) -> None:
     assert response.status_code < 500, (
         f"{case.method} {case.formatted_path}: {response.status_code} {response.text[:500]}"
+    )
+
+
+@pytest.mark.slow
+@schema.parametrize()
+@settings(max_examples=EXAMPLES_PER_OPERATION, **FUZZ)
+def test_no_generated_request_gets_a_server_error(case):
+    assert_no_server_error(case.call(), case)
+
+
+class JobWorkflow(schema.as_state_machine()):
+    def setup(self) -> None:
+        seed(_store)  # the same starting state for every sequence (what hypothesis replays must see)
+
+    def validate_response(self, response, case, **kwargs) -> None:
+        assert_no_server_error(response, case)
+
+
+@pytest.mark.slow
+def test_no_sequence_of_linked_calls_gets_a_server_error():
+    JobWorkflow.run(
+        settings=settings(max_examples=STATEFUL_SEQUENCES, stateful_step_count=6, **FUZZ)
     )

@@ -22,8 +22,8 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from service.app import create_app
-from service.db import JobKind, JobState, JobStore
-from service.jobs import execute, job_dir
+from service.db import JobKind, JobState, JobStore, Scene, new_job_id
+from service.runner import execute, job_dir
 from tests.service.conftest import make_settings, wait_for_job
 
 UNKNOWN_ID = "0" * 32
@@ -273,10 +273,24 @@ def finished_job(store: JobStore, kind: JobKind, owner: str, source: str | None 
     return job.id
 
 
+def alices_scene(store: JobStore, reconstruction_id: str) -> str:
+    """A failed scene whose reconstruction job (alice's) makes it alice's."""
+    scene = Scene(
+        id=new_job_id(),
+        state=JobState.failed,
+        stage="reconstruction",
+        params={},
+        reconstruction_job_id=reconstruction_id,
+        log=[],
+    )
+    return store.create_scene(scene).id
+
+
 def test_a_client_sees_none_of_another_clients_jobs_on_any_path_of_the_schema(clients_settings):
     store = JobStore(clients_settings.resolved_database_url)
     jobs = {kind: finished_job(store, kind, "alice") for kind in (JobKind.reconstruction, JobKind.nerf)}
     jobs[JobKind.video] = finished_job(store, JobKind.video, "alice", source=jobs[JobKind.nerf])
+    scene_id = alices_scene(store, jobs[JobKind.reconstruction])
     store.dispose()
     alice, bob, admin = ({"Authorization": f"Bearer {token}"} for token in (ALICE, BOB, ADMIN))
     bodies = {
@@ -297,9 +311,22 @@ def test_a_client_sees_none_of_another_clients_jobs_on_any_path_of_the_schema(cl
                 assert response.status_code == 404, f"{method} {url}: {response.status_code} {response.text}"
                 assert response.json()["detail"] == f"job {jobs[kind]} not found"
                 walked += 1
-        assert walked >= 16
+        assert walked >= 18  # with PUT and DELETE /v1/jobs/{job_id}/pin
+        walked = 0
+        for path, operations in schema["paths"].items():  # alice's scene: 404 for bob on every route
+            if "{scene_id}" not in path:
+                continue
+            for method in operations:
+                response = client.request(method, path.format(scene_id=scene_id, name="a.png"), headers=bob)
+                assert response.status_code == 404, f"{method} {path}: {response.status_code} {response.text}"
+                assert response.json()["detail"] == f"scene {scene_id} not found"
+                walked += 1
+        assert walked >= 5
+        for who, total in ((bob, 0), (alice, 1), (admin, 1)):
+            assert client.get("/v1/scenes", headers=who).json()["total"] == total
+        assert client.get(f"/v1/scenes/{scene_id}", headers=alice).status_code == 200
         for path, operations in schema["paths"].items():  # and without a token, every path but health: 401
-            url = path.format(job_id=jobs[JobKind.nerf], step=1, name="a.png")
+            url = path.format(job_id=jobs[JobKind.nerf], scene_id=scene_id, step=1, name="a.png")
             for method in operations:
                 expected = 200 if path in ("/healthz", "/readyz") else 401
                 assert client.request(method, url).status_code == expected, f"{method} {url}"
@@ -478,7 +505,7 @@ def test_a_webhook_that_never_answers_does_not_hold_the_next_job(tmp_path, share
 
 
 def test_a_job_error_names_no_server_path_and_its_log_holds_no_traceback(settings, monkeypatch):
-    from service import jobs
+    from service import runner
 
     store = JobStore(settings.resolved_database_url)
     job = store.create(JobKind.reconstruction, {})
@@ -487,9 +514,9 @@ def test_a_job_error_names_no_server_path_and_its_log_holds_no_traceback(setting
     def crash(_context):
         raise RuntimeError(f"cannot open {inputs}")
 
-    monkeypatch.setitem(jobs.JOB_FUNCTIONS, JobKind.reconstruction, crash)
+    monkeypatch.setitem(runner.JOB_FUNCTIONS, JobKind.reconstruction, crash)
     attempt = store.claim(job.id, worker="test")
-    assert execute(store, job.id, attempt, settings) == JobState.failed
+    assert execute(store, job.id, attempt, settings, webhook=False) == JobState.failed
     finished = store.get(job.id)
     assert finished.error == "RuntimeError: cannot open 1.png"
     lines = store.read_logs(job.id, 0, 100)

@@ -17,6 +17,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from sqlalchemy import text
 
 from service.db import Base, JobKind, JobState, JobStore
 from service.settings import ServiceSettings
@@ -71,6 +72,8 @@ def store(request, tmp_path: Path):
         store = JobStore(request.getfixturevalue("postgres_url"))
         yield store
         Base.metadata.drop_all(store.engine)
+        with store.engine.begin() as connection:  # the next test's store migrates from scratch
+            connection.execute(text("DROP TABLE alembic_version"))
     store.dispose()
 
 

@@ -2,7 +2,10 @@
 
 `execute(store, job_id, attempt, settings)` runs the job whose attempt the caller claimed: it reports
 progress and log lines into the job store, heartbeats, stops when cancelled, and writes the final state.
-The heavy libraries (`estimation`, `neural`) are imported inside the job functions.
+`complete_job` is the one way a job's end is recorded (by the job itself, its supervisor or a reaper):
+the fenced state change, the closing log line and the webhook (`announce_end`, its one call site, which
+queues it for `webhooks.enqueue_delivery`'s sender threads in long-lived processes only). The heavy
+libraries (`estimation`, `neural`) are imported inside the job functions.
 """
 
 from __future__ import annotations
@@ -15,9 +18,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
+from service import webhooks
 from service.db import Job, JobKind, JobState, JobStore
+from service.params import EvaluationParams, NerfParams, ReconstructionParams, VideoParams, parse_params
 from service.settings import ServiceSettings
 from service.uploads import without_server_paths
 
@@ -40,8 +45,47 @@ def output_dir(settings: ServiceSettings, job_id: str) -> Path:
     return job_dir(settings, job_id) / "output"
 
 
-class JobCancelled(Exception):
-    """Raised inside a job when the store says it was cancelled or taken over."""
+def announce_end(
+    store: JobStore, settings: ServiceSettings, job_id: str, line: str | None, *, webhook: bool = True
+) -> None:
+    """The closing log line of a job that just ended (None: its job process wrote it already) and its
+    webhook, queued for the sender threads of this process. Only long-lived processes (API, Celery worker)
+    send webhooks: a local job process exits right after, so it passes `webhook=False` and the executor's
+    reaper announces the webhook when the process has exited."""
+    if line is not None:
+        store.append_log(job_id, [line])
+    if webhook:
+        webhooks.enqueue_delivery(store, job_id, settings)
+
+
+def complete_job(
+    store: JobStore,
+    settings: ServiceSettings,
+    job_id: str,
+    attempt: int,
+    state: JobState,
+    *,
+    error: str | None = None,
+    result: dict | None = None,
+    webhook: bool = True,
+) -> bool:
+    """Ends a running attempt (fenced by `attempt`) and announces it (see `announce_end` for `webhook`);
+    False if it no longer owns the job. The error names no server path (whoever records it)."""
+    error = without_server_paths(error, settings) if error else error
+    if not store.finish(job_id, attempt, state, error=error, result=result):
+        return False
+    shown = f" ({error})" if error and state != JobState.succeeded else ""
+    announce_end(store, settings, job_id, f"finished: {state}{shown}", webhook=webhook)
+    return True
+
+
+def runtime_exceeded(kind: str, seconds: float) -> str:
+    """The error of a job stopped at its kind's maximum runtime (`seconds`)."""
+    minutes = seconds / 60.0
+    return (
+        f"the {kind} job ran longer than its maximum runtime of {minutes:g} minutes "
+        f"(SFMNERF_MAX_RUNTIME_{kind.upper()}_MINUTES) and was stopped"
+    )
 
 
 @dataclass
@@ -56,6 +100,11 @@ class JobContext:
     _last_stage: str | None = None
     _last_write: float = 0.0
     _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def params(self) -> Any:
+        """The job's typed parameters (service.params: one model per job kind)."""
+        return parse_params(self.job.kind, self.job.params)
 
     @property
     def input_dir(self) -> Path:
@@ -126,7 +175,8 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
     """estimation.reconstruct on the uploaded folder; the report stays in output/report.json."""
     from estimation import ReconstructionConfig, reconstruct
 
-    config = ReconstructionConfig.model_validate(context.job.params.get("config", {}))
+    params: ReconstructionParams = context.params
+    config = ReconstructionConfig.model_validate(params.config)
     shutil.rmtree(context.output_dir, ignore_errors=True)  # a re-run starts from scratch
     result = reconstruct(context.input_dir, context.output_dir, config, progress=context.progress)
     model = result.model
@@ -139,9 +189,10 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
 
 def nerf_dataset_path(settings: ServiceSettings, job: Job) -> Path:
     """Where a NeRF job's training data lives: its upload, or its source reconstruction's output."""
-    if job.source_job_id:
+    params: NerfParams = parse_params(job.kind, job.params)
+    if job.source_job_id or params.dataset is None:
         return output_dir(settings, job.source_job_id)
-    return job_dir(settings, job.id) / job.params["dataset"]
+    return job_dir(settings, job.id) / params.dataset
 
 
 def run_nerf(context: JobContext) -> dict[str, Any]:
@@ -155,7 +206,7 @@ def run_nerf(context: JobContext) -> dict[str, Any]:
         config = None
     else:
         shutil.rmtree(run_dir, ignore_errors=True)
-        config = TrainConfig.model_validate(context.job.params.get("train_config", {}))
+        config = TrainConfig.model_validate(context.params.train_config)
 
     def on_metrics(metrics: dict) -> None:
         context.log(
@@ -179,15 +230,16 @@ def run_video(context: JobContext) -> dict[str, Any]:
     """neural.render_orbit of the source NeRF job's latest checkpoint into output/."""
     from neural import render_orbit
 
-    params = context.job.params
+    params: VideoParams = context.params
     shutil.rmtree(context.output_dir, ignore_errors=True)
     context.progress("rendering orbit", 0.0)
     path = render_orbit(
         output_dir(context.settings, context.job.source_job_id),
-        params["num_frames"],
+        params.num_frames,
         context.output_dir,
-        params["width"],
-        params["height"],
+        params.width,
+        params.height,
+        progress=context.progress,
     )
     return {
         "file": str(Path(path).resolve().relative_to(job_dir(context.settings, context.job.id).resolve()))
@@ -207,6 +259,7 @@ def run_evaluation(context: JobContext) -> dict[str, Any]:
     from neural.inference import IMAGE_CACHE_DIR, read_run_config
     from service.scenes import downscaled
 
+    params: EvaluationParams = context.params
     nerf_job = context.store.get(context.job.source_job_id)
     if nerf_job is None:
         raise ValueError(f"the NeRF job {context.job.source_job_id} was deleted")
@@ -218,8 +271,8 @@ def run_evaluation(context: JobContext) -> dict[str, Any]:
     dataset = load_dataset_for(data, config, run_dir / IMAGE_CACHE_DIR)
     result = evaluate(
         run_dir,
-        downscaled(dataset, context.job.params["max_side"]),
-        context.job.params["split"],
+        downscaled(dataset, params.max_side),
+        params.split,
         out_dir=context.output_dir,
     )
     (context.output_dir / EVALUATION_FILE).write_text(json.dumps(result.to_dict()))
@@ -255,8 +308,25 @@ def _expected_error_types() -> tuple[type[Exception], ...]:
     return InputError, DatasetError, CheckpointError
 
 
-def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSettings) -> JobState | None:
-    """Runs one claimed attempt of a job to its end and records the outcome; returns the final state."""
+class TimeLimit(NamedTuple):
+    """An executor's runtime limit that interrupts a job by raising `error_type` inside it (Celery's
+    soft time limit): the job then fails with the maximum-runtime reason."""
+
+    error_type: type[BaseException]
+    seconds: float
+
+
+def execute(
+    store: JobStore,
+    job_id: str,
+    attempt: int,
+    settings: ServiceSettings,
+    time_limit: TimeLimit | None = None,
+    *,
+    webhook: bool,
+) -> JobState | None:
+    """Runs one claimed attempt of a job to its end and records the outcome; returns the final state.
+    `webhook`: whether this process queues the job's webhook (see `announce_end`)."""
     job = store.get(job_id)
     if job is None or job.attempt != attempt or job.state != JobState.running:
         return None
@@ -279,20 +349,27 @@ def execute(store: JobStore, job_id: str, attempt: int, settings: ServiceSetting
         error = str(exc)
     except Exception as exc:  # any other failure ends the job with its reason, never a stuck job
         error = f"{type(exc).__name__}: {exc}"
-        unexpected = exc
+        if time_limit is not None and isinstance(exc, time_limit.error_type):
+            error = runtime_exceeded(job.kind, time_limit.seconds)
+        else:
+            unexpected = exc
     finally:
         stop_heartbeat.set()
         root.removeHandler(handler)
         root.setLevel(previous_level)
     if unexpected is not None:  # the traceback goes to the server's log, never to the job's
         log.error("%s job %s failed", job.kind, job_id, exc_info=unexpected)
-    if error is not None:
-        error = without_server_paths(error, settings)
     if state == JobState.cancelled:
         error = "cancelled"
-    context.log(f"finished: {state}" + (f" ({error})" if error and state == JobState.failed else ""))
-    if store.finish(
-        job_id, attempt, state, error=error if state != JobState.succeeded else None, result=result
+    if complete_job(
+        store,
+        settings,
+        job_id,
+        attempt,
+        state,
+        error=error if state != JobState.succeeded else None,
+        result=result,
+        webhook=webhook,
     ):
-        return state  # the caller's process sends the webhook (webhooks.enqueue_delivery)
+        return state
     return None

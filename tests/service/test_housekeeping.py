@@ -1,0 +1,57 @@
+"""Housekeeping: finished jobs expire with their files unless pinned; no new work on a full disk (507)."""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+from fastapi.testclient import TestClient
+from sqlalchemy import update
+
+from service.app import create_app
+from service.db import Job, JobKind, JobState, utcnow
+from service.housekeeping import expire_finished_jobs
+from service.runner import job_dir
+from tests.service.conftest import make_settings
+
+
+def finished_job(store, settings, age_minutes: float) -> str:
+    """A succeeded job with a file, that ended `age_minutes` ago."""
+    job = store.create(JobKind.reconstruction, {})
+    attempt = store.claim(job.id, "test")
+    store.finish(job.id, attempt, JobState.succeeded, result={})
+    with store._sessions.begin() as session:
+        session.execute(
+            update(Job).where(Job.id == job.id).values(finished_at=utcnow() - timedelta(minutes=age_minutes))
+        )
+    (job_dir(settings, job.id) / "output").mkdir(parents=True)
+    (job_dir(settings, job.id) / "output" / "points.ply").write_text("ply\n")
+    return job.id
+
+
+def test_finished_jobs_expire_with_their_files_unless_pinned(client, settings):
+    store = client.app.state.store
+    old, pinned, recent = (finished_job(store, settings, age) for age in (2881, 5000, 60))
+    assert client.put(f"/v1/jobs/{pinned}/pin").json()["pinned"] is True
+    running = store.create(JobKind.reconstruction, {}).id
+    assert expire_finished_jobs(store, settings) == [old]
+    assert client.get(f"/v1/jobs/{old}").status_code == 404 and not job_dir(settings, old).exists()
+    for kept in (pinned, recent, running):
+        assert client.get(f"/v1/jobs/{kept}").status_code == 200
+    assert job_dir(settings, pinned).is_dir()
+
+    assert client.delete(f"/v1/jobs/{pinned}/pin").json()["pinned"] is False
+    assert expire_finished_jobs(store, settings) == [pinned]
+    assert client.put("/v1/jobs/0123/pin").status_code == 404
+
+
+def test_new_work_is_refused_with_507_when_the_disk_is_nearly_full(tmp_path, shared_data):
+    settings = make_settings(tmp_path / "data", min_free_disk_bytes=2**62)
+    photo = (shared_data / "unity_hall" / "1.png").read_bytes()
+    with TestClient(create_app(settings)) as client:
+        response = client.post("/v1/reconstructions", files=[("images", ("1.png", photo, "image/png"))])
+        assert response.status_code == 507, response.text
+        assert "SFMNERF_MIN_FREE_DISK_BYTES" in response.json()["detail"]
+        assert str(settings.data_dir) not in response.text
+        assert client.post("/v1/nerf", data={"reconstruction_id": "x"}).status_code == 507
+        assert client.get("/v1/jobs").status_code == 200  # reading still works
+        assert not list(settings.jobs_dir.iterdir())

@@ -1,0 +1,75 @@
+"""Two `sfmnerf serve` processes on one data folder (one SQLite database): one owner per job.
+
+Each server's supervisor claims jobs under its own lease; neither re-queues nor kills the other's jobs,
+and a cancel sent to either reaches the job's owner.
+"""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+
+from tests.service.conftest import job_pid, unity_hall_files, wait_for_job
+from tests.service.servers import free_port, start_server
+from tests.service.test_job_machinery import process_alive, started_working
+
+JOBS = 10
+
+
+def quick_failing_upload(unity_hall):
+    """Two copies of one photo: the job process starts, finds no parallax and ends failed within seconds."""
+    photo = (unity_hall / "1.png").read_bytes()
+    return {
+        "files": [
+            ("images", ("1.png", photo, "image/png")),
+            ("images", ("2.png", photo, "image/png")),
+            ("calibration", ("calibration.txt", (unity_hall / "calibration.txt").read_bytes(), "text/plain")),
+        ],
+        "data": {"features": "sift"},
+    }
+
+
+@pytest.mark.slow
+def test_two_servers_on_one_folder_run_each_job_exactly_once_and_kill_none(tmp_path, shared_data):
+    unity = unity_hall_files(shared_data / "unity_hall")
+    quick = quick_failing_upload(shared_data / "unity_hall")
+    first_port = free_port()
+    first = start_server(tmp_path / "data", first_port)
+    second = None
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{first_port}", timeout=30) as a:
+            # The first job is a real reconstruction (seconds), the others end quickly (no parallax).
+            ids = [a.post("/v1/reconstructions", files=unity).json()["id"]]
+            ids += [a.post("/v1/reconstructions", **quick).json()["id"] for _ in range(JOBS - 1)]
+            wait_for_job(a, ids[0], until=started_working)
+            first_pid = job_pid(tmp_path / "data", ids[0])
+            # A second server starting on the same folder used to kill this worker and re-run its job.
+            second_port = free_port()
+            second = start_server(tmp_path / "data", second_port)
+            with httpx.Client(base_url=f"http://127.0.0.1:{second_port}", timeout=30) as b:
+                assert process_alive(first_pid)
+                jobs = [wait_for_job(a if i % 2 else b, job_id) for i, job_id in enumerate(ids)]
+                assert jobs[0]["state"] == "succeeded", jobs[0]
+                assert all(job["error"].startswith("degenerate initial pair") for job in jobs[1:]), jobs
+                assert [job["attempt"] for job in jobs] == [1] * JOBS
+                for job_id in ids:
+                    lines = b.get(f"/v1/jobs/{job_id}/logs").json()["lines"]
+                    assert sum(line.startswith("attempt ") for line in lines) == 1, lines
+                    assert not any("re-queued" in line for line in lines), lines
+
+                # Cancel on the server that may not own the job: the owner stops it, and `cancelled`
+                # is recorded once its process has exited.
+                pair = [a.post("/v1/reconstructions", files=unity).json()["id"] for _ in range(2)]
+                pids = []
+                for job_id in pair:
+                    wait_for_job(b, job_id, until=started_working)
+                    pids.append(job_pid(tmp_path / "data", job_id))
+                for job_id, pid in zip(pair, pids, strict=True):
+                    assert b.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
+                    assert wait_for_job(b, job_id, timeout=10)["state"] == "cancelled"
+                    assert not process_alive(pid)
+    finally:
+        for server in (first, second):
+            if server is not None:
+                server.kill()
+                server.wait()
