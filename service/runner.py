@@ -342,6 +342,7 @@ def execute(
     context.log(f"attempt {attempt} of {job.kind} job started by {job.worker or 'a worker'}")
     state, error, result = JobState.failed, None, None
     unexpected: Exception | None = None
+    started = time.monotonic()
     try:
         result = JOB_FUNCTIONS[job.kind](context)
         state = JobState.cancelled if context.should_stop() else JobState.succeeded
@@ -349,7 +350,10 @@ def execute(
         error = str(exc)
     except Exception as exc:  # any other failure ends the job with its reason, never a stuck job
         error = f"{type(exc).__name__}: {exc}"
-        if time_limit is not None and isinstance(exc, time_limit.error_type):
+        # The limit's exception can surface as another one (e.g. ImportError when it interrupts an import).
+        if time_limit is not None and (
+            isinstance(exc, time_limit.error_type) or time.monotonic() - started >= time_limit.seconds
+        ):
             error = runtime_exceeded(job.kind, time_limit.seconds)
         else:
             unexpected = exc
