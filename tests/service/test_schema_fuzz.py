@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, Phase, settings
 from sqlalchemy import delete
 
 from service.app import create_app
-from service.db import Job, JobKind, JobState, JobStore
+from service.db import Job, JobKind, JobState, JobStore, Scene
 from tests.service.conftest import make_settings
 
 EXAMPLES_PER_OPERATION = 100
@@ -40,8 +40,10 @@ _settings = make_settings(_data_dir / "data", max_upload_bytes=2_000_000, cancel
 
 
 def seed(store: JobStore) -> None:
-    """Only finished jobs of each kind and state, with fixed ids: every sequence starts from this state."""
+    """Only finished jobs of each kind and state, with fixed ids, and no scene: every sequence starts from
+    this state."""
     with store.engine.begin() as connection:
+        connection.execute(delete(Scene))
         connection.execute(delete(Job))
     for kind in JobKind:
         for state in (JobState.succeeded, JobState.failed, JobState.cancelled):
