@@ -109,6 +109,12 @@ def sh_basis(directions: Tensor, degree: int) -> Tensor:
     return torch.cat([constant, torch.stack([-SH_C1 * y, SH_C1 * z, -SH_C1 * x], dim=-1)], dim=-1)
 
 
+def sh_colour(coefficients: Tensor, directions: Tensor, degree: int) -> Tensor:
+    """c = sigmoid(sum_k coef_k Y_k(d)) per channel, from coefficients (N, 3 * num_sh); (N,3)."""
+    basis = sh_basis(directions, degree)
+    return torch.sigmoid((coefficients.reshape(-1, 3, basis.shape[1]) * basis[:, None, :]).sum(-1))
+
+
 def total_variation(grid: Tensor) -> Tensor:
     """Mean squared difference of neighbouring voxels along the three axes of a (1,C,X,Y,Z) grid."""
     return (
@@ -204,9 +210,7 @@ class FastModel(RadianceModel):
     def color_at(self, positions: Tensor, directions: Tensor) -> Tensor:
         """c(x, d) = sigmoid(sum_k coef_k(x) Y_k(d)) per channel; (N,3)."""
         coefficients = self._sample_grid(self.color, self.to_grid_space(positions))
-        coefficients = coefficients.reshape(-1, 3, self.num_sh)
-        basis = sh_basis(directions, self.config.sh_degree)
-        return torch.sigmoid((coefficients * basis[:, None, :]).sum(-1))
+        return sh_colour(coefficients, directions, self.config.sh_degree)
 
     # ------------------------------------------------------------------------------------- rendering
     def render_rays(

@@ -24,7 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
-from neural.models.fast import MAX_LOG_DENSITY, grid_shape_for, sh_basis
+from neural.models.fast import MAX_LOG_DENSITY, grid_shape_for, sh_colour
 from neural.occupancy import OccupancyGrid, render_packed_samples
 from neural.rendering import packed_distortion
 
@@ -158,9 +158,7 @@ class TensorVMModel(RadianceModel):
     def color_at(self, positions: Tensor, directions: Tensor) -> Tensor:
         """c(x, d) = sigmoid(sum_k (B f_c(x))_k Y_k(d)) per channel; (N,3)."""
         features = vm_products(self.appearance, self._coordinates(positions))
-        coefficients = self.basis(features).reshape(-1, 3, (self.config.sh_degree + 1) ** 2)
-        basis = sh_basis(directions, self.config.sh_degree)
-        return torch.sigmoid((coefficients * basis[:, None, :]).sum(-1))
+        return sh_colour(self.basis(features), directions, self.config.sh_degree)
 
     # ------------------------------------------------------------------------------------- rendering
     def render_rays(
