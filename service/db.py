@@ -38,6 +38,7 @@ from sqlalchemy import (
     or_,
     select,
     text,
+    union,
     update,
 )
 from sqlalchemy.engine import Engine
@@ -157,6 +158,15 @@ class Scene(Base):
     video_job_id: Mapped[str | None] = mapped_column(String(32), default=None)
     evaluation_job_id: Mapped[str | None] = mapped_column(String(32), default=None)
     log: Mapped[list] = mapped_column(JSON, default=list)
+
+
+SCENE_CHILD_COLUMNS = (
+    Scene.reconstruction_job_id,
+    Scene.nerf_job_id,
+    Scene.video_job_id,
+    Scene.evaluation_job_id,
+)
+"""A scene's child jobs, one column per job, in the order of its stages."""
 
 
 def _make_engine(url: str) -> Engine:
@@ -455,7 +465,11 @@ class JobStore:
             return job
 
     def expired(self, finished_before: datetime, limit: int = 100) -> list[str]:
-        """Finished, unpinned jobs that ended before the cut-off, oldest first."""
+        """Finished, unpinned jobs that ended before the cut-off, oldest first; a scene's child jobs are
+        left to their scene, which expires as a whole (`expired_scenes`)."""
+        scene_children = union(
+            *(select(column).where(column.is_not(None)) for column in SCENE_CHILD_COLUMNS)
+        )
         with self._sessions() as session:
             query = (
                 select(Job.id)
@@ -463,6 +477,7 @@ class JobStore:
                     Job.state.in_(list(TERMINAL_STATES)),
                     Job.pinned.is_(False),
                     Job.finished_at < finished_before,
+                    Job.id.not_in(scene_children),
                 )
                 .order_by(Job.finished_at)
                 .limit(limit)
@@ -564,6 +579,37 @@ class JobStore:
             if log is not None:
                 scene.log = [*scene.log, f"{utcnow():%Y-%m-%d %H:%M:%S} {log}"]
             return scene
+
+    def expired_scenes(self, finished_before: datetime, limit: int = 100) -> list[Scene]:
+        """Finished scenes that ended before the cut-off, oldest first, whose child jobs have all ended and
+        none is pinned (pinning any child job keeps its whole scene)."""
+        with self._sessions() as session:
+            query = (
+                select(Scene)
+                .where(Scene.state.in_(list(TERMINAL_STATES)), Scene.finished_at < finished_before)
+                .order_by(Scene.finished_at)
+                .limit(limit)
+            )
+            scenes = list(session.scalars(query).all())
+        return [
+            scene
+            for scene in scenes
+            if all(
+                job.state in TERMINAL_STATES and not job.pinned
+                for job in map(self.get, self.scene_job_ids(scene))
+                if job is not None
+            )
+        ]
+
+    def scene_job_ids(self, scene: Scene) -> list[str]:
+        """A scene's child jobs and the jobs they retried, last stage first (the order to delete them)."""
+        ids = []
+        for column in reversed(SCENE_CHILD_COLUMNS):
+            job_id = getattr(scene, column.key)
+            while job_id and (job := self.get(job_id)) is not None:
+                ids.append(job_id)
+                job_id = job.retry_of
+        return ids
 
     def delete_scene(self, scene_id: str) -> bool:
         with self._sessions.begin() as session:

@@ -25,11 +25,21 @@ def delete_job(store: JobStore, settings: ServiceSettings, job_id: str) -> None:
 
 
 def expire_finished_jobs(store: JobStore, settings: ServiceSettings) -> list[str]:
-    """Deletes finished, unpinned jobs older than SFMNERF_JOB_RETENTION_MINUTES; returns their ids."""
+    """Deletes finished, unpinned jobs older than SFMNERF_JOB_RETENTION_MINUTES; returns their ids.
+
+    A scene's child jobs expire only with their scene: a finished scene older than the retention whose
+    jobs are all finished and unpinned is deleted whole (jobs, files and the scene)."""
     cutoff = utcnow() - timedelta(minutes=settings.job_retention_minutes)
-    expired = store.expired(cutoff)
-    for job_id in expired:
+    expired = []
+    for scene in store.expired_scenes(cutoff):
+        scene_jobs = store.scene_job_ids(scene)
+        for job_id in scene_jobs:
+            delete_job(store, settings, job_id)
+        store.delete_scene(scene.id)
+        expired += scene_jobs
+    for job_id in store.expired(cutoff):
         delete_job(store, settings, job_id)
+        expired.append(job_id)
     if expired:
         log.info(
             "expired %d finished job(s) older than %g minutes", len(expired), settings.job_retention_minutes

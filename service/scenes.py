@@ -255,11 +255,8 @@ class SceneRunner:
 
         if scene.state not in TERMINAL_STATES:
             self.cancel(scene)
-        for stage in reversed(STAGES):
-            for job_id in stage_jobs(scene, stage):
-                while job_id and (job := self.store.get(job_id)) is not None:
-                    delete_job(job_id, self.store, self.executor, self.settings)
-                    job_id = job.retry_of
+        for job_id in self.store.scene_job_ids(scene):
+            delete_job(job_id, self.store, self.executor, self.settings)
         self.store.delete_scene(scene.id)
 
 

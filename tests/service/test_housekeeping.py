@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 from datetime import timedelta
+from uuid import uuid4
 
 from fastapi.testclient import TestClient
 from sqlalchemy import update
 
 from service.app import create_app
-from service.db import Job, JobKind, JobState, utcnow
+from service.db import Job, JobKind, JobState, Scene, utcnow
 from service.housekeeping import expire_finished_jobs
 from service.runner import job_dir
 from tests.service.conftest import make_settings
@@ -42,6 +43,35 @@ def test_finished_jobs_expire_with_their_files_unless_pinned(client, settings):
     assert client.delete(f"/v1/jobs/{pinned}/pin").json()["pinned"] is False
     assert expire_finished_jobs(store, settings) == [pinned]
     assert client.put("/v1/jobs/0123/pin").status_code == 404
+
+
+def scene_of(store, jobs: list[str], state: JobState, age_minutes: float) -> str:
+    """A scene whose reconstruction, NeRF and video child jobs are `jobs`, ended `age_minutes` ago."""
+    scene = Scene(
+        id=uuid4().hex, state=state, stage="views", finished_at=utcnow() - timedelta(minutes=age_minutes),
+        reconstruction_job_id=jobs[0], nerf_job_id=jobs[1], video_job_id=jobs[2],
+    )  # fmt: skip
+    return store.create_scene(scene).id
+
+
+def test_a_scenes_jobs_expire_only_with_the_whole_scene(client, settings):
+    store = client.app.state.store
+    running_scene_jobs = [finished_job(store, settings, 5000) for _ in range(3)]
+    running = scene_of(store, running_scene_jobs, JobState.running, 5000)
+    old_scene_jobs = [finished_job(store, settings, 5000) for _ in range(3)]
+    old = scene_of(store, old_scene_jobs, JobState.succeeded, 5000)
+    pinned_scene_jobs = [finished_job(store, settings, 5000) for _ in range(3)]
+    pinned = scene_of(store, pinned_scene_jobs, JobState.failed, 5000)
+    store.set_pinned(pinned_scene_jobs[1], True)
+    recent = scene_of(store, [finished_job(store, settings, 5000) for _ in range(3)], JobState.succeeded, 60)
+
+    assert sorted(expire_finished_jobs(store, settings)) == sorted(old_scene_jobs)
+    assert client.get(f"/v1/scenes/{old}").status_code == 404
+    assert not any(job_dir(settings, job_id).exists() for job_id in old_scene_jobs)
+    for kept in (running, pinned, recent):
+        assert client.get(f"/v1/scenes/{kept}").status_code == 200
+    for job_id in running_scene_jobs + pinned_scene_jobs:
+        assert client.get(f"/v1/jobs/{job_id}").status_code == 200 and job_dir(settings, job_id).is_dir()
 
 
 def test_new_work_is_refused_with_507_when_the_disk_is_nearly_full(tmp_path, shared_data):
