@@ -13,15 +13,17 @@ overhead against the CLI on Unity Hall.
 3. Upload -> finished Unity Hall through the API (POST, then polling every 50 ms) against
    `sfmnerf reconstruct` on the same input (a fresh process each time, as the API's job is), median of N runs,
    API and CLI runs interleaved.
-4. A Unity Hall scene (POST /v1/scenes): seconds from the upload to the first orbit frame on disk and to the
-   end, and each stage's seconds (its child jobs, first start to last end), against `sfmnerf scene` with the
-   same options (its own per-stage timing, a fresh process).
+4. A scene (POST /v1/scenes) on Unity Hall (course match files) and on strecha/fountain-P11 (11 photos of
+   3072x2048, SIFT; the NeRF trains at --scene-max-side): seconds from the upload to the first orbit frame on
+   disk and to the end, and each stage's seconds (its child jobs, first start to last end), against
+   `sfmnerf scene` with the same options (its own per-stage timing, a fresh process).
 5. The web app's job page of a reconstruction with a 10,000-point cloud in headless Chromium (Debian's
    /usr/bin/chromium, SwiftShader WebGL): first contentful paint, and the moment the 3D view is drawn with
    its controls attached (the page's `sfmnerf:view3d-ready` mark), median of N fresh page loads.
 
     python benchmarks/bench_service.py [--runs 3] [--clients 50] [--render-clients 8 60]
-        [--compare-root ../main] [--only-renders] [--scene-steps 200] [--page-loads 5]
+        [--compare-root ../main] [--scene-steps 200] [--scene-sets unity_hall fountain-P11] [--page-loads 5]
+        [--sections renders polling overhead scenes page]
 
 The load generator shares the machine with the server and the job: numbers are for this machine and load.
 """
@@ -53,8 +55,11 @@ from service.db import JobKind, JobState, JobStore  # noqa: E402
 from tests.service.conftest import unity_hall_files  # noqa: E402
 from tests.service.servers import free_port, start_server  # noqa: E402
 
-UNITY_HALL = ROOT.parent / "shared" / "data" / "unity_hall"
-LEGO_TINY = ROOT.parent / "shared" / "data" / "lego_tiny.npz"
+DATA = ROOT.parent / "shared" / "data"
+UNITY_HALL = DATA / "unity_hall"
+SCENE_SETS = {"unity_hall": UNITY_HALL, "fountain-P11": DATA / "strecha" / "fountain-P11"}
+SECTIONS = ("renders", "polling", "overhead", "scenes", "page")
+LEGO_TINY = DATA / "lego_tiny.npz"
 RENDER_SIDE = 200
 STATUS_POLLERS = 4
 TINY_SIDE = 20
@@ -281,12 +286,22 @@ def scene_run(client: httpx.Client, files: list, data_dir: Path, options: dict) 
     return {"first_frame": first_frame, "total": total, "stages": stages, "scene": scene}
 
 
-def cli_scene_run(out_dir: Path, options: dict) -> dict:
+def scene_files(folder: Path) -> list:
+    """The multipart `files` of a scene upload of a folder: its photos, match files and calibration.txt."""
+    if list(folder.glob("matching*.txt")):
+        return unity_hall_files(folder)
+    photos = [("images", (p.name, p.read_bytes(), "image/jpeg")) for p in sorted(folder.glob("*.jpg"))]
+    calibration = ("calibration.txt", (folder / "calibration.txt").read_bytes(), "text/plain")
+    return [*photos, ("calibration", calibration)]
+
+
+def cli_scene_run(photos_dir: Path, out_dir: Path, options: dict) -> dict:
     """`sfmnerf scene` with the same options in a fresh process; its wall time and per-stage seconds."""
     start = time.perf_counter()
     run = subprocess.run(
-        [sys.executable, "-c", "from service.cli import main; main()", "scene", str(UNITY_HALL), "--out",
-         str(out_dir), "--steps", options["steps"], "--orbit-frames", options["orbit_frames"]],
+        [sys.executable, "-c", "from service.cli import main; main()", "scene", str(photos_dir), "--out",
+         str(out_dir), "--steps", options["steps"], "--orbit-frames", options["orbit_frames"],
+         "--options", options["options"]],
         cwd=ROOT, check=True, capture_output=True, text=True,
     )  # fmt: skip
     total = time.perf_counter() - start
@@ -339,10 +354,15 @@ def page_timings(base_url: str, job_id: str, loads: int) -> list[tuple[float, fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS))
     parser.add_argument("--runs", type=int, default=3, help="API and CLI runs for the overhead ratio.")
     parser.add_argument("--clients", type=int, default=50, help="Concurrent clients polling the job.")
     parser.add_argument("--sequential", type=int, default=1000, help="Requests for the per-request cost.")
+    parser.add_argument("--scene-sets", nargs="+", choices=list(SCENE_SETS), default=list(SCENE_SETS))
     parser.add_argument("--scene-steps", type=int, default=200, help="NeRF steps of the scene runs.")
+    parser.add_argument(
+        "--scene-max-side", type=int, default=400, help="Long side of the scenes' NeRF training images."
+    )
     parser.add_argument("--orbit-frames", type=int, default=12, help="Orbit frames of the scene runs.")
     parser.add_argument("--page-loads", type=int, default=5, help="Fresh loads of the job page.")
     parser.add_argument("--page-points", type=int, default=10_000, help="Points in the page's cloud.")
@@ -353,9 +373,55 @@ def main() -> None:
     parser.add_argument(
         "--compare-root", type=Path, default=None, help="Another checkout to run side by side."
     )
-    parser.add_argument("--only-renders", action="store_true", help="Only the render section.")
     args = parser.parse_args()
-    scene_options = {"steps": str(args.scene_steps), "orbit_frames": str(args.orbit_frames)}
+    sections = set(args.sections)
+    if "renders" in sections:
+        print_render_section(args)
+    if not sections - {"renders"}:
+        return
+    scene_options = {
+        "steps": str(args.scene_steps),
+        "orbit_frames": str(args.orbit_frames),
+        "options": json.dumps({"max_side": args.scene_max_side}),
+    }
+    files = unity_hall_files(UNITY_HALL)
+    with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
+        data_dir = Path(tmp) / "data"
+        port = free_port()
+        server = start_server(data_dir, port)
+        base_url = f"http://127.0.0.1:{port}"
+        try:
+            with httpx.Client(base_url=base_url, timeout=120) as client:
+                job_id = client.post("/v1/reconstructions", files=files).json()["id"]
+                if "polling" in sections:
+                    latencies, window, errors = asyncio.run(poll_under_load(base_url, job_id, args.clients))
+                assert wait_finished(client, job_id)["state"] == "succeeded"
+                if "polling" in sections:
+                    cpu_ms, wall_ms = sequential_cost(
+                        client, server.pid, f"/v1/jobs/{job_id}", args.sequential
+                    )
+                    print_polling(args, latencies, window, errors, cpu_ms, wall_ms)
+                if "overhead" in sections:
+                    api_times, cli_times = [], []
+                    for run in range(args.runs):  # interleaved, so both see the same machine load
+                        api_times.append(api_run(client, files))
+                        cli_times.append(cli_run(Path(tmp) / f"cli{run}"))
+                    print_overhead(args, api_times, cli_times)
+                if "scenes" in sections:
+                    for name in args.scene_sets:
+                        folder = SCENE_SETS[name]
+                        api_scene = scene_run(client, scene_files(folder), data_dir, scene_options)
+                        cli_scene = cli_scene_run(folder, Path(tmp) / f"cli-scene-{name}", scene_options)
+                        print_scene(args, name, api_scene, cli_scene)
+                if "page" in sections:
+                    page_job = page_job_with_points(data_dir, job_id, args.page_points)
+                    print_page(args, page_timings(base_url, page_job, args.page_loads))
+        finally:
+            server.terminate()
+            server.wait(timeout=30)
+
+
+def print_render_section(args: argparse.Namespace) -> None:
     roots = [("this tree", ROOT)] + (
         [(str(args.compare_root), args.compare_root.resolve())] if args.compare_root else []
     )
@@ -370,34 +436,12 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|---:|---|")
     for label, rows in render_rows:
         print_render_rows(label, rows)
-    print()
-    if args.only_renders:
-        return
-    files = unity_hall_files(UNITY_HALL)
-    with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
-        port = free_port()
-        server = start_server(Path(tmp) / "data", port)
-        base_url = f"http://127.0.0.1:{port}"
-        try:
-            with httpx.Client(base_url=base_url, timeout=60) as client:
-                job_id = client.post("/v1/reconstructions", files=files).json()["id"]
-                latencies, window, errors = asyncio.run(poll_under_load(base_url, job_id, args.clients))
-                assert wait_finished(client, job_id)["state"] == "succeeded"
-                cpu_ms, wall_ms = sequential_cost(client, server.pid, f"/v1/jobs/{job_id}", args.sequential)
-                api_times, cli_times = [], []
-                for run in range(args.runs):  # interleaved, so both see the same machine load
-                    api_times.append(api_run(client, files))
-                    cli_times.append(cli_run(Path(tmp) / f"cli{run}"))
-                api_scene = scene_run(client, files, Path(tmp) / "data", scene_options)
-                cli_scene = cli_scene_run(Path(tmp) / "cli-scene", scene_options)
-                page_job = page_job_with_points(
-                    Path(tmp) / "data", api_scene["scene"]["stages"][0]["job_ids"][0], args.page_points
-                )
-                paints = page_timings(base_url, page_job, args.page_loads)
-        finally:
-            server.terminate()
-            server.wait(timeout=30)
+    print(flush=True)
 
+
+def print_polling(
+    args: argparse.Namespace, latencies: list, window: float, errors: int, cpu_ms: float, wall_ms: float
+) -> None:
     ms = np.array(latencies) * 1000
     print(
         f"GET /v1/jobs/{{id}} with {args.clients} concurrent clients while a Unity Hall reconstruction runs"
@@ -413,7 +457,10 @@ def main() -> None:
     print("| server CPU ms / request | wall ms / request | implied ceiling per core, RPS |")
     print("|---:|---:|---:|")
     print(f"| {cpu_ms:.2f} | {wall_ms:.2f} | {1000 / cpu_ms:.0f} |")
-    print()
+    print(flush=True)
+
+
+def print_overhead(args: argparse.Namespace, api_times: list[float], cli_times: list[float]) -> None:
     api_median, cli_median = statistics.median(api_times), statistics.median(cli_times)
     print(f"Unity Hall upload -> finished, median of {args.runs} runs")
     print("| path | median s | runs s |")
@@ -425,24 +472,31 @@ def main() -> None:
         f"{', '.join(f'{t:.2f}' for t in cli_times)} |"
     )
     print(f"| overhead ratio API / CLI | {api_median / cli_median:.2f} | |")
+    print(flush=True)
 
-    print()
-    print(f"Unity Hall scene ({args.scene_steps} NeRF steps, fast model, {args.orbit_frames} orbit frames): "
-          f"API vs `sfmnerf scene`")  # fmt: skip
-    print("| | API s | CLI s |")
-    print("|---|---:|---:|")
+
+def print_scene(args: argparse.Namespace, name: str, api_scene: dict, cli_scene: dict) -> None:
+    print(f"{name} scene ({args.scene_steps} NeRF steps at <= {args.scene_max_side} px, fast model, "
+          f"{args.orbit_frames} orbit frames): API vs `sfmnerf scene`")  # fmt: skip
+    print("| | API s | CLI s | API / CLI |")
+    print("|---|---:|---:|---:|")
     for stage in ("reconstruction", "nerf", "views"):
-        print(f"| {stage} | {api_scene['stages'][stage]:.1f} | {cli_scene['stages'][stage]:.1f} |")
-    print(f"| upload -> first orbit frame on disk | {api_scene['first_frame']:.1f} | |")
-    print(f"| upload -> scene finished (wall) | {api_scene['total']:.1f} | {cli_scene['total']:.1f} |")
-    print(f"| overhead ratio API / CLI (wall) | {api_scene['total'] / cli_scene['total']:.2f} | |")
-    print()
+        api, cli = api_scene["stages"][stage], cli_scene["stages"][stage]
+        print(f"| {stage} | {api:.1f} | {cli:.1f} | {api / cli:.2f} |")
+    print(f"| upload -> first orbit frame on disk | {api_scene['first_frame']:.1f} | | |")
+    api, cli = api_scene["total"], cli_scene["total"]
+    print(f"| upload -> scene finished (wall) | {api:.1f} | {cli:.1f} | {api / cli:.2f} |")
+    print(flush=True)
+
+
+def print_page(args: argparse.Namespace, paints: list[tuple[float, float]]) -> None:
     fcp, ready = (np.median([t[i] for t in paints]) for i in (0, 1))
     loads = f"median of {args.page_loads} loads"
     print(f"Job page with a {args.page_points}-point cloud, headless Chromium, {loads}")
     print("| first contentful paint ms | 3D view drawn and interactive ms | loads ms |")
     print("|---:|---:|---|")
     print(f"| {fcp:.0f} | {ready:.0f} | {', '.join(f'{a:.0f}/{b:.0f}' for a, b in paints)} |")
+    print(flush=True)
 
 
 if __name__ == "__main__":
