@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import io
 import json
 import os
 import random
@@ -52,7 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run as a script from anywhere: the tests' server helpers
 
 from service.db import JobKind, JobState, JobStore  # noqa: E402
-from tests.service.conftest import unity_hall_files  # noqa: E402
+from tests.service.conftest import TINY_MODEL_OPTIONS, tiny_nerf_npz, unity_hall_files  # noqa: E402
 from tests.service.servers import free_port, start_server  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
@@ -73,15 +72,7 @@ TINY_NERF = {
             "checkpoint_every": 30,
             "val_every": 1000,
             "seed": 0,
-            "model_options": {
-                "depth": 2,
-                "width": 32,
-                "colour_width": 16,
-                "coarse_samples": 16,
-                "fine_samples": 16,
-                "position_bands": 4,
-                "direction_bands": 2,
-            },
+            "model_options": TINY_MODEL_OPTIONS,
         }
     ),
 }
@@ -125,22 +116,6 @@ async def poll_under_load(base_url: str, job_id: str, clients: int) -> tuple[lis
         began = time.perf_counter()
         await asyncio.gather(*(one_client() for _ in range(clients)))
         return latencies, time.perf_counter() - began, errors
-
-
-def tiny_nerf_npz() -> bytes:
-    """10 Lego views (8 train, 2 val) at 20x20 in tiny-NeRF .npz format: a NeRF trained in seconds."""
-    source = np.load(LEGO_TINY)
-    step = source["images"].shape[1] // TINY_SIDE
-    picked = np.r_[np.flatnonzero(source["split"] == 0)[:8], np.flatnonzero(source["split"] == 1)[:2]]
-    buffer = io.BytesIO()
-    np.savez(
-        buffer,
-        images=source["images"][picked][:, ::step, ::step],
-        poses=source["poses"][picked],
-        focal=float(source["focal"]) / step,
-        split=np.r_[np.zeros(8, int), np.ones(2, int)],
-    )
-    return buffer.getvalue()
 
 
 async def status_under_renders(base_url: str, job_id: str, clients: int, seconds: float) -> dict:
@@ -194,7 +169,8 @@ def render_section(root: Path, counts: list[int], seconds: float) -> list[tuple[
         base_url = f"http://127.0.0.1:{port}"
         try:
             with httpx.Client(base_url=base_url, timeout=60) as client:
-                files = {"dataset": ("tiny.npz", tiny_nerf_npz(), "application/octet-stream")}
+                dataset = tiny_nerf_npz(LEGO_TINY, TINY_SIDE)
+                files = {"dataset": ("tiny.npz", dataset, "application/octet-stream")}
                 job_id = client.post("/v1/nerf", files=files, data=TINY_NERF).json()["id"]
                 assert wait_finished(client, job_id)["state"] == "succeeded"
             for count in counts:

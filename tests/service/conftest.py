@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import io
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
@@ -14,6 +16,32 @@ from service.db import TERMINAL_STATES, JobStore
 from service.settings import ServiceSettings
 
 JOB_TIMEOUT_SECONDS = 180.0
+TINY_MODEL_OPTIONS = {
+    "depth": 2,
+    "width": 32,
+    "colour_width": 16,
+    "coarse_samples": 16,
+    "fine_samples": 16,
+    "position_bands": 4,
+    "direction_bands": 2,
+}
+"""A vanilla NeRF small enough to train in seconds on the tiny dataset below."""
+
+
+def tiny_nerf_npz(lego_tiny: Path, side: int = 20) -> bytes:
+    """10 Lego views (8 train, 2 val) at side x side in tiny-NeRF .npz format: a NeRF trained in seconds."""
+    source = np.load(lego_tiny)
+    step = source["images"].shape[1] // side
+    picked = np.r_[np.flatnonzero(source["split"] == 0)[:8], np.flatnonzero(source["split"] == 1)[:2]]
+    buffer = io.BytesIO()
+    np.savez(
+        buffer,
+        images=source["images"][picked][:, ::step, ::step],
+        poses=source["poses"][picked],
+        focal=float(source["focal"]) / step,
+        split=np.r_[np.zeros(8, int), np.ones(2, int)],
+    )
+    return buffer.getvalue()
 
 
 def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from service.app import create_app
-from tests.service.conftest import make_settings, wait_for_job
+from tests.service.conftest import TINY_MODEL_OPTIONS, make_settings, tiny_nerf_npz, wait_for_job
 
 TINY_SIDE = 20
 TRAIN_OPTIONS = {
@@ -25,33 +25,13 @@ TRAIN_OPTIONS = {
     "val_every": 10,
     "log_every": 5,
     "seed": 0,
-    "model_options": {
-        "depth": 2,
-        "width": 32,
-        "colour_width": 16,
-        "coarse_samples": 16,
-        "fine_samples": 16,
-        "position_bands": 4,
-        "direction_bands": 2,
-    },
+    "model_options": TINY_MODEL_OPTIONS,
 }
 
 
 @pytest.fixture(scope="module")
 def tiny_npz(shared_data) -> bytes:
-    """10 Lego views (8 train, 2 val) at 20x20 in tiny-NeRF .npz format."""
-    source = np.load(shared_data / "lego_tiny.npz")
-    step = source["images"].shape[1] // TINY_SIDE
-    picked = np.r_[np.flatnonzero(source["split"] == 0)[:8], np.flatnonzero(source["split"] == 1)[:2]]
-    buffer = io.BytesIO()
-    np.savez(
-        buffer,
-        images=source["images"][picked][:, ::step, ::step],
-        poses=source["poses"][picked],
-        focal=float(source["focal"]) / step,
-        split=np.r_[np.zeros(8, int), np.ones(2, int)],
-    )
-    return buffer.getvalue()
+    return tiny_nerf_npz(shared_data / "lego_tiny.npz", TINY_SIDE)
 
 
 def has_checkpoint(client: TestClient, job_id: str):
