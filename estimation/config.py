@@ -48,10 +48,10 @@ class BundleAdjustmentConfig(BaseModel):
     ] = Field(
         "sequential_cholesky",
         description="GTSAM linear solver used inside each LM step (sequential Cholesky: the same steps as "
-        "multifrontal on BA problems, ~20 % less CPU on lego's local BAs). pcg_block_jacobi is GTSAM's conjugate "
-        "gradient with a block-Jacobi preconditioner: its inexact steps make it ~25 % faster on large "
-        "problems, but it stops ~1e-5..2e-4 above the optimal cost and cannot recover noise-free scenes "
-        "to 1e-6, hence not the default.",
+        "multifrontal on BA problems, ~20 % less CPU on lego's local BAs). pcg_block_jacobi is GTSAM's "
+        "conjugate gradient with a block-Jacobi preconditioner: its inexact steps make it ~25 % faster on "
+        "large problems, but it stops ~1e-5..2e-4 above the optimal cost and cannot recover noise-free "
+        "scenes to 1e-6, hence not the default.",
     )
     lambda_initial: float = Field(
         1e-3, gt=0, description="Initial Levenberg-Marquardt damping (1e-3: the same iterations and cost as "
