@@ -13,7 +13,10 @@ GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt; pi is `geometry.projec
   point unless asked, as COLMAP does by default) is held by a near-hard prior on that component only.
 The gauge (7 DoF: rotation, translation, scale) is fixed by near-hard priors: a PriorFactorPose3 on each
 fixed camera and, when only one camera is fixed, a RangeFactorPose3 holding the distance between the
-centres of the first fixed camera and the scale-reference camera at its initial value.
+centres of the first fixed camera and the scale-reference camera at its initial value. With fixed
+intrinsics the fixed cameras (but the range factor's anchor) are constants instead of variables: each of
+their observations is a TriangulationFactorCal3_S2 on its point alone, so a local BA's many fixed
+neighbours do not enlarge the reduced camera system (COLMAP holds them constant the same way).
 
 Keys are plain integers (camera c -> c, point p -> num_cameras + p), not gtsam Symbols: the vectorized
 gtsam.utilities.insertProjectionFactors takes the point keys as a float64 vector, which holds integers
@@ -197,14 +200,16 @@ def _projection_factors(
     point_index: np.ndarray,
     uv: np.ndarray,
     config: BundleAdjustmentConfig,
+    constant_poses: dict[int, gtsam.Pose3],
 ) -> gtsam.NonlinearFactorGraph:
     """Fixed intrinsics: one GenericProjectionFactorCal3_S2 per observation on its ideal pixel
-    (K_c undistorted), Huber-robust, keys camera c and point N_c + p."""
+    (K_c undistorted), Huber-robust, keys camera c and point N_c + p; observations of a camera in
+    `constant_poses` are TriangulationFactorCal3_S2 on the point alone (the pose is no variable)."""
     graph = gtsam.NonlinearFactorGraph()
     num_cameras = len(cameras)
     pixel_noise = _pixel_noise(config)
     ideal = ideal_pixels(Camera.take(cameras, camera_index), uv) if len(uv) else uv
-    # One vectorized call per camera instead of one Python call per observation.
+    # One vectorized call per variable camera instead of one Python call per observation.
     by_camera = np.argsort(camera_index, kind="stable")
     bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
     point_keys = (num_cameras + point_index[by_camera]).astype(float)
@@ -213,9 +218,15 @@ def _projection_factors(
         begin, end = bounds[camera], bounds[camera + 1]
         K = cameras[camera].K
         calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
-        gtsam.utilities.insertProjectionFactors(
-            graph, camera, point_keys[begin:end], measurements[:, begin:end], pixel_noise, calibration
-        )
+        if camera in constant_poses:
+            pinhole = gtsam.PinholeCameraCal3_S2(constant_poses[camera], calibration)
+            for key, measured in zip(point_keys[begin:end].astype(np.int64).tolist(),
+                                     measurements[:, begin:end].T, strict=True):
+                graph.add(gtsam.TriangulationFactorCal3_S2(pinhole, measured, pixel_noise, key))
+        else:
+            gtsam.utilities.insertProjectionFactors(
+                graph, camera, point_keys[begin:end], measurements[:, begin:end], pixel_noise, calibration
+            )
     return graph
 
 
@@ -389,11 +400,14 @@ def bundle_adjust(
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
 
     num_cameras = len(poses)
+    refines = refine.refines(cameras[0].model) and len(uv) > 0
+    # With fixed intrinsics, fixed cameras are constants; the scale prior's anchor stays a variable.
+    constant_cameras = set() if refines else set(fixed_cameras[1:] if use_scale_prior else fixed_cameras)
     extra_cameras = [*fixed_cameras, *([scale_reference] if use_scale_prior else [])]
-    camera_keys = np.unique(np.concatenate([camera_index, extra_cameras]).astype(np.int64))
+    camera_keys = np.setdiff1d(np.concatenate([camera_index, extra_cameras]).astype(np.int64),
+                               np.array(sorted(constant_cameras), np.int64))
     observed_points = np.unique(point_index)
     point_keys = num_cameras + observed_points
-    refines = refine.refines(cameras[0].model) and len(uv) > 0
     # Calibration variable of each camera: its own, or the one they all share.
     calibration_of_camera = np.arange(num_cameras) if refine.per_image else np.zeros(num_cameras, np.int64)
     calibration_offset = num_cameras + len(points)
@@ -404,11 +418,11 @@ def bundle_adjust(
         graph = _calibrated_factors(cameras, calibration_of_camera, calibration_offset, camera_index,
                                     point_index, uv, refine, config)
     else:
-        graph = _projection_factors(cameras, camera_index, point_index, uv, config)
+        constant_poses = {c: camera_pose_to_gtsam(poses[c]) for c in constant_cameras}
+        graph = _projection_factors(cameras, camera_index, point_index, uv, config, constant_poses)
     gtsam_poses = {c: camera_pose_to_gtsam(poses[c]) for c in camera_keys.tolist()}
-    graph.push_back(
-        _gauge_factors(gtsam_poses, fixed_cameras, scale_reference if use_scale_prior else None, config)
-    )
+    graph.push_back(_gauge_factors(gtsam_poses, [c for c in fixed_cameras if c not in constant_cameras],
+                                   scale_reference if use_scale_prior else None, config))
     initial = gtsam.Values()
     for c, pose in gtsam_poses.items():
         initial.insert(c, pose)

@@ -9,6 +9,8 @@ into a zero-padded (J, F, 128) block (padding at infinite distance), and the squ
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import NamedTuple
 
 import numpy as np
@@ -103,16 +105,29 @@ def match_descriptors(descriptors_a: np.ndarray, descriptors_b: np.ndarray, rati
                              max_distance)[0]
 
 
+@contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """torch's intra-op CPU threads set to `count` inside the block, restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def match_pairs(descriptors: list[np.ndarray], pairs: list[tuple[int, int]], ratio: float,
-                max_distance: float = np.inf, device: torch.device = torch.device("cpu")
+                max_distance: float = np.inf, device: torch.device = torch.device("cpu"), cpu_threads: int = 1
                 ) -> dict[tuple[int, int], DescriptorMatches]:
-    """Matches of every pair (i, j), each image i matched against all its partners j in one batch."""
+    """Matches of every pair (i, j), each image i matched against all its partners j in one batch
+    (`cpu_threads` torch threads on the CPU)."""
     sets = [descriptor_set(d) for d in descriptors]
     partners_of: dict[int, list[int]] = defaultdict(list)
     for i, j in pairs:
         partners_of[i].append(j)
     matches = {}
-    for i, partners in partners_of.items():
-        results = match_one_to_many(sets[i], [sets[j] for j in partners], ratio, max_distance, device)
-        matches.update({(i, j): result for j, result in zip(partners, results, strict=True)})
+    with torch_threads(cpu_threads):
+        for i, partners in partners_of.items():
+            results = match_one_to_many(sets[i], [sets[j] for j in partners], ratio, max_distance, device)
+            matches.update({(i, j): result for j, result in zip(partners, results, strict=True)})
     return matches

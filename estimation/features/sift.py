@@ -119,7 +119,7 @@ def sift_tracks(
     pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
     report("matching", DETECTION_SHARE)
     matches = match_pairs([f.descriptors for f in features], pairs, config.ratio, config.max_distance,
-                          matching_device(config.device))
+                          matching_device(config.device), config.cpu_threads)
     report("matching", DETECTION_SHARE + MATCHING_SHARE)
 
     offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])

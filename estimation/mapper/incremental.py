@@ -279,9 +279,9 @@ class _ModelBuilder:
         shared[image] = 0
         neighbours = np.argsort(-shared, kind="stable")[: self.config.bundle_adjustment.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
-        local_config = self.config.bundle_adjustment.model_copy(
-            update={"max_iterations": self.config.bundle_adjustment.local_max_iterations}
-        )
+        ba = self.config.bundle_adjustment
+        local_config = ba.model_copy(update={"max_iterations": ba.local_max_iterations,
+                                             "relative_error_tol": ba.local_relative_error_tol})
         scene.bundle_adjust(local_config, variable_images=window)
         used = scene.used_observations()
         touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
@@ -169,28 +169,43 @@ def choose_relative_pose(E: np.ndarray, K: np.ndarray, uv1: np.ndarray, uv2: np.
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x with [v]x w = v x w."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    """[v]x with [v]x w = v x w, batched over v (..., 3) -> (..., 3, 3)."""
+    zero = np.zeros_like(v[..., 0])
+    return np.stack([np.stack([zero, -v[..., 2], v[..., 1]], axis=-1),
+                     np.stack([v[..., 2], zero, -v[..., 0]], axis=-1),
+                     np.stack([-v[..., 1], v[..., 0], zero], axis=-1)], axis=-2)
+
+
+JACOBIAN_STEP = 1e-7
+"""Forward-difference step of refine_essential's Jacobian (parameters are radians and unit-scale t)."""
 
 
 def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.ndarray
                      ) -> np.ndarray:
     """min over E = [t]x exp([w]x) R0 of sum r_i^2, r_i the Sampson residual of F = K2^-T E K1^-1 in pixels
-    (Levenberg-Marquardt on w and t, ||t|| fixed by normalization inside the residual)."""
+    (Levenberg-Marquardt on w and t, ||t|| fixed by normalization inside the residual). The Jacobian's
+    six forward differences are evaluated as one batch of seven E (one numpy pass per LM iteration)."""
     start = pose_candidates(E)[0]          # any of the four factorizations E ~ [t]x R
     K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
 
-    def essential_of(params: np.ndarray) -> np.ndarray:
-        # cv2.Rodrigues: exp([w]x), a few microseconds (this runs ~100 times per pair).
-        return skew(params[3:] / np.linalg.norm(params[3:])) @ cv2.Rodrigues(params[:3])[0] @ start.R
+    def essentials_of(params: np.ndarray) -> np.ndarray:
+        """E for parameter rows (B, 6) -> (B, 3, 3)."""
+        t = params[:, 3:] / np.linalg.norm(params[:, 3:], axis=1, keepdims=True)
+        return skew(t) @ Rotation.from_rotvec(params[:, :3]).as_matrix() @ start.R
 
-    def residuals(params: np.ndarray) -> np.ndarray:
-        return sampson_residual(K2_inv_T @ essential_of(params) @ K1_inv, uv1, uv2)
+    def residuals_of(params: np.ndarray) -> np.ndarray:
+        return sampson_residual(K2_inv_T @ essentials_of(params) @ K1_inv, uv1, uv2)
 
-    # A relative cost change of 1e-6 moves the pose by far less than the pixel noise: stop there.
-    solution = least_squares(residuals, np.concatenate([np.zeros(3), start.t]), method="lm", ftol=1e-6,
-                             xtol=1e-6)
-    return essential_of(solution.x)
+    def jacobian(params: np.ndarray) -> np.ndarray:
+        shifted = params + np.vstack([np.zeros(6), JACOBIAN_STEP * np.eye(6)])
+        values = residuals_of(shifted)
+        return ((values[1:] - values[0]) / JACOBIAN_STEP).T
+
+    # A relative cost change of 1e-4 moves the pose by far less than the pixel noise: stop there.
+    solution = least_squares(lambda params: residuals_of(params[None])[0],
+                             np.concatenate([np.zeros(3), start.t]), jac=jacobian, method="lm", ftol=1e-4,
+                             xtol=1e-4)
+    return essentials_of(solution.x[None])[0]
 
 
 def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold_px: float,

@@ -4,8 +4,14 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 
-from estimation.features.matching import DISTANCE_BLOCK_ELEMENTS, match_descriptors, match_pairs
+from estimation.features.matching import (
+    DISTANCE_BLOCK_ELEMENTS,
+    match_descriptors,
+    match_pairs,
+    torch_threads,
+)
 
 
 def unit(vector: np.ndarray) -> np.ndarray:
@@ -67,3 +73,10 @@ def test_batched_matching_of_many_pairs_equals_brute_force_pair_by_pair(monkeypa
         expected = brute_force(images[i], images[j], 0.8) if enough else set()
         assert found == expected
         assert len(expected) > 20 or 3 in (i, j)                  # image 3 has only two descriptors
+
+
+def test_matching_threads_are_set_inside_the_block_and_restored_after():
+    before = torch.get_num_threads()
+    with torch_threads(1):
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
