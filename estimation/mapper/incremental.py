@@ -206,18 +206,16 @@ class _ModelBuilder:
         scene.bundle_adjust(self.config.bundle_adjustment)
         scene.filter_points(self.max_error, self.min_angle)
 
-    def measure_noise(self) -> float:
+    def measure_noise(self) -> None:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
         residuals, within [min_reprojection_px, max_reprojection_px], so the filters follow the measurements'
-        own accuracy (a fixed limit of a few pixels keeps the mismatches of small images). Returns the
-        noise sigma."""
+        own accuracy (a fixed limit of a few pixels keeps the mismatches of small images)."""
         limits = self.config.filter
         sigma = self.scene.noise_sigma(limits.max_reprojection_px)
         self.error_limit = limits.max_reprojection_px
         if limits.max_reprojection_sigmas > 0 and np.isfinite(sigma):
             self.error_limit = float(np.clip(limits.max_reprojection_sigmas * sigma,
                                              limits.min_reprojection_px, limits.max_reprojection_px))
-        return sigma
 
     def _observations_of(self, image: int, track_ids: np.ndarray) -> np.ndarray:
         """Observation id of each given track in `image` (every track must be seen there)."""
