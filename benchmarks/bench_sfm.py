@@ -20,6 +20,7 @@ Sets (../shared/data):
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py                 # every set
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --no-pycolmap
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets fountain --max-reprojection-sigmas 0
 """
 
 from __future__ import annotations
@@ -107,8 +108,9 @@ def strecha_set(name: str) -> BenchSet:
     return BenchSet(name, folder, np.loadtxt(folder / "calibration.txt"), truth)
 
 
-def run_ours(bench: BenchSet, out: Path) -> Outcome:
-    config = ReconstructionConfig(features=bench.features, write_figures=False)
+def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None) -> Outcome:
+    limit = {} if max_reprojection_sigmas is None else {"max_reprojection_sigmas": max_reprojection_sigmas}
+    config = ReconstructionConfig(features=bench.features, write_figures=False, filter=limit)
     start = time.perf_counter()
     result = reconstruct(bench.images, out, config)
     seconds = time.perf_counter() - start
@@ -188,6 +190,8 @@ def main() -> None:
     parser.add_argument("--sets", default="lego,fountain,herzjesu,unity",
                         help="comma-separated: lego, fountain, herzjesu, unity")
     parser.add_argument("--no-pycolmap", action="store_true", help="ours only")
+    parser.add_argument("--max-reprojection-sigmas", type=float, default=None,
+                        help="ours: the filter's noise-following limit in sigmas (0: the fixed 4 px limit)")
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()}")
     header = ("| set | method | registered | rot mean deg | rot max deg | centre mean | centre max | points "
@@ -209,7 +213,7 @@ def main() -> None:
             else:
                 raise SystemExit(f"unknown set {key!r}")
             total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-            ours = run_ours(bench, work / f"ours_{key}")
+            ours = run_ours(bench, work / f"ours_{key}", args.max_reprojection_sigmas)
             skip_colmap = args.no_pycolmap or key == "unity"
             theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
             ratio = f"{ours.seconds / theirs.seconds:.2f}" if theirs else "-"

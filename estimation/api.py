@@ -256,6 +256,8 @@ def model_summary(images: ImageSet, model: SparseModel) -> dict:
         "refinement_rounds": int(stats.refinement_rounds),
         "relaxed_thresholds": bool(stats.relaxed_thresholds),
         "final_ba_relative_cost_decrease": float(stats.final_cost_decrease),
+        "noise_sigma_px": float(stats.noise_sigma_px),
+        "reprojection_limit_px": float(stats.reprojection_limit_px),
     }
 
 

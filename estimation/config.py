@@ -80,6 +80,16 @@ class FilterConfig(BaseModel):
     """Which triangulated points are kept."""
 
     max_reprojection_px: float = Field(4.0, gt=0, description="Drop points whose error exceeds this.")
+    max_reprojection_sigmas: float = Field(
+        5.0, ge=0, description="Also drop observations beyond this many standard deviations of the pixel "
+        "noise measured on the model's own residuals (the smaller limit wins; 0: the fixed limit only). Far "
+        "past the Gaussian tail (exp(-k^2/2): 4e-6 of true observations lost at 5): real localisation errors "
+        "are heavier-tailed, and a tight limit starves the images seen by few points.",
+    )
+    min_reprojection_px: float = Field(
+        0.5, gt=0, description="The noise-following limit never goes below this (exact measurements would "
+        "give 0).",
+    )
     min_triangulation_angle_deg: float = Field(
         1.5, ge=0, description="Drop points seen at smaller angles (COLMAP's filter_min_tri_angle)."
     )

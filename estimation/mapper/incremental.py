@@ -68,6 +68,8 @@ class ReconstructionStats:
     refinement_rounds: int
     relaxed_thresholds: bool  # registration stalled and was retried with relaxed thresholds
     final_cost_decrease: float  # relative robust-cost decrease of the last BA call (~0: converged)
+    noise_sigma_px: float  # per-axis pixel noise measured on the final residuals
+    reprojection_limit_px: float  # the error limit of the last filter (fixed, or sigmas x noise)
 
 
 @dataclass
@@ -169,6 +171,7 @@ class _ModelBuilder:
             self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio, config.ransac.pnp_threshold_px
         )
         self.refinement_rounds = 0
+        self.error_limit = config.filter.max_reprojection_px
         # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
         self.image_size = (2.0 * self.scene.K[0, 2], 2.0 * self.scene.K[1, 2])
 
@@ -179,7 +182,8 @@ class _ModelBuilder:
 
     @property
     def max_error(self) -> float:
-        return self.config.filter.max_reprojection_px
+        """Reprojection limit of triangulation, track completion and filtering (see `measure_noise`)."""
+        return self.error_limit
 
     @property
     def min_angle(self) -> float:
@@ -201,6 +205,17 @@ class _ModelBuilder:
         )
         scene.bundle_adjust(self.config.bundle_adjustment)
         scene.filter_points(self.max_error, self.min_angle)
+
+    def measure_noise(self) -> None:
+        """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
+        residuals, within [min_reprojection_px, max_reprojection_px], so the filters follow the measurements'
+        own accuracy (a fixed limit of a few pixels keeps the mismatches of small images)."""
+        limits = self.config.filter
+        sigma = self.scene.noise_sigma(limits.max_reprojection_px)
+        self.error_limit = limits.max_reprojection_px
+        if limits.max_reprojection_sigmas > 0 and np.isfinite(sigma):
+            self.error_limit = float(np.clip(limits.max_reprojection_sigmas * sigma,
+                                             limits.min_reprojection_px, limits.max_reprojection_px))
 
     def _observations_of(self, image: int, track_ids: np.ndarray) -> np.ndarray:
         """Observation id of each given track in `image` (every track must be seen there)."""
@@ -330,6 +345,7 @@ class _ModelBuilder:
             before = len(scene.used_observations())
             result = scene.bundle_adjust(ba_config)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
+            self.measure_noise()
             changed = scene.complete_tracks(self.max_error) + scene.merge_tracks(self.max_error)
             changed += scene.filter_points(self.max_error, self.min_angle)
             changed += self.retriangulate()
@@ -350,6 +366,7 @@ class _ModelBuilder:
             result = self.scene.bundle_adjust(final)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
             iterations = result.iterations
+            self.measure_noise()
             if self.scene.filter_points(self.max_error, self.min_angle) == 0:
                 break
         return decrease, iterations
@@ -539,6 +556,8 @@ def reconstruct_models(
             refinement_rounds=builder.refinement_rounds,
             relaxed_thresholds=builder.thresholds.relaxed,
             final_cost_decrease=decrease,
+            noise_sigma_px=builder.scene.noise_sigma(config.filter.max_reprojection_px),
+            reprojection_limit_px=builder.error_limit,
         )
         built.append((builder, _sparse_model(builder, candidate, stats)))
     if not built:

@@ -44,6 +44,20 @@ MAX_MERGE_ROUNDS = 3
 """merge_tracks joins two points of a track per round; tracks split three ways or more need more rounds."""
 
 
+def pixel_noise_sigma(errors: np.ndarray, variance_factors: np.ndarray) -> float:
+    """Per-axis pixel noise sigma = median_o(e_o / sqrt(f_o)) / sqrt(2 ln 2), where E[e_o^2] = 2 sigma^2 f_o.
+
+    For an observation of a point fitted to L observations (2L measurements, 3 unknowns, mean leverage
+    h = 3 / (2L)), f = 1 - h when the observation is part of the fit and 1 + h when it is not. So
+    corrected, e_o is about Rayleigh(sigma), whose median is sigma sqrt(2 ln 2); the median ignores the
+    outliers (up to half). errors (O,) pixel norms, variance_factors (O,) f_o. NaN without observations.
+    """
+    if len(errors) == 0:
+        return float("nan")
+    corrected = np.asarray(errors, float) / np.sqrt(np.asarray(variance_factors, float))
+    return float(np.median(corrected) / np.sqrt(2.0 * np.log(2.0)))
+
+
 class Scene:
     """Registered images (world-to-camera poses) and points over the observations of `tracks`."""
 
@@ -188,6 +202,19 @@ class Scene:
         camera = Camera.take(self.cameras, self.tracks.image_index[obs_ids])
         return observation_errors(camera, obs, self.point_xyz)
 
+    def noise_sigma(self, max_error_px: float) -> float:
+        """Per-axis pixel noise (`pixel_noise_sigma`) of the observations within max_error_px of their
+        point: those supporting one, and the free ones of their tracks in registered images (against the
+        closest point of the track). Measured on this fixed set, it does not shrink with a tighter filter."""
+        used = self.used_observations()
+        counts = self.point_observation_counts()
+        free, free_point, free_errors = self._closest_points(self._free_candidates())
+        errors = np.concatenate([self.errors(used), free_errors])
+        leverage = 1.5 / counts[np.concatenate([self.obs_point[used], free_point])]
+        factors = np.concatenate([1.0 - leverage[: len(used)], 1.0 + leverage[len(used):]])
+        within = errors < max_error_px
+        return pixel_noise_sigma(errors[within], factors[within])
+
     def triangulation_angles(self, point_ids: np.ndarray) -> np.ndarray:
         """Largest angle (deg) between two viewing rays of each given point (point_ids sorted, unique)."""
         point_ids = np.asarray(point_ids, np.int64)
@@ -266,33 +293,40 @@ class Scene:
     def complete_tracks(self, max_error_px: float, point_ids: np.ndarray | None = None) -> int:
         """Continue points into the free observations of their tracks in registered images that reproject
         within max_error_px (to the closest point of the track). Returns the observations added."""
+        obs, points, errors = self._closest_points(self._free_candidates(), point_ids)
+        accept = errors < max_error_px
+        self.add_observations(obs[accept], points[accept])
+        return int(accept.sum())
+
+    def _free_candidates(self) -> np.ndarray:
+        """Free observations in registered images."""
+        return np.flatnonzero((self.obs_point < 0) & self.registered[self.tracks.image_index])
+
+    def _closest_points(
+        self, obs_ids: np.ndarray, point_ids: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(observations, point, error): each observation of obs_ids whose track has a live point (among
+        point_ids when given) with the point of its track it reprojects closest to."""
         alive = np.flatnonzero(self.point_alive)
         if point_ids is not None:
             alive = np.intersect1d(alive, point_ids)
-        if len(alive) == 0:
-            return 0
         alive = alive[np.argsort(self.point_track[alive], kind="stable")]
         tracks_sorted = self.point_track[alive]
-        free = np.flatnonzero((self.obs_point < 0) & self.registered[self.tracks.image_index])
-        track_of_free = self.tracks.track_index[free]
-        begin = np.searchsorted(tracks_sorted, track_of_free, side="left")
-        end = np.searchsorted(tracks_sorted, track_of_free, side="right")
-        num_candidates = end - begin
+        track_of_obs = self.tracks.track_index[obs_ids]
+        begin = np.searchsorted(tracks_sorted, track_of_obs, side="left")
+        num_candidates = np.searchsorted(tracks_sorted, track_of_obs, side="right") - begin
         if num_candidates.sum() == 0:
-            return 0
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         # One (observation, point) candidate per point of the observation's track.
-        cand_obs = np.repeat(free, num_candidates)
+        cand_obs = np.repeat(obs_ids, num_candidates)
         offsets = np.arange(num_candidates.sum()) - np.repeat(
             np.cumsum(num_candidates) - num_candidates, num_candidates
         )
         cand_point = alive[np.repeat(begin, num_candidates) + offsets]
         errors = self.errors(cand_obs, cand_point)
         order = np.lexsort((errors, cand_obs))
-        first = np.concatenate([[True], cand_obs[order][1:] != cand_obs[order][:-1]])
-        best = order[first]
-        accept = best[errors[best] < max_error_px]
-        self.add_observations(cand_obs[accept], cand_point[accept])
-        return len(accept)
+        best = order[np.concatenate([[True], cand_obs[order][1:] != cand_obs[order][:-1]])]
+        return cand_obs[best], cand_point[best], errors[best]
 
     def merge_tracks(self, max_error_px: float) -> int:
         """Join two points of one track when a single point, re-triangulated from both, explains every

@@ -306,3 +306,30 @@ def test_per_image_cameras_are_refined_one_by_one():
     focals = np.array([camera.fx for camera in model.cameras])
     assert len(set(focals.tolist())) == 8
     np.testing.assert_allclose(focals, truth.fx, rtol=0.03)
+
+
+def test_the_error_limit_follows_the_measured_noise_and_drops_near_outliers_a_fixed_limit_keeps():
+    # 0.2 px noise, and 15 % of the observations moved 3-3.9 px: inside COLMAP's fixed 4 px limit.
+    scene = make_scene(num_points=500, noise_px=0.2, seed=5)
+    rng = np.random.default_rng(6)
+    moved = rng.choice(len(scene.tracks.uv), round(0.15 * len(scene.tracks.uv)), replace=False)
+    angle = rng.uniform(0, 2 * np.pi, len(moved))
+    uv = scene.tracks.uv.copy()
+    uv[moved] += rng.uniform(3.0, 3.9, len(moved))[:, None] * np.stack([np.cos(angle), np.sin(angle)], 1)
+    tracks = dataclasses.replace(scene.tracks, uv=uv)
+    moved_pairs = set(zip(tracks.track_index[moved].tolist(), tracks.image_index[moved].tolist(),
+                          strict=True))
+
+    def share_of_moved_kept(model):
+        kept = zip(model.point_track_ids[model.obs_point].tolist(), model.obs_camera.tolist(), strict=True)
+        return sum(pair in moved_pairs for pair in kept) / len(moved)
+
+    adaptive = run_incremental(tracks, scene.K, CONFIG)
+    fixed = run_incremental(tracks, scene.K, ReconstructionConfig(filter={"max_reprojection_sigmas": 0}))
+    assert 0.2 < adaptive.stats.noise_sigma_px < 0.3           # the near outliers lift the median a little
+    assert adaptive.stats.reprojection_limit_px == pytest.approx(5 * adaptive.stats.noise_sigma_px)
+    assert fixed.stats.reprojection_limit_px == 4.0
+    assert share_of_moved_kept(adaptive) < 0.2 < 0.8 < share_of_moved_kept(fixed)
+    assert len(adaptive.obs_point) > 0.9 * (len(uv) - len(moved))          # the true observations stay
+    rotation = pose_errors(adaptive, scene).rotation_deg.mean()
+    assert rotation < 0.5 * pose_errors(fixed, scene).rotation_deg.mean()

@@ -1,9 +1,11 @@
 """The Scene's named operations: points, observations, track completion and merging, filtering."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from estimation.mapper.scene import Scene
+from estimation.mapper.scene import Scene, pixel_noise_sigma
 from estimation.synthetic import make_scene
 
 
@@ -99,3 +101,27 @@ def test_triangulate_tracks_keeps_the_consistent_observations_of_tracks_with_out
     alive = np.flatnonzero(scene.point_alive)
     errors = np.linalg.norm(scene.point_xyz[alive] - truth.points[scene.point_track[alive]], axis=1)
     assert np.median(errors) < 0.01
+
+
+def test_pixel_noise_sigma_is_the_median_of_rayleigh_residuals_barely_moved_by_outliers():
+    rng = np.random.default_rng(3)
+    sigma = 0.4
+    errors = np.linalg.norm(rng.normal(0.0, sigma, (20000, 2)), axis=1)
+    errors[:2000] = rng.uniform(0.0, 4.0, 2000)                         # 10 % outliers up to 4 px
+    assert pixel_noise_sigma(errors, np.ones(len(errors))) == pytest.approx(sigma, rel=0.1)
+    # Residuals of points fitted to two observations are half as large: the variance factors say so.
+    assert pixel_noise_sigma(0.5 * errors[2000:], np.full(18000, 0.25)) == pytest.approx(sigma, rel=0.02)
+    assert np.isnan(pixel_noise_sigma(np.zeros(0), np.zeros(0)))
+
+
+def test_noise_sigma_is_measured_on_used_and_free_observations_within_the_limit(posed):
+    truth, scene = posed
+    rng = np.random.default_rng(4)
+    for track in range(50):
+        obs = observations_of_track(truth, track)
+        scene.add_points(truth.points[[track]], obs[:4], np.zeros(4, int))     # the 5th stays free
+    scene.tracks = dataclasses.replace(scene.tracks, uv=scene.tracks.uv + rng.normal(0.0, 0.3, (250, 2)))
+    scene.observed_uv = scene.tracks.uv
+    sigma = scene.noise_sigma(max_error_px=4.0)
+    assert 0.2 < sigma < 0.45                       # 250 samples of a 0.3 px noise (points not refitted)
+    assert scene.noise_sigma(max_error_px=1e-6) != scene.noise_sigma(max_error_px=4.0)
