@@ -65,9 +65,11 @@ class FastModelConfig(BaseModel):
     box_alpha_threshold: float = Field(
         1e-2, gt=0, lt=1, description="opacity per sample step that counts a cell into the refitted box"
     )
-    sh_degree: int = Field(0, ge=0, le=1, description="spherical-harmonic degree of the colour (0: diffuse)")
+    # Degree 1 on a grid twice as coarse: +2.1 dB on held-out lego views over diffuse colour at 1000 against
+    # 1500 steps (README, "NeRF on lego"); one grid of all 12 coefficients costs 2.9x the time per step.
+    sh_degree: int = Field(1, ge=0, le=1, description="spherical-harmonic degree of the colour (0: diffuse)")
     view_grid_stride: int = Field(
-        1,
+        2,
         ge=1,
         description="with sh_degree 1: the degree-1 (view-dependent) coefficients live on a grid this many "
         "times coarser per axis than the diffuse colour (1: one colour grid of all coefficients)",
@@ -393,12 +395,15 @@ class FastModel(RadianceModel):
     def _load_from_state_dict(
         self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any
     ) -> None:
-        """Take the grid shapes of the checkpoint first: upsampling changes them during training."""
+        """Take the grids of the checkpoint first: upsampling changes their shapes during training, and a
+        checkpoint written before `view_grid_stride` existed holds all SH coefficients in `color`."""
         for name in ("density", "color", "color_view"):
             stored = state_dict.get(prefix + name)
             current = getattr(self, name)
-            if stored is not None and current is not None and stored.shape != current.shape:
-                setattr(self, name, torch.nn.Parameter(current.new_empty(stored.shape)))
+            if stored is None and name == "color_view":
+                self.color_view = None
+            elif stored is not None and (current is None or stored.shape != current.shape):
+                setattr(self, name, torch.nn.Parameter(self.box_min.new_empty(stored.shape)))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def param_groups(self, lr: float) -> list[dict[str, Any]]:

@@ -124,7 +124,7 @@ def fill_grid(model: FastModel, grid: torch.Tensor, channels: slice) -> None:
 def test_a_coarse_view_grid_gives_the_colour_of_one_grid_of_all_coefficients():
     """The same SH field (12 coefficients: per channel the diffuse one then three of degree 1), once in one
     grid and once split into a diffuse grid and a view grid twice as coarse: the same colours."""
-    one_grid = FastModel(SCENE, small_config(sh_degree=1))
+    one_grid = FastModel(SCENE, small_config(sh_degree=1, view_grid_stride=1))
     split = FastModel(SCENE, small_config(sh_degree=1, view_grid_stride=2))
     assert one_grid.color.shape[1] == 12 and one_grid.color_view is None
     assert split.color.shape[1] == 3 and split.color.shape[2:] == one_grid.color.shape[2:]
@@ -155,6 +155,22 @@ def test_upsampling_keeps_the_view_grid_coarser_by_its_stride_and_checkpoints_lo
     fresh = FastModel(SCENE, small_config(upsample_steps=[1], sh_degree=1, view_grid_stride=2))
     fresh.load_state_dict(model.state_dict())
     assert torch.equal(fresh.color_view, model.color_view)
+
+
+def test_a_checkpoint_with_one_colour_grid_of_all_coefficients_loads_into_the_default_model():
+    """Checkpoints written before view_grid_stride existed (sh_degree 1: 12 channels in `color`)."""
+    one_grid = FastModel(SCENE, small_config(sh_degree=1, view_grid_stride=1))
+    fill_grid(one_grid, one_grid.color, slice(None))
+    model = FastModel(SCENE, small_config(sh_degree=1))
+    assert model.color_view is not None
+    model.load_state_dict(one_grid.state_dict())
+    assert model.color_view is None and "color_view" not in model.state_dict()
+    points = torch.rand(100, 3) * 1.8 - 0.9
+    directions = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
+    assert torch.equal(model.color_at(points, directions), one_grid.color_at(points, directions))
+    coarse = FastModel(SCENE, small_config(sh_degree=1))
+    one_grid.load_state_dict(coarse.state_dict())  # and the other way round: the checkpoint's grids
+    assert one_grid.color_view is not None and one_grid.color_view.shape == coarse.color_view.shape
 
 
 def test_render_rays_returns_one_colour_depth_and_opacity_per_ray_and_a_white_empty_scene():
