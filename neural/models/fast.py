@@ -94,6 +94,15 @@ class FastModelConfig(BaseModel):
         1 / 3, gt=0, description="learning rate of the colour grid relative to the trainer's (density) lr"
     )
 
+    @model_validator(mode="before")
+    @classmethod
+    def _stored_before_view_grid(cls, data: Any) -> Any:
+        """A complete config stored before view_grid_stride existed (every other field given) had all SH
+        coefficients in one grid: stride 1."""
+        if isinstance(data, dict) and set(cls.model_fields) - set(data) == {"view_grid_stride"}:
+            data = {**data, "view_grid_stride": 1}
+        return data
+
     @model_validator(mode="after")
     def _check_schedule(self) -> FastModelConfig:
         if self.upsample_steps != sorted(self.upsample_steps) or any(s <= 0 for s in self.upsample_steps):
@@ -395,15 +404,12 @@ class FastModel(RadianceModel):
     def _load_from_state_dict(
         self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any
     ) -> None:
-        """Take the grids of the checkpoint first: upsampling changes their shapes during training, and a
-        checkpoint written before `view_grid_stride` existed holds all SH coefficients in `color`."""
+        """Take the grid shapes of the checkpoint first: upsampling changes them during training."""
         for name in ("density", "color", "color_view"):
             stored = state_dict.get(prefix + name)
             current = getattr(self, name)
-            if stored is None and name == "color_view":
-                self.color_view = None
-            elif stored is not None and (current is None or stored.shape != current.shape):
-                setattr(self, name, torch.nn.Parameter(self.box_min.new_empty(stored.shape)))
+            if stored is not None and current is not None and stored.shape != current.shape:
+                setattr(self, name, torch.nn.Parameter(current.new_empty(stored.shape)))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def param_groups(self, lr: float) -> list[dict[str, Any]]:
