@@ -58,6 +58,7 @@ TODAY = {
         "box_margin_voxels": 2.0,
         "box_alpha_threshold": 1e-2,
         "sh_degree": 0,
+        "view_grid_stride": 1,
         "step_ratio": 0.5,
         "initial_alpha": 1e-4,
         "occupancy_warmup_steps": 40,

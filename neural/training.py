@@ -259,6 +259,10 @@ class Trainer:
             raise CheckpointError(
                 f"{path}: checkpoint holds model {payload.get('model_name')!r}, not {self.config.model!r}"
             )
+        # The model as it was saved (its full config), not as today's defaults would build it.
+        self.model = build_model(self.config.model, self.dataset.scene, **payload["model_config"]).to(
+            self.device
+        )
         load_model_state(self.model, payload["model_state"], path)
         self.optimizer = build_optimizer(self.model, self.config)
         try:

@@ -169,6 +169,20 @@ def test_resume_after_the_fast_model_resized_its_grids_matches_an_uninterrupted_
     assert split == whole and len(whole) == 5
 
 
+def test_a_run_resumes_as_the_model_it_saved_when_the_model_defaults_changed_since(tiny_npz, tmp_path):
+    """The checkpoint's complete model config, not today's defaults, rebuilds the model: a run trained when
+    the fast model's colour was diffuse (sh_degree 0, its options unset in config.json) resumes as that."""
+    grids = dict(initial_voxels=12**3, final_voxels=16**3, upsample_steps=[2], sh_degree=0)
+    run = tmp_path / "run"
+    train(tiny_npz, run, TrainConfig(model="fast", model_options=grids, steps=3, batch_rays=64, device="cpu"))
+    config = json.loads((run / "config.json").read_text())
+    config["train"]["model_options"] = {}  # as written by a version whose defaults were these options
+    (run / "config.json").write_text(json.dumps(config))
+    resumed = train(tiny_npz, run, TrainConfig(steps=5), resume=True)
+    assert resumed.step == 5
+    assert load_checkpoint(resumed.latest_checkpoint)["model_config"]["sh_degree"] == 0
+
+
 def test_validation_downscale_keeps_pixel_blocks_and_their_rays_aligned():
     from neural.inference import Camera
     from neural.rays import generate_rays, pixel_rays
