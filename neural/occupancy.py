@@ -63,6 +63,24 @@ def ray_box_intersection(origins: Tensor, directions: Tensor, box_min: Tensor, b
     return RayBoxHits(t_enter, t_exit)
 
 
+class GridSchedule:
+    """Training schedule of a grid model (fast, tensorf): its config names `upsample_steps`,
+    `occupancy_warmup_steps` and `occupancy_update_every`; the model has `_upsample(stage)` and
+    `update_occupancy()`."""
+
+    def on_train_step(self, step: int) -> bool:
+        """Upsample/refit the grids when scheduled (then True: parameters replaced); update the occupancy."""
+        replaced = False
+        if step in self.config.upsample_steps:
+            self._upsample(self.config.upsample_steps.index(step) + 1)
+            replaced = True
+        if step >= self.config.occupancy_warmup_steps and (
+            replaced or step % self.config.occupancy_update_every == 0
+        ):
+            self.update_occupancy()
+        return replaced
+
+
 class OccupancyGrid(torch.nn.Module):
     """A boolean grid of cells over [box_min, box_max]; all cells start occupied.
 

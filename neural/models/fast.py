@@ -30,6 +30,7 @@ from torch import Tensor
 from neural.contraction import CONTRACTED_RADIUS, InnerCube
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
 from neural.occupancy import (
+    GridSchedule,
     OccupancyGrid,
     PackedSamples,
     cell_alpha_bound,
@@ -144,7 +145,7 @@ def total_variation(grid: Tensor) -> Tensor:
     )
 
 
-class FastModel(RadianceModel):
+class FastModel(GridSchedule, RadianceModel):
     """Density and SH-colour voxel grids over the scene box with occupancy-based empty-space skipping."""
 
     model_name: ClassVar[str] = "fast"
@@ -308,18 +309,6 @@ class FastModel(RadianceModel):
         return torch.stack(terms).sum() if terms else None
 
     # -------------------------------------------------------------------------------------- training
-    def on_train_step(self, step: int) -> bool:
-        """Upsample/refit the grids when scheduled (then True: parameters replaced); update the occupancy."""
-        replaced = False
-        if step in self.config.upsample_steps:
-            self._upsample(self.config.upsample_steps.index(step) + 1)
-            replaced = True
-        if step >= self.config.occupancy_warmup_steps and (
-            replaced or step % self.config.occupancy_update_every == 0
-        ):
-            self.update_occupancy()
-        return replaced
-
     @torch.no_grad()
     def update_occupancy(self) -> None:
         """A cell is occupied iff 1 - exp(-max sigma over its 8 vertices * step) exceeds the threshold.

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
 from neural.models.fast import MAX_LOG_DENSITY, grid_shape_for, sh_colour
-from neural.occupancy import OccupancyGrid, render_packed_samples
+from neural.occupancy import GridSchedule, OccupancyGrid, render_packed_samples
 from neural.rendering import packed_distortion
 
 #: (plane axes, line axis) of the three vector-matrix components.
@@ -93,7 +93,7 @@ def vm_products(factors: torch.nn.ParameterList, coordinates: Tensor) -> Tensor:
     return torch.cat(products).T
 
 
-class TensorVMModel(RadianceModel):
+class TensorVMModel(GridSchedule, RadianceModel):
     """Vector-matrix factorized density and appearance over the scene box, with occupancy skipping."""
 
     model_name: ClassVar[str] = "tensorf"
@@ -190,18 +190,6 @@ class TensorVMModel(RadianceModel):
         return RayBundleOutput(rgb=out.rgb, depth=out.depth, opacity=out.opacity, extra_loss=extra_loss)
 
     # -------------------------------------------------------------------------------------- training
-    def on_train_step(self, step: int) -> bool:
-        """Upsample/refit the factors when scheduled (then True); update the occupancy on its cadence."""
-        replaced = False
-        if step in self.config.upsample_steps:
-            self._upsample(self.config.upsample_steps.index(step) + 1)
-            replaced = True
-        if step >= self.config.occupancy_warmup_steps and (
-            replaced or step % self.config.occupancy_update_every == 0
-        ):
-            self.update_occupancy()
-        return replaced
-
     @torch.no_grad()
     def update_occupancy(self) -> Tensor:
         """Occupancy of the lattice's cells from the density at their vertices; per-cell opacity bound.
