@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -42,6 +43,23 @@ def tiny_nerf_npz(lego_tiny: Path, side: int = 20) -> bytes:
         split=np.r_[np.zeros(8, int), np.ones(2, int)],
     )
     return buffer.getvalue()
+
+
+def endless_nerf_upload(lego_tiny: Path) -> dict:
+    """A NeRF job on the tiny dataset with a million steps: it runs until it is cancelled or killed.
+
+    A Unity Hall reconstruction ends in ~2 s, so a test that must catch a job while it works uses this.
+    """
+    return {
+        "files": {"dataset": ("tiny.npz", tiny_nerf_npz(lego_tiny), "application/octet-stream")},
+        "data": {
+            "model": "vanilla",
+            "steps": "1000000",
+            "batch_rays": "64",
+            "device": "cpu",
+            "options": json.dumps({"model_options": TINY_MODEL_OPTIONS}),
+        },
+    }
 
 
 def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:

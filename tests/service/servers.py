@@ -22,10 +22,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data_dir: Path, port: int, root: Path = ROOT) -> subprocess.Popen:
+def start_server(
+    data_dir: Path, port: int, root: Path = ROOT, settings: dict[str, str] | None = None
+) -> subprocess.Popen:
     """`sfmnerf serve` in its own process, as a user runs it; returns once /readyz answers 200.
 
-    `root`: the source tree whose service runs (another checkout, to compare versions in one benchmark)."""
+    `root`: the source tree whose service runs (another checkout, to compare versions in one benchmark);
+    `settings`: SFMNERF_* environment variables for it."""
     process = subprocess.Popen(
         [
             sys.executable,
@@ -42,7 +45,7 @@ def start_server(data_dir: Path, port: int, root: Path = ROOT) -> subprocess.Pop
             "warning",
         ],
         cwd=root,
-        env={**os.environ, "PYTHONPATH": str(root)},
+        env={**os.environ, **(settings or {}), "PYTHONPATH": str(root)},
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )

@@ -1,6 +1,7 @@
 """Job processes under supervision: cancel, kill -9, retry, and a hard restart of the service.
 
-The jobs are real Unity Hall reconstructions (a few seconds each), so every path here is the real one.
+The jobs are real Unity Hall reconstructions (a few seconds each), so every path here is the real one; a job
+that must still be running when the test acts on it is an endless NeRF training job.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from fastapi.testclient import TestClient
 from service.app import create_app
 from service.db import JobKind, JobStore
 from service.executor import CeleryExecutor
-from tests.service.conftest import job_pid, make_settings, unity_hall_files, wait_for_job
+from tests.service.conftest import endless_nerf_upload, job_pid, make_settings, unity_hall_files, wait_for_job
 from tests.service.servers import free_port, start_server
 
 CANCEL_DEADLINE_SECONDS = 5.0
@@ -44,8 +45,8 @@ def unity(shared_data):
     return unity_hall_files(shared_data / "unity_hall")
 
 
-def test_cancel_kills_the_running_job_and_marks_it_cancelled_within_seconds(client, settings, unity):
-    job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
+def test_cancel_kills_the_running_job_and_marks_it_cancelled_within_seconds(client, settings, shared_data):
+    job_id = client.post("/v1/nerf", **endless_nerf_upload(shared_data / "lego_tiny.npz")).json()["id"]
     running = wait_for_job(client, job_id, until=started_working)
     assert "pid" not in running["worker"]  # the API shows no PIDs
     pid = job_pid(settings.data_dir, job_id)
