@@ -22,6 +22,7 @@ from PIL import Image
 from neural.config import TrainConfig
 from neural.errors import DatasetError
 from neural.scene import SceneInfo, SceneNormalization
+from neural.undistortion import camera_from_transforms, pinhole_target, resample_to, to_nerfstudio_intrinsics
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 #: The NeRF-synthetic convention for Blender scenes and tiny-NeRF files without their own bounds.
@@ -615,20 +616,23 @@ def load_reconstruction(
 
     Image files must lie inside `within` when given. Loaded smaller, the intrinsics scale with the image:
     f' = f W'/W, c' = c W'/W per axis (pixel centres at +0.5 map onto each other because the image edges do).
+    Photos with distortion (k1 k2 p1 p2) or intrinsics of their own are resampled into one pinhole camera
+    (neural.undistortion), so the dataset's K describes every image.
     """
     json_path = root / "transforms.json"
     meta = read_json(json_path)
     frames = require(meta, "frames", json_path)
     if not isinstance(frames, list) or not frames:
         raise DatasetError(f"{json_path}: 'frames' is empty")
-    fx = float(require(meta, "fl_x", json_path))
-    fy = float(meta.get("fl_y", fx))
     width, height = int(require(meta, "w", json_path)), int(require(meta, "h", json_path))
-    cx, cy = float(meta.get("cx", width / 2.0)), float(meta.get("cy", height / 2.0))
-    images, poses, names = [], [], []
+    loaded_width, loaded_height = loading.size_for(width, height)
+    scale = (loaded_width / width, loaded_height / height)
+    file_camera = camera_from_transforms(meta, width, height, scale, str(json_path))
+    images, poses, names, photo_cameras = [], [], [], []
     for index, frame in enumerate(frames):
         where = f"{json_path} frames[{index}]"
         file_path = require(frame, "file_path", where)
+        photo_cameras.append(camera_from_transforms({**meta, **frame}, width, height, scale, where))
         poses.append(check_rigid_pose(require(frame, "transform_matrix", where), f"{where} ({file_path})"))
         image, original_size = loading.load(image_path(root, file_path, where, within))
         if original_size != (width, height):
@@ -646,15 +650,19 @@ def load_reconstruction(
     scene = SceneInfo(
         near=near, far=far, scene_box_min=tuple(box_low.tolist()), scene_box_max=tuple(box_high.tolist())
     )
-    loaded_width, loaded_height = loading.size_for(width, height)
-    sx, sy = loaded_width / width, loaded_height / height
+    target = file_camera
+    if file_camera.model != "pinhole" or any(camera != file_camera for camera in photo_cameras):
+        target = pinhole_target(file_camera, photo_cameras, loaded_width, loaded_height, str(json_path))
+        images = [resample_to(image, camera, target)
+                  for image, camera in zip(images, photo_cameras, strict=True)]
+    fx, fy, cx, cy = to_nerfstudio_intrinsics(target)
     return Dataset(
         images=np.stack(images),
         poses=scene_poses.astype(np.float32),
-        fx=fx * sx,
-        fy=fy * sy,
-        cx=cx * sx,
-        cy=cy * sy,
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
         scene=scene,
         splits=reconstruction_splits(meta, names, json_path),
         image_names=names,

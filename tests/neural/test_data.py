@@ -330,3 +330,49 @@ def test_unbounded_scene_holds_every_camera_in_its_box_and_reaches_far(tmp_path)
     assert (centres <= np.array(unbounded.scene.scene_box_max) + 1e-6).all()
     assert unbounded.scene.far > 100 * bounded.scene.far and unbounded.near == bounded.near
     np.testing.assert_array_equal(unbounded.images, bounded.images)
+
+
+# -------------------------------------------------------------------------------- lens distortion
+def ray_pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A smooth colour as a function of a ray's normalized direction (x, y, 1): what any camera sees."""
+    red, green, blue = 0.5 + 0.4 * np.sin(9 * x), 0.5 + 0.4 * np.cos(7 * y), 0.5 + 0.3 * np.sin(5 * (x + y))
+    return np.stack([red, green, blue], -1)
+
+
+@pytest.mark.parametrize("distortion", [{"k1": -0.12, "k2": 0.02}, {"k1": 0.08, "p1": 0.004, "p2": -0.003}])
+def test_distorted_photos_load_as_pinhole_images_of_the_same_rays(tmp_path, distortion):
+    """Each photo is drawn through a distorted lens (one with its own principal point); the loaded images
+    show, at every pixel, the colour of the pinhole ray the dataset's K gives that pixel."""
+    from estimation.geometry.projection import Camera, pixel_to_normalized
+
+    write_reconstruction(tmp_path)
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta.update(distortion)
+    meta["frames"][3].update(cx=meta["cx"] + 3.0, cy=meta["cy"] - 2.0)  # per-image intrinsics
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    rows, cols = np.mgrid[0:60, 0:80].astype(float)
+    for frame in meta["frames"]:
+        fields = {**meta, **frame}
+        lens = Camera("opencv", fx=fields["fl_x"], fy=fields["fl_y"], cx=fields["cx"] - 0.5,
+                      cy=fields["cy"] - 0.5, **distortion)  # fmt: skip
+        x = pixel_to_normalized(lens, np.stack([cols.ravel(), rows.ravel()], -1))
+        photo = ray_pattern(x[:, 0], x[:, 1]).reshape(60, 80, 3)
+        Image.fromarray(np.round(photo * 255).astype(np.uint8)).save(tmp_path / frame["file_path"])
+
+    dataset = load_dataset(tmp_path)
+    x = (cols + 0.5 - dataset.cx) / dataset.fx  # the pinhole ray of each pixel (nerfstudio convention)
+    y = (rows + 0.5 - dataset.cy) / dataset.fy
+    for image in dataset.images:
+        error = np.abs(image - ray_pattern(x, y))
+        assert np.median(error) < 0.01 and error.max() < 0.06
+    assert dataset.fx >= meta["fl_x"]  # zoomed in (if at all) so no pixel looks outside a photo
+
+
+def test_a_camera_model_the_loader_cannot_undistort_is_refused_naming_it(tmp_path):
+    write_reconstruction(tmp_path)
+    edit_json(tmp_path / "transforms.json", lambda meta: meta.update(camera_model="OPENCV_FISHEYE"))
+    with pytest.raises(DatasetError, match="transforms.json: camera_model 'OPENCV_FISHEYE' is not supported"):
+        load_dataset(tmp_path)
+    edit_json(tmp_path / "transforms.json", lambda meta: meta.update(camera_model="OPENCV", k3=0.1))
+    with pytest.raises(DatasetError, match="distortion term k3"):
+        load_dataset(tmp_path)
