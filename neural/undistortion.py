@@ -14,7 +14,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
-import cv2
 import numpy as np
 
 from estimation.geometry.projection import Camera, transfer_pixels
@@ -109,6 +108,8 @@ def pinhole_target(
 
 def resample_to(image: np.ndarray, photo: Camera, target: Camera) -> np.ndarray:
     """I_target(p) = I_photo(transfer_pixels(target, photo, p)), bilinear; (H,W,C) float32."""
+    import cv2  # here, not at import: dataset validation runs under a memory limit that OpenCV's load breaks
+
     height, width = image.shape[:2]
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     uv = transfer_pixels(target, photo, np.stack([u.ravel(), v.ravel()], axis=-1)).astype(np.float32)

@@ -26,6 +26,7 @@ from service.routes import jobs, nerf, previews, reconstructions, scenes, web
 from service.scenes import SceneRunner, SceneSupervisor
 from service.settings import ServiceSettings
 from service.uploads import UploadRejected, sweep_orphan_folders
+from service.webhooks import WebhookSender
 
 log = logging.getLogger(__name__)
 
@@ -102,11 +103,14 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         app.state.store, app.state.executor = store, executor
         app.state.renders = RenderQueue(settings)
         scene_supervisor = SceneSupervisor(SceneRunner(store, executor, settings))
+        webhook_sender = WebhookSender(store, settings)
         executor.start()
         scene_supervisor.start()
+        webhook_sender.start()
         try:
             yield
         finally:
+            webhook_sender.stop()
             scene_supervisor.stop()
             app.state.renders.stop()
             executor.stop()

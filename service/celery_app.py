@@ -81,8 +81,7 @@ def _run_job(task: Any, job_id: str) -> str | None:
         return None
     soft_limit = (task.request.timelimit or (None, None))[1]
     limit = TimeLimit(SoftTimeLimitExceeded, soft_limit) if soft_limit else None
-    # the webhook is queued for this worker process's sender threads: the task (and its slot) ends now
-    state = execute(store, job_id, attempt, settings, limit, webhook=True)
+    state = execute(store, job_id, attempt, settings, limit)  # the API's sender threads send its webhook
     return str(state) if state else None
 
 

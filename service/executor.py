@@ -30,9 +30,9 @@ from pathlib import Path
 from typing import IO, Protocol
 from uuid import uuid4
 
-from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore
+from service.db import Job, JobKind, JobState, JobStore
 from service.housekeeping import HOUSEKEEPING_SECONDS, expire_finished_jobs
-from service.runner import announce_end, complete_job, job_dir, runtime_exceeded
+from service.runner import complete_job, job_dir, runtime_exceeded
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 
 log = logging.getLogger(__name__)
@@ -200,10 +200,7 @@ class LocalExecutor:
             job = self.store.get(job_id)
             if job is None or job.attempt != running.attempt:
                 continue
-            if job.state in TERMINAL_STATES:  # it recorded its own end; its webhook is sent from here
-                announce_end(self.store, self.settings, job_id, None)
-                continue
-            if job.state != JobState.running:
+            if job.state != JobState.running:  # it recorded its own end (and marked its webhook due)
                 continue
             if running.stop_reason:
                 state, error = JobState.failed, running.stop_reason

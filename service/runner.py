@@ -3,8 +3,8 @@
 `execute(store, job_id, attempt, settings)` runs the job whose attempt the caller claimed: it reports
 progress and log lines into the job store, heartbeats, stops when cancelled, and writes the final state.
 `complete_job` is the one way a job's end is recorded (by the job itself, its supervisor or a reaper):
-the fenced state change, the closing log line and the webhook (`announce_end`, its one call site, which
-queues it for `webhooks.enqueue_delivery`'s sender threads in long-lived processes only). The heavy
+the fenced state change, the closing log line and the webhook (`announce_end` marks it pending in the
+job store's outbox, which the API's `webhooks.WebhookSender` threads deliver). The heavy
 libraries (`estimation`, `neural`) are imported inside the job functions.
 """
 
@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from service import webhooks
 from service.db import Job, JobKind, JobState, JobStore
 from service.params import EvaluationParams, NerfParams, ReconstructionParams, VideoParams, parse_params
 from service.settings import ServiceSettings
@@ -45,17 +44,11 @@ def output_dir(settings: ServiceSettings, job_id: str) -> Path:
     return job_dir(settings, job_id) / "output"
 
 
-def announce_end(
-    store: JobStore, settings: ServiceSettings, job_id: str, line: str | None, *, webhook: bool = True
-) -> None:
-    """The closing log line of a job that just ended (None: its job process wrote it already) and its
-    webhook, queued for the sender threads of this process. Only long-lived processes (API, Celery worker)
-    send webhooks: a local job process exits right after, so it passes `webhook=False` and the executor's
-    reaper announces the webhook when the process has exited."""
-    if line is not None:
-        store.append_log(job_id, [line])
-    if webhook:
-        webhooks.enqueue_delivery(store, job_id, settings)
+def announce_end(store: JobStore, job_id: str, line: str) -> None:
+    """The closing log line of a job that just ended, and its webhook marked due in the outbox (any process
+    may: the API's sender threads deliver it, also after a restart)."""
+    store.append_log(job_id, [line])
+    store.queue_webhook(job_id)
 
 
 def complete_job(
@@ -67,15 +60,14 @@ def complete_job(
     *,
     error: str | None = None,
     result: dict | None = None,
-    webhook: bool = True,
 ) -> bool:
-    """Ends a running attempt (fenced by `attempt`) and announces it (see `announce_end` for `webhook`);
+    """Ends a running attempt (fenced by `attempt`) and announces it (`announce_end`);
     False if it no longer owns the job. The error names no server path (whoever records it)."""
     error = without_server_paths(error, settings) if error else error
     if not store.finish(job_id, attempt, state, error=error, result=result):
         return False
     shown = f" ({error})" if error and state != JobState.succeeded else ""
-    announce_end(store, settings, job_id, f"finished: {state}{shown}", webhook=webhook)
+    announce_end(store, job_id, f"finished: {state}{shown}")
     return True
 
 
@@ -322,11 +314,8 @@ def execute(
     attempt: int,
     settings: ServiceSettings,
     time_limit: TimeLimit | None = None,
-    *,
-    webhook: bool,
 ) -> JobState | None:
-    """Runs one claimed attempt of a job to its end and records the outcome; returns the final state.
-    `webhook`: whether this process queues the job's webhook (see `announce_end`)."""
+    """Runs one claimed attempt of a job to its end and records the outcome; returns the final state."""
     job = store.get(job_id)
     if job is None or job.attempt != attempt or job.state != JobState.running:
         return None
@@ -373,7 +362,6 @@ def execute(
         state,
         error=error if state != JobState.succeeded else None,
         result=result,
-        webhook=webhook,
     ):
         return state
     return None

@@ -137,6 +137,9 @@ class ServiceSettings(BaseSettings):
         1.0, ge=0, description="First delay between webhook attempts; doubles after each failure."
     )
     webhook_timeout_seconds: float = Field(10.0, gt=0, description="Timeout of one webhook attempt.")
+    webhook_poll_seconds: float = Field(
+        1.0, gt=0, description="How often an idle API process looks for webhooks due (the persistent outbox)."
+    )
     webhook_allowed_networks: list[IPv4Network | IPv6Network] = Field(
         default_factory=list,
         description="Networks webhooks may reach although they are not public (loopback, private, ...), "

@@ -6,34 +6,35 @@ whatever the spelling: 2130706433, 0x7f.1, ::ffff:127.0.0.1) unless SFMNERF_WEBH
 it, and the request goes to that checked address (the Host header and TLS name stay the URL's): a second
 DNS answer cannot redirect it. Redirects are not followed, proxies from the environment are not used.
 
-`enqueue_delivery(store, job_id, settings)` hands a delivery to a small thread pool of the calling
-process and returns at once, so a webhook that never answers holds neither a request nor a job slot. The
-job's log says only "webhook delivered" or "webhook failed"; the reasons go to the server log.
+Deliveries are a persistent outbox in the job store: whichever process ends a job marks its webhook
+pending (`JobStore.queue_webhook`, a job process too), and the `WebhookSender` threads of every API process
+claim due ones and send them. A restart loses none (a pending one waits in the database), a claim whose
+sender died is taken over after the longest a delivery can take, and a webhook that never answers holds
+neither a request nor a job slot. The job's log says only "webhook delivered" or "webhook failed"; the
+reasons go to the server log.
 """
 
 from __future__ import annotations
 
 import ipaddress
 import logging
-import queue
 import socket
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
+from datetime import timedelta
 from ipaddress import IPv4Address, IPv4Network, IPv6Address, IPv6Network
 
 import httpx
 
-from service.db import JobStore
+from service.db import JobStore, utcnow
 from service.models import JobOut
 from service.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
 SENDER_THREADS = 4
-_deliveries: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
-_senders: list[threading.Thread] = []
-_senders_lock = threading.Lock()
+CLAIM_MARGIN_SECONDS = 30.0
 
 Network = IPv4Network | IPv6Network
 
@@ -137,29 +138,48 @@ def _host_header(url: str) -> str:
     return parsed.netloc.decode("ascii")
 
 
-def enqueue_delivery(store: JobStore, job_id: str, settings: ServiceSettings) -> None:
-    """Queues the job's webhook (if it has one) with its current resource for the sender threads."""
-    job = store.get(job_id)
-    if job is None or not job.webhook_url:
-        return
-    url, payload = job.webhook_url, JobOut.from_job(job).model_dump_json()
-
-    def send() -> None:
-        delivered = deliver(url, payload, settings)
-        store.append_log(job_id, ["webhook delivered" if delivered else "webhook failed"])
-
-    with _senders_lock:
-        while len(_senders) < SENDER_THREADS:
-            sender = threading.Thread(target=_send_forever, name=f"webhook-{len(_senders)}", daemon=True)
-            sender.start()
-            _senders.append(sender)
-    _deliveries.put(send)
+def delivery_deadline_seconds(settings: ServiceSettings) -> float:
+    """The longest one `deliver` can take (every attempt timing out, every back-off slept), plus a margin:
+    a claim older than this belongs to a sender that died."""
+    backoff = settings.webhook_backoff_seconds * (2 ** (settings.webhook_attempts - 1) - 1)
+    return settings.webhook_attempts * settings.webhook_timeout_seconds + backoff + CLAIM_MARGIN_SECONDS
 
 
-def _send_forever() -> None:
-    while True:
-        send = _deliveries.get()
-        try:
-            send()
-        except Exception:  # a failed delivery (or its log line) must not end the sender
-            log.exception("webhook delivery failed")
+class WebhookSender:
+    """Sender threads of a long-lived process (the API): they claim due webhooks from the job store's
+    outbox, POST each job's resource as it is now, and record the outcome in the job's log."""
+
+    def __init__(self, store: JobStore, settings: ServiceSettings) -> None:
+        self.store, self.settings = store, settings
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    def start(self) -> None:
+        for index in range(SENDER_THREADS):
+            thread = threading.Thread(target=self._send_due, name=f"webhook-{index}", daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def stop(self) -> None:
+        """Stops claiming; a delivery under way is left to finish (its claim goes stale if it cannot)."""
+        self._stop.set()
+
+    def send_one(self) -> bool:
+        """Claims and sends one due webhook; False when none is due."""
+        stale_before = utcnow() - timedelta(seconds=delivery_deadline_seconds(self.settings))
+        job = self.store.claim_webhook(stale_before)
+        if job is None:
+            return False
+        delivered = deliver(job.webhook_url or "", JobOut.from_job(job).model_dump_json(), self.settings)
+        self.store.finish_webhook(job.id, delivered)
+        self.store.append_log(job.id, ["webhook delivered" if delivered else "webhook failed"])
+        return True
+
+    def _send_due(self) -> None:
+        while not self._stop.is_set():
+            try:
+                if self.send_one():
+                    continue
+            except Exception:  # a failed delivery (or the database away for a moment) must not end the sender
+                log.exception("webhook delivery failed")
+            self._stop.wait(self.settings.webhook_poll_seconds)

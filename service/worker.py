@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = ServiceSettings.model_validate_json(os.environ[WORKER_SETTINGS_ENV])
     store = JobStore(settings.resolved_database_url, migrate=False)
     try:
-        execute(store, job_id, int(attempt), settings, webhook=False)  # the executor sends the webhook
+        execute(store, job_id, int(attempt), settings)
     finally:
         store.dispose()
     return 0

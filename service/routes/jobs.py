@@ -82,7 +82,7 @@ def cancel_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settin
     job = store.request_cancel(job_id)
     executor.cancel(job_id)
     if job is not None and job.state == JobState.cancelled:
-        announce_end(store, settings, job_id, "finished: cancelled before it started")
+        announce_end(store, job_id, "finished: cancelled before it started")
     # The answer shows the outcome when the process ends quickly (it usually does, within a second).
     return JobOut.from_job(_wait_while_running(store, job_id, settings.cancel_grace_seconds + 1.0) or job)
 

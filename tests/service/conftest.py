@@ -62,6 +62,45 @@ def endless_nerf_upload(lego_tiny: Path) -> dict:
     }
 
 
+class WebhookReceiver:
+    """A loopback HTTP server answering every POST with `status` (and a Location), recording requests."""
+
+    def __init__(self, status: int = 204, location: str | None = None) -> None:
+        import http.server
+        import threading
+
+        outer = self
+        self.requests: list[dict] = []
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_POST(self) -> None:  # noqa: N802
+                body = self.rfile.read(int(self.headers["Content-Length"]))
+                outer.requests.append({"path": self.path, "host": self.headers["Host"], "body": body})
+                self.send_response(status)
+                if location:
+                    self.send_header("Location", location)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+            def log_message(self, *args: object) -> None:
+                pass
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.server.server_address[1]
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/done"
+
+    def bodies(self) -> list[dict]:
+        return [json.loads(request["body"]) for request in self.requests]
+
+
 def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:
     """Settings for a test: a private data folder, quick heartbeats and webhook retries."""
     values: dict[str, object] = {
@@ -69,6 +108,7 @@ def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:
         "heartbeat_seconds": 0.5,
         "webhook_backoff_seconds": 0.05,
         "webhook_attempts": 3,
+        "webhook_poll_seconds": 0.1,
         "cancel_grace_seconds": 1.0,
     }
     values.update(overrides)

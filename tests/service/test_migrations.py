@@ -78,7 +78,7 @@ def test_the_migrations_build_exactly_the_models_schema_with_a_separate_owner_re
     try:
         with store.engine.connect() as connection:
             assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
-            assert MigrationContext.configure(connection).get_current_revision() == "0004"
+            assert MigrationContext.configure(connection).get_current_revision() == "0005"
             columns = {c["name"]: c for c in inspect(connection).get_columns("jobs")}
         assert columns["owner"]["nullable"] and {"supervisor_id", "pinned"} <= set(columns)
         assert store.create(JobKind.video, {}).params == {"num_frames": 36, "width": 200, "height": 200}
@@ -92,7 +92,7 @@ def test_sfmnerf_db_upgrade_migrates_the_configured_database(tmp_path, monkeypat
     result = CliRunner().invoke(main, ["db", "upgrade"])
     assert result.exit_code == 0, result.output
     with sqlite3.connect(tmp_path / "cli.sqlite") as connection:
-        assert connection.execute("SELECT version_num FROM alembic_version").fetchone() == ("0004",)
+        assert connection.execute("SELECT version_num FROM alembic_version").fetchone() == ("0005",)
         assert connection.execute("SELECT count(*) FROM jobs").fetchone() == (2,)
 
 
@@ -106,4 +106,4 @@ def test_processes_starting_together_on_a_new_database_create_it_once(tmp_path):
     errors = [p.communicate(timeout=120)[1].decode() for p in processes]
     assert [p.returncode for p in processes] == [0] * 4, errors
     with sqlite3.connect(tmp_path / "fresh.sqlite") as connection:
-        assert connection.execute("SELECT version_num FROM alembic_version").fetchall() == [("0004",)]
+        assert connection.execute("SELECT version_num FROM alembic_version").fetchall() == [("0005",)]

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import http.server
 import io
 import json
-import threading
 import zipfile
 from pathlib import Path
 
@@ -16,32 +14,18 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.cli import main as cli
-from tests.service.conftest import make_settings, unity_hall_files, wait_for_job
-
-
-class _Receiver(http.server.BaseHTTPRequestHandler):
-    bodies: list[dict] = []
-
-    def do_POST(self) -> None:  # noqa: N802
-        type(self).bodies.append(json.loads(self.rfile.read(int(self.headers["Content-Length"]))))
-        self.send_response(204)
-        self.end_headers()
-
-    def log_message(self, *args: object) -> None:
-        pass
+from tests.service.conftest import WebhookReceiver, make_settings, unity_hall_files, wait_for_job
 
 
 @pytest.fixture(scope="module")
-def webhook_url():
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Receiver)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    yield f"http://127.0.0.1:{server.server_address[1]}/done"
-    server.shutdown()
-    server.server_close()
+def webhook_receiver():
+    receiver = WebhookReceiver()
+    yield receiver
+    receiver.close()
 
 
 @pytest.fixture(scope="module")
-def api(tmp_path_factory, shared_data, webhook_url):
+def api(tmp_path_factory, shared_data, webhook_receiver):
     """One app for the module and one finished Unity Hall job: (client, job, settings)."""
     settings = make_settings(
         tmp_path_factory.mktemp("api") / "data", webhook_allowed_networks=["127.0.0.0/8"]
@@ -50,7 +34,7 @@ def api(tmp_path_factory, shared_data, webhook_url):
         response = client.post(
             "/v1/reconstructions",
             files=unity_hall_files(shared_data / "unity_hall"),
-            data={"webhook_url": webhook_url},
+            data={"webhook_url": webhook_receiver.url},
         )
         assert response.status_code == 202, response.text
         assert response.headers["Location"] == f"/v1/jobs/{response.json()['id']}"
@@ -150,9 +134,9 @@ def test_figures_are_served_and_unknown_ones_are_404(api):
     assert client.get(f"/v1/reconstructions/{job['id']}/figures/..%2F..%2Freport.json").status_code == 404
 
 
-def test_the_webhook_got_the_finished_job(api):
+def test_the_webhook_got_the_finished_job(api, webhook_receiver):
     _, job, _ = api
-    deliveries = [body for body in _Receiver.bodies if body["id"] == job["id"]]
+    deliveries = [body for body in webhook_receiver.bodies() if body["id"] == job["id"]]
     assert deliveries and deliveries[-1]["state"] == "succeeded"
 
 

@@ -24,7 +24,7 @@ from PIL import Image
 from service.app import create_app
 from service.db import JobKind, JobState, JobStore, Scene, new_job_id
 from service.runner import execute, job_dir
-from tests.service.conftest import make_settings, wait_for_job
+from tests.service.conftest import WebhookReceiver, make_settings, wait_for_job
 
 UNKNOWN_ID = "0" * 32
 CAMERA_ANGLE_X = 0.69
@@ -394,42 +394,10 @@ def test_the_allow_list_permits_a_loopback_webhook(tmp_path):
         assert check_url(url, settings) == url
 
 
-class _Receiver:
-    """A loopback HTTP server answering every POST with `status` (and a Location), recording requests."""
-
-    def __init__(self, status: int = 204, location: str | None = None) -> None:
-        import http.server
-        import threading
-
-        outer = self
-        self.requests: list[dict] = []
-
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802
-                body = self.rfile.read(int(self.headers["Content-Length"]))
-                outer.requests.append({"path": self.path, "host": self.headers["Host"], "body": body})
-                self.send_response(status)
-                if location:
-                    self.send_header("Location", location)
-                self.send_header("Content-Length", "0")
-                self.end_headers()
-
-            def log_message(self, *args: object) -> None:
-                pass
-
-        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.port = self.server.server_address[1]
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-
-
 def test_a_webhook_goes_to_the_address_checked_with_one_resolution_and_its_host_header(tmp_path, monkeypatch):
     from service import webhooks
 
-    receiver = _Receiver()
+    receiver = WebhookReceiver()
     lookups = []
     real_getaddrinfo = socket.getaddrinfo
 
@@ -453,8 +421,8 @@ def test_a_webhook_goes_to_the_address_checked_with_one_resolution_and_its_host_
 def test_a_webhook_redirect_is_not_followed(tmp_path):
     from service import webhooks
 
-    target = _Receiver()
-    redirecting = _Receiver(status=307, location=f"http://127.0.0.1:{target.port}/elsewhere")
+    target = WebhookReceiver()
+    redirecting = WebhookReceiver(status=307, location=f"http://127.0.0.1:{target.port}/elsewhere")
     settings = make_settings(tmp_path, webhook_attempts=1, webhook_allowed_networks=["127.0.0.0/8"])
     try:
         assert not webhooks.deliver(f"http://127.0.0.1:{redirecting.port}/hook", "{}", settings)
@@ -516,7 +484,7 @@ def test_a_job_error_names_no_server_path_and_its_log_holds_no_traceback(setting
 
     monkeypatch.setitem(runner.JOB_FUNCTIONS, JobKind.reconstruction, crash)
     attempt = store.claim(job.id, worker="test")
-    assert execute(store, job.id, attempt, settings, webhook=False) == JobState.failed
+    assert execute(store, job.id, attempt, settings) == JobState.failed
     finished = store.get(job.id)
     assert finished.error == "RuntimeError: cannot open 1.png"
     lines = store.read_logs(job.id, 0, 100)
