@@ -38,7 +38,7 @@ def ground_truth(folder: Path) -> tuple[dict[str, CameraPose], np.ndarray]:
     return poses, np.array(next(iter(cameras.values()))["K"])
 
 
-def run(folder: Path, calibrated: bool, camera_model: str, principal_point: bool) -> dict:
+def run(folder: Path, calibrated: bool, camera_model: str, principal_point: bool | None) -> dict:
     """One reconstruction of the folder's JPEGs (with or without its calibration.txt) and its errors."""
     truth, true_K = ground_truth(folder)
     true_focal = (true_K[0, 0] + true_K[1, 1]) / 2
@@ -50,7 +50,7 @@ def run(folder: Path, calibrated: bool, camera_model: str, principal_point: bool
         if calibrated:
             shutil.copy(folder / "calibration.txt", images / "calibration.txt")
         camera_config = CameraConfig(model="auto" if calibrated else camera_model,
-                                     refine_principal_point=principal_point and not calibrated)
+                                     refine_principal_point=principal_point)
         config = ReconstructionConfig(write_figures=False, camera=camera_config)
         start = time.perf_counter()
         result = reconstruct(images, Path(work) / "out", config)
@@ -81,8 +81,9 @@ def main() -> None:
     parser.add_argument("--camera-model", default="simple-radial",
                         choices=["pinhole", "simple-radial", "radial", "opencv"],
                         help="camera model of the uncalibrated runs")
-    parser.add_argument("--refine-principal-point", action="store_true",
-                        help="uncalibrated runs also refine cx, cy (pinhole and opencv)")
+    parser.add_argument("--principal-point", choices=["auto", "refined", "fixed"], default="auto",
+                        help="uncalibrated runs: cx, cy as CameraConfig's default (auto), refined, or held "
+                             "at the image centre")
     parser.add_argument("--uncalibrated-only", action="store_true", help="skip the runs with calibration.txt")
     args = parser.parse_args()
     print(f"load average {os.getloadavg()}")
@@ -91,9 +92,10 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name in args.sets:
         for calibrated in (False,) if args.uncalibrated_only else (True, False):
-            row = run(args.data / name, calibrated, args.camera_model, args.refine_principal_point)
-            label = "calibration.txt" if calibrated else (
-                f"none ({args.camera_model}{', cx cy refined' if args.refine_principal_point else ''})")
+            principal_point = {"auto": None, "refined": True, "fixed": False}[args.principal_point]
+            row = run(args.data / name, calibrated, args.camera_model, principal_point)
+            label = ("calibration.txt" if calibrated
+                     else f"none ({args.camera_model}, pp {args.principal_point})")
             print(f"| {name} | {label} | {row['registered']} | {row['focal']:.1f} "
                   f"| {row['focal_error_pct']:+.2f} | {row['principal_point_error_px']:.1f} "
                   f"| {row['k1']:+.4f} | {row['k2']:+.4f} "

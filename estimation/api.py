@@ -158,12 +158,11 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
     """The cameras to start from: the calibration file's K (held fixed, distortion refined if the
     model has any, unless `distortion` gives it: then everything is held); else each photo's EXIF focal
     length, else focal_prior_factor * max(w, h) with a warning (focal length and distortion refined).
-    The principal point is K's, or the image centre."""
+    The principal point is K's (held), or the image centre (refined as `refine_principal_point` says)."""
     model = resolve_camera_model(config, K is not None, distortion is not None)
     per_image = not config.single_camera
-    if config.refine_principal_point and model not in ("pinhole", "opencv"):
-        raise InputError(f"refining the principal point needs the pinhole or opencv camera model, "
-                         f"not {model}")
+    principal_point = (not per_image if config.refine_principal_point is None
+                       else config.refine_principal_point)
     if K is not None:
         camera = Camera.from_K(K, "opencv", **(distortion or {})).as_model(model)
         return InitialIntrinsics(
@@ -203,7 +202,7 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
     source = "prior" if not found else "exif" if not missing else "exif and prior"
     return InitialIntrinsics(cameras=cameras, source=source, focal_sources=focal_sources,
                              refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image,
-                                                         principal_point=config.refine_principal_point),
+                                                         principal_point=principal_point),
                              warnings=warnings)
 
 
