@@ -218,7 +218,8 @@ def _registered_cameras(model: SparseModel) -> list[Camera]:
 
 def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: SparseModel) -> dict:
     """report.json's intrinsics: the refined camera(s) (OpenCV pixel convention), their source,
-    what was refined and the warnings."""
+    what was refined, the 1-sigma of the refined shared camera (`camera.sigma`: marginal covariance of
+    the final BA at the measured pixel noise) and the warnings."""
     cameras = _registered_cameras(model)
     report = {
         "K": cameras[0].K.tolist(), "width": images.width, "height": images.height,
@@ -235,7 +236,8 @@ def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: Spars
                                                "focal_source": initial.focal_sources[i]}
                              for i in sorted(model.poses)}
     else:
-        report["camera"] = {**cameras[0].to_dict(), "initial_focal_px": float(initial.cameras[0].fx)}
+        report["camera"] = {**cameras[0].to_dict(), "initial_focal_px": float(initial.cameras[0].fx),
+                            "sigma": dict(model.stats.intrinsics_sigma)}
         report["focal_sources"] = dict(zip(images.names, initial.focal_sources, strict=True))
     return report
 

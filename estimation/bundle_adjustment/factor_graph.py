@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -89,6 +89,9 @@ class BundleAdjustmentResult:
     initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
     final_cost: float
     cameras: list[Camera]  # intrinsics per pose after the adjustment (the same object when shared)
+    # 1-sigma of each refined intrinsic of a shared camera ("fx", "fy", "cx", "cy", "k1", ...), from the
+    # marginal covariance at the optimum for measurement_sigma_px pixel noise; empty unless asked for
+    intrinsics_sigma: dict[str, float] = field(default_factory=dict)
 
 
 def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
@@ -271,6 +274,22 @@ def camera_from_gtsam(calibration: gtsam.Cal3Bundler | gtsam.Cal3DS2, like: Came
     return Camera(like.model, fx=fx, fy=fy, cx=calibration.px(), cy=calibration.py(), skew=like.skew, **kept)
 
 
+def _tangent_names(model: str, principal_point: bool) -> list[str]:
+    """The camera parameter behind each component of the GTSAM calibration's tangent vector."""
+    if _uses_bundler(model, principal_point):
+        return ["f", "k1", "k2"]
+    return ["fx", "fy", "skew", "cx", "cy", "k1", "k2", "p1", "p2"]
+
+
+def _intrinsics_sigma(marginals: gtsam.Marginals, key: int, model: str, refine: IntrinsicsRefinement
+                      ) -> dict[str, float]:
+    """sqrt(diag Sigma) of the refined components of calibration `key` (Sigma: its marginal covariance)."""
+    sigma = np.sqrt(np.diag(marginals.marginalCovariance(key)))
+    free = _free_components(model, refine)
+    return {name: float(s) for name, s, is_free in zip(_tangent_names(model, refine.principal_point), sigma,
+                                                       free, strict=True) if is_free}
+
+
 def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
     """Which components of the GTSAM calibration's tangent vector the BA may change."""
     distortion = refine.distortion and model != "pinhole"
@@ -409,6 +428,7 @@ def bundle_adjust(
     scale_reference: int | None = 1,
     on_iteration: IterationHook | None = None,
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
+    intrinsics_covariance: bool = False,
 ) -> BundleAdjustmentResult:
     """Minimize the Huber-robust reprojection error over all observed cameras and points (GTSAM LM).
 
@@ -421,6 +441,8 @@ def bundle_adjust(
     Cameras and points without observations (and not fixed) are returned unchanged.
     `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
     graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
+    `intrinsics_covariance`: also the marginal 1-sigma of a shared refined camera's intrinsics
+    (`intrinsics_sigma`, how well the views determine them; one more elimination of the graph).
     """
     start = time.perf_counter()
     cameras = per_pose_cameras(camera, len(poses))
@@ -485,6 +507,10 @@ def bundle_adjust(
                    for key in calibration_keys.tolist()}
         adjusted_cameras = [refined.get(int(calibration_of_camera[c]), cameras[c])
                             for c in range(num_cameras)]
+    intrinsics_sigma = {}
+    if refines and intrinsics_covariance and not refine.per_image:
+        intrinsics_sigma = _intrinsics_sigma(gtsam.Marginals(graph, values), int(calibration_keys[0]),
+                                             cameras[0].model, refine)
 
     initial_residuals = reprojection_residuals(cameras, poses, points, camera_index, point_index, uv)
     final_residuals = reprojection_residuals(
@@ -500,4 +526,5 @@ def bundle_adjust(
         initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         cameras=adjusted_cameras,
+        intrinsics_sigma=intrinsics_sigma,
     )

@@ -70,6 +70,8 @@ class ReconstructionStats:
     final_cost_decrease: float  # relative robust-cost decrease of the last BA call (~0: converged)
     noise_sigma_px: float  # per-axis pixel noise measured on the final residuals
     reprojection_limit_px: float  # the error limit of the last filter (fixed, or sigmas x noise)
+    # 1-sigma of each refined intrinsic of a shared camera at the measured pixel noise (empty: none refined)
+    intrinsics_sigma: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -354,22 +356,26 @@ class _ModelBuilder:
                 break
         return decrease
 
-    def final_bundle_adjustment(self) -> tuple[float, int]:
+    def final_bundle_adjustment(self) -> tuple[float, int, dict[str, float]]:
         """Converged global BA (tight tolerance), filtering and adjusting again while the filter removes
-        observations. Returns (relative cost decrease of the last BA, its iterations)."""
+        observations. Returns (relative cost decrease of the last BA, its iterations, the 1-sigma of the
+        refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
         final = ba.model_copy(
             update={"relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol)}
         )
-        decrease, iterations = 0.0, 0
+        decrease, iterations, sigma = 0.0, 0, {}
         for _ in range(FINAL_BA_ROUNDS):
-            result = self.scene.bundle_adjust(final)
+            result = self.scene.bundle_adjust(final, intrinsics_covariance=True)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
             iterations = result.iterations
             self.measure_noise()
+            # The BA's covariance is for measurement_sigma_px of noise; scale it to the measured noise.
+            noise = self.scene.noise_sigma(self.config.filter.max_reprojection_px) / ba.measurement_sigma_px
+            sigma = {name: value * noise for name, value in result.intrinsics_sigma.items()}
             if self.scene.filter_points(self.max_error, self.min_angle) == 0:
                 break
-        return decrease, iterations
+        return decrease, iterations, sigma
 
     # -------------------------------------------------------------------------------------- loop
 
@@ -541,7 +547,7 @@ def reconstruct_models(
         before = summarize(builder.scene.errors(builder.scene.used_observations()))
         with timer.stage("bundle adjustment"):
             builder.global_refinement(config.bundle_adjustment)
-            decrease, iterations = builder.final_bundle_adjustment()
+            decrease, iterations, intrinsics_sigma = builder.final_bundle_adjustment()
         after = summarize(builder.scene.errors(builder.scene.used_observations()))
         available[builder.scene.order] = False
         stats = ReconstructionStats(
@@ -558,6 +564,7 @@ def reconstruct_models(
             final_cost_decrease=decrease,
             noise_sigma_px=builder.scene.noise_sigma(config.filter.max_reprojection_px),
             reprojection_limit_px=builder.error_limit,
+            intrinsics_sigma=intrinsics_sigma,
         )
         built.append((builder, _sparse_model(builder, candidate, stats)))
     if not built:
