@@ -1,6 +1,7 @@
 """Self-calibration: the same image sets reconstructed with and without calibration.txt; prints a table.
 
-For each Strecha set (3072x2048 JPEGs without EXIF), the images are copied into a temporary folder
+For each Strecha set (3072x2048 JPEGs without EXIF; or lego_200, principal point at the centre, built as
+bench_sfm.py does), the images are copied into a temporary folder
 once with calibration.txt (K fixed, pinhole) and once without (focal length from the 1.2 * max(w, h)
 prior, refined with the camera model's distortion and, by default, the principal point). Printed per
 run: registered images, the recovered focal length against the ground truth's (mean of fx and fy), the
@@ -14,13 +15,13 @@ unseen check): each intrinsics setting's recovered focal length, principal point
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_intrinsics.py
     python benchmarks/bench_intrinsics.py --sets fountain-P11 --camera-model radial
+    python benchmarks/bench_intrinsics.py --sets lego --uncalibrated-only
     python benchmarks/bench_intrinsics.py --synthetic
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import tempfile
@@ -28,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_sfm import IMAGE_SUFFIXES, BenchSet, lego_set, strecha_set
 
 from estimation import ReconstructionConfig, reconstruct
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
@@ -36,16 +38,6 @@ from estimation.geometry.alignment import aligned_pose_errors
 from estimation.geometry.projection import Camera
 from estimation.mapper.incremental import run_incremental
 from estimation.synthetic import SyntheticScene, make_object_scene, make_scene
-from estimation.types import CameraPose
-
-DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "strecha"
-
-
-def ground_truth(folder: Path) -> tuple[dict[str, CameraPose], np.ndarray]:
-    """(image name -> true pose, the first camera's true K)."""
-    cameras = json.loads((folder / "ground_truth.json").read_text())["cameras"]
-    poses = {name: CameraPose(R=np.array(c["R"]), t=np.array(c["t"])) for name, c in cameras.items()}
-    return poses, np.array(next(iter(cameras.values()))["K"])
 
 
 def principal_point_sigma(sigma: dict[str, float]) -> str:
@@ -53,17 +45,18 @@ def principal_point_sigma(sigma: dict[str, float]) -> str:
     return f"{sigma['cx']:.1f}, {sigma['cy']:.1f}" if "cx" in sigma else "-"
 
 
-def run(folder: Path, calibrated: bool, camera_model: str, principal_point: bool | None) -> dict:
-    """One reconstruction of the folder's JPEGs (with or without its calibration.txt) and its errors."""
-    truth, true_K = ground_truth(folder)
+def run(bench: BenchSet, calibrated: bool, camera_model: str, principal_point: bool | None) -> dict:
+    """One reconstruction of the set's images (with or without its calibration.txt) and its errors."""
+    truth, true_K = bench.truth, bench.K
     true_focal = (true_K[0, 0] + true_K[1, 1]) / 2
     with tempfile.TemporaryDirectory(prefix="bench_intrinsics_") as work:
         images = Path(work) / "images"
         images.mkdir()
-        for path in sorted(folder.glob("*.jpg")):
-            shutil.copy(path, images / path.name)
+        for path in sorted(bench.images.iterdir()):
+            if path.suffix.lower() in IMAGE_SUFFIXES:
+                shutil.copy(path, images / path.name)
         if calibrated:
-            shutil.copy(folder / "calibration.txt", images / "calibration.txt")
+            np.savetxt(images / "calibration.txt", bench.K)
         camera_config = CameraConfig(model="auto" if calibrated else camera_model,
                                      refine_principal_point=principal_point)
         config = ReconstructionConfig(write_figures=False, camera=camera_config)
@@ -156,8 +149,8 @@ def main_synthetic() -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of the Strecha sets")
-    parser.add_argument("--sets", nargs="+", default=["fountain-P11", "Herz-Jesus-P8"])
+    parser.add_argument("--sets", nargs="+", default=["fountain-P11", "Herz-Jesus-P8"],
+                        help="Strecha sets, or lego (lego_200 train + val, principal point at the centre)")
     parser.add_argument("--camera-model", default="simple-radial",
                         choices=["pinhole", "simple-radial", "radial", "opencv"],
                         help="camera model of the uncalibrated runs")
@@ -176,21 +169,25 @@ def main() -> None:
     print("| set | calibration | registered | focal px | focal err % | pp err px | pp sigma px | k1 | k2 "
           "| rot mean deg | rot max deg | centre mean m | RMS px | s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for name in args.sets:
-        for calibrated in (False,) if args.uncalibrated_only else (True, False):
-            principal_point = {"auto": None, "refined": True, "fixed": False}[args.principal_point]
-            row = run(args.data / name, calibrated, args.camera_model, principal_point)
-            label = ("calibration.txt" if calibrated
-                     else f"none ({args.camera_model}, pp {args.principal_point})")
-            print(f"| {name} | {label} | {row['registered']} | {row['focal']:.1f} "
-                  f"| {row['focal_error_pct']:+.2f} | {row['principal_point_error_px']:.1f} "
-                  f"| {row['principal_point_sigma_px']} "
-                  f"| {row['k1']:+.4f} | {row['k2']:+.4f} "
-                  f"| {row['rotation_mean_deg']:.3f} "
-                  f"| {row['rotation_max_deg']:.3f} | {row['center_mean']:.4f} | {row['rms_px']:.3f} "
-                  f"| {row['seconds']:.0f} |", flush=True)
+    with tempfile.TemporaryDirectory(prefix="bench_intrinsics_sets_") as work:
+        for name in args.sets:
+            bench = lego_set(Path(work)) if name == "lego" else strecha_set(name)
+            run_set(bench, args)
     print(f"load average {os.getloadavg()}")
 
+
+def run_set(bench: BenchSet, args: argparse.Namespace) -> None:
+    """The set's table rows: with calibration.txt (unless --uncalibrated-only), then without."""
+    name = bench.name
+    for calibrated in (False,) if args.uncalibrated_only else (True, False):
+        principal_point = {"auto": None, "refined": True, "fixed": False}[args.principal_point]
+        row = run(bench, calibrated, args.camera_model, principal_point)
+        label = "calibration.txt" if calibrated else f"none ({args.camera_model}, pp {args.principal_point})"
+        print(f"| {name} | {label} | {row['registered']} | {row['focal']:.1f} "
+              f"| {row['focal_error_pct']:+.2f} | {row['principal_point_error_px']:.1f} "
+              f"| {row['principal_point_sigma_px']} | {row['k1']:+.4f} | {row['k2']:+.4f} "
+              f"| {row['rotation_mean_deg']:.3f} | {row['rotation_max_deg']:.3f} | {row['center_mean']:.4f} "
+              f"| {row['rms_px']:.3f} | {row['seconds']:.0f} |", flush=True)
 
 if __name__ == "__main__":
     main()
