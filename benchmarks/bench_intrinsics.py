@@ -102,25 +102,30 @@ def synthetic_scenes() -> dict[str, SyntheticScene]:
 
 SYNTHETIC_SETTINGS = {
     "true K, fixed": None,
-    "simple-radial, pp held": ("simple-radial", False),
-    "opencv, pp refined": ("opencv", True),
-    "pinhole, pp refined": ("pinhole", True),
-    "simple-radial, pp refined": ("simple-radial", True),
+    "simple-radial, pp held": ("simple-radial", False, 0.0),
+    "opencv, pp refined": ("opencv", True, 0.0),
+    "pinhole, pp refined": ("pinhole", True, 0.0),
+    "simple-radial, pp refined": ("simple-radial", True, 0.0),
+    "simple-radial, pp refined if significant (default)": ("simple-radial", True, None),
 }
-"""Intrinsics setting -> (camera model, principal point refined); None: the true camera held fixed."""
+"""Intrinsics setting -> (camera model, principal point refined, CameraConfig.principal_point_min_d2: 0
+keeps it whatever its significance, None the default); None: the true camera held fixed."""
 
 
-def run_synthetic(scene: SyntheticScene, setting: tuple[str, bool] | None) -> dict:
+def run_synthetic(scene: SyntheticScene, setting: tuple[str, bool, float | None] | None) -> dict:
     """The mapper from COLMAP's prior (1.2 max(w, h), principal point at the centre), or from the truth."""
+    config = ReconstructionConfig(write_figures=False)
     if setting is None:
         camera, refine = scene.camera, IntrinsicsRefinement()
     else:
-        model, principal_point = setting
+        model, principal_point, min_d2 = setting
+        if min_d2 is not None:
+            config.camera.principal_point_min_d2 = min_d2
         focal = 1.2 * max(scene.width, scene.height)
         camera = Camera(model, fx=focal, fy=focal, cx=(scene.width - 1) / 2, cy=(scene.height - 1) / 2)
         refine = IntrinsicsRefinement(focal=True, distortion=True, principal_point=principal_point)
     start = time.process_time()
-    model = run_incremental(scene.tracks, camera, ReconstructionConfig(write_figures=False), refine=refine)
+    model = run_incremental(scene.tracks, camera, config, refine=refine)
     images = list(model.poses)
     errors = aligned_pose_errors([model.poses[m] for m in images], [scene.poses[m] for m in images])
     refined, truth = model.cameras[images[0]], scene.camera

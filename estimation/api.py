@@ -219,7 +219,9 @@ def _registered_cameras(model: SparseModel) -> list[Camera]:
 def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: SparseModel) -> dict:
     """report.json's intrinsics: the refined camera(s) (OpenCV pixel convention), their source,
     what was refined, the 1-sigma of the refined shared camera (`camera.sigma`: marginal covariance of
-    the final BA at the measured pixel noise) and the warnings."""
+    the final BA at the measured pixel noise), whether the refined principal point's shift was significant
+    enough to keep (`principal_point_test`; if not, it is back at the centre and `refined` says False) and
+    the warnings."""
     cameras = _registered_cameras(model)
     report = {
         "K": cameras[0].K.tolist(), "width": images.width, "height": images.height,
@@ -238,6 +240,11 @@ def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: Spars
     else:
         report["camera"] = {**cameras[0].to_dict(), "initial_focal_px": float(initial.cameras[0].fx),
                             "sigma": dict(model.stats.intrinsics_sigma)}
+    test = model.stats.principal_point_test
+    if test is not None:
+        report["refined"]["principal_point"] = test.kept
+        report["principal_point_test"] = {"shift_px": list(test.shift_px), "sigma_px": list(test.sigma_px),
+                                          "d2": test.d2, "kept": test.kept}
         report["focal_sources"] = dict(zip(images.names, initial.focal_sources, strict=True))
     return report
 

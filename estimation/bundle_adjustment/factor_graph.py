@@ -30,10 +30,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
+from scipy import sparse
 
 from estimation.config import BundleAdjustmentConfig
 from estimation.errors import InputError
@@ -76,6 +78,27 @@ class IntrinsicsRefinement:
         return self.focal or self.principal_point or (self.distortion and model != "pinhole")
 
 
+class IntrinsicsCovariance(NamedTuple):
+    """Marginal covariance of a shared camera's refined intrinsics at the optimum (how well the views
+    determine them), for the pixel noise it was computed with."""
+
+    names: tuple[str, ...]  # the refined components ("f" or "fx", "fy", "cx", "cy", "k1", ...)
+    matrix: np.ndarray      # (k, k) in their units (pixels, unitless)
+
+    def scaled(self, noise_ratio: float) -> IntrinsicsCovariance:
+        """For noise_ratio times the pixel noise (the covariance grows with its square)."""
+        return self._replace(matrix=self.matrix * noise_ratio**2)
+
+    def sigma(self) -> dict[str, float]:
+        """1-sigma of each component."""
+        return {name: float(np.sqrt(v)) for name, v in zip(self.names, np.diag(self.matrix), strict=True)}
+
+    def block(self, names: Sequence[str]) -> np.ndarray:
+        """The covariance of the named components."""
+        index = [self.names.index(name) for name in names]
+        return self.matrix[np.ix_(index, index)]
+
+
 @dataclass(frozen=True)
 class BundleAdjustmentResult:
     """Adjusted cameras and points with the reprojection error before and after."""
@@ -89,9 +112,8 @@ class BundleAdjustmentResult:
     initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
     final_cost: float
     cameras: list[Camera]  # intrinsics per pose after the adjustment (the same object when shared)
-    # 1-sigma of each refined intrinsic of a shared camera ("fx", "fy", "cx", "cy", "k1", ...), from the
-    # marginal covariance at the optimum for measurement_sigma_px pixel noise; empty unless asked for
-    intrinsics_sigma: dict[str, float] = field(default_factory=dict)
+    # of a shared refined camera, for measurement_sigma_px pixel noise; None unless asked for
+    intrinsics_covariance: IntrinsicsCovariance | None = None
 
 
 def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
@@ -281,13 +303,55 @@ def _tangent_names(model: str, principal_point: bool) -> list[str]:
     return ["fx", "fy", "skew", "cx", "cy", "k1", "k2", "p1", "p2"]
 
 
-def _intrinsics_sigma(marginals: gtsam.Marginals, key: int, model: str, refine: IntrinsicsRefinement
-                      ) -> dict[str, float]:
-    """sqrt(diag Sigma) of the refined components of calibration `key` (Sigma: its marginal covariance)."""
-    sigma = np.sqrt(np.diag(marginals.marginalCovariance(key)))
+def _intrinsics_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, calibration_key: int,
+                           num_cameras: int, fixed_cameras: Sequence[int], model: str,
+                           refine: IntrinsicsRefinement) -> IntrinsicsCovariance:
+    """Marginal covariance of the refined components of the calibration: inv(S) with S the Schur
+    complement of the points in H = J^T J (J: the whitened, robust-weighted Jacobian at the optimum),
+    conditioned on what is held (the fixed cameras, the calibration's held components).
+
+    Computed here rather than by gtsam.Marginals, whose Cholesky refuses the whole system when one
+    point or the near-hard priors make it nearly indeterminate (measured on a synthetic object ring);
+    each point's 3x3 block is pseudo-inverted instead."""
+    linear = graph.linearize(values)
+    rows, cols, entries = linear.sparseJacobian_()
+    keys = sorted(linear.keys())   # sparseJacobian_: columns in key order, 1-based (row, col, value)
+    calibration_dim = len(_tangent_names(model, refine.principal_point))
+    dims = np.array([6 if key < num_cameras else calibration_dim if key == calibration_key else 3
+                     for key in keys])
+    offsets = np.concatenate([[0], np.cumsum(dims)])
+    in_a = cols <= offsets[-1]   # the last column is the right-hand side b of [A | b]
+    jacobian = sparse.csr_matrix(
+        (entries[in_a], (rows[in_a].astype(np.int64) - 1, cols[in_a].astype(np.int64) - 1)),
+        shape=(int(rows.max()), int(offsets[-1])))
+    information = (jacobian.T @ jacobian).tocsc()
+    is_point = np.repeat([num_cameras <= key != calibration_key for key in keys], dims)
+    points, rest = np.flatnonzero(is_point), np.flatnonzero(~is_point)
+    block_diagonal = information[points][:, points].tocoo()
+    blocks = np.zeros((len(points) // 3, 3, 3))
+    np.add.at(blocks, (block_diagonal.row // 3, block_diagonal.row % 3, block_diagonal.col % 3),
+              block_diagonal.data)
+    inverse = sparse.bsr_matrix((np.linalg.pinv(blocks), np.arange(len(blocks)), np.arange(len(blocks) + 1)),
+                                shape=(len(points), len(points)))
+    coupling = information[rest][:, points]
+    schur = information[rest][:, rest].toarray() - (coupling @ inverse @ coupling.T).toarray()
+    # Condition on the held variables: drop their rows and columns.
+    held = np.zeros(int(offsets[-1]), bool)
+    for key, begin, dim in zip(keys, offsets[:-1], dims, strict=True):
+        if key in fixed_cameras:
+            held[begin:begin + dim] = True
+        elif key == calibration_key:
+            held[begin:begin + dim] = ~_free_components(model, refine)
+    calibration = np.zeros(int(offsets[-1]), bool)
+    calibration_begin = offsets[keys.index(calibration_key)]
+    calibration[calibration_begin:calibration_begin + calibration_dim] = True
+    kept = ~held[rest]
+    covariance = np.linalg.inv(schur[np.ix_(kept, kept)])
+    in_calibration = calibration[rest][kept]
     free = _free_components(model, refine)
-    return {name: float(s) for name, s, is_free in zip(_tangent_names(model, refine.principal_point), sigma,
-                                                       free, strict=True) if is_free}
+    names = tuple(name for name, is_free in zip(_tangent_names(model, refine.principal_point), free,
+                                                strict=True) if is_free)
+    return IntrinsicsCovariance(names, covariance[np.ix_(in_calibration, in_calibration)])
 
 
 def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
@@ -441,8 +505,8 @@ def bundle_adjust(
     Cameras and points without observations (and not fixed) are returned unchanged.
     `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
     graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
-    `intrinsics_covariance`: also the marginal 1-sigma of a shared refined camera's intrinsics
-    (`intrinsics_sigma`, how well the views determine them; one more elimination of the graph).
+    `intrinsics_covariance`: also the marginal covariance of a shared refined camera's intrinsics
+    (how well the views determine them; one more elimination of the graph).
     """
     start = time.perf_counter()
     cameras = per_pose_cameras(camera, len(poses))
@@ -507,10 +571,10 @@ def bundle_adjust(
                    for key in calibration_keys.tolist()}
         adjusted_cameras = [refined.get(int(calibration_of_camera[c]), cameras[c])
                             for c in range(num_cameras)]
-    intrinsics_sigma = {}
+    covariance = None
     if refines and intrinsics_covariance and not refine.per_image:
-        intrinsics_sigma = _intrinsics_sigma(gtsam.Marginals(graph, values), int(calibration_keys[0]),
-                                             cameras[0].model, refine)
+        covariance = _intrinsics_covariance(graph, values, int(calibration_keys[0]), num_cameras,
+                                            fixed_cameras, cameras[0].model, refine)
 
     initial_residuals = reprojection_residuals(cameras, poses, points, camera_index, point_index, uv)
     final_residuals = reprojection_residuals(
@@ -526,5 +590,5 @@ def bundle_adjust(
         initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         cameras=adjusted_cameras,
-        intrinsics_sigma=intrinsics_sigma,
+        intrinsics_covariance=covariance,
     )

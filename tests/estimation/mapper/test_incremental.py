@@ -316,6 +316,21 @@ def test_an_off_centre_principal_point_is_recovered_and_holding_it_at_the_centre
     assert pose_errors(held, scene).rotation_deg.mean() > 1.0
     assert pose_errors(refined, scene).rotation_deg.max() < 0.5
     assert "cx" not in held.stats.intrinsics_sigma and held.stats.intrinsics_sigma["f"] > 0
+    assert refined.stats.principal_point_test.kept and held.stats.principal_point_test is None
+
+
+def test_a_principal_point_that_the_views_do_not_determine_goes_back_to_the_centre_and_is_held():
+    """An object ring whose principal point is the image centre: its refined shift is within its noise."""
+    scene = make_object_scene(num_cameras=16, num_points=600, noise_px=0.5, seed=31)
+    prior = Camera("simple-radial", fx=768.0, fy=768.0, cx=319.5, cy=239.5)
+    model = run_incremental(scene.tracks, prior, CONFIG,
+                            refine=IntrinsicsRefinement(focal=True, distortion=True, principal_point=True))
+    test = model.stats.principal_point_test
+    assert not test.kept and test.d2 < CONFIG.camera.principal_point_min_d2
+    assert all(sigma > 0 for sigma in test.sigma_px)
+    camera = model.cameras[model.registration_order[0]]
+    assert (camera.cx, camera.cy) == (319.5, 239.5) and "cx" not in model.stats.intrinsics_sigma
+    assert len(model.poses) == 16 and pose_errors(model, scene).rotation_deg.mean() < 0.3
 
 
 def test_per_image_cameras_are_refined_one_by_one():
