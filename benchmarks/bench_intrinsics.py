@@ -162,7 +162,9 @@ def main() -> None:
     parser.add_argument("--principal-point", choices=["auto", "refined", "fixed"], default="auto",
                         help="uncalibrated runs: cx, cy as CameraConfig's default (auto), refined, or held "
                              "at the image centre")
-    parser.add_argument("--uncalibrated-only", action="store_true", help="skip the runs with calibration.txt")
+    runs = parser.add_mutually_exclusive_group()
+    runs.add_argument("--uncalibrated-only", action="store_true", help="skip the runs with calibration.txt")
+    runs.add_argument("--calibrated-only", action="store_true", help="skip the runs without calibration.txt")
     parser.add_argument("--synthetic", action="store_true",
                         help="synthetic scenes with an off-centre principal point, not the Strecha sets")
     args = parser.parse_args()
@@ -182,9 +184,10 @@ def main() -> None:
 
 
 def run_set(bench: BenchSet, args: argparse.Namespace) -> None:
-    """The set's table rows: with calibration.txt (unless --uncalibrated-only), then without."""
+    """The set's table rows: with calibration.txt, then without (unless --*-only says otherwise)."""
     name = bench.name
-    for calibrated in (False,) if args.uncalibrated_only else (True, False):
+    runs = (False,) if args.uncalibrated_only else (True,) if args.calibrated_only else (True, False)
+    for calibrated in runs:
         principal_point = {"auto": None, "refined": True, "fixed": False}[args.principal_point]
         row = run(bench, calibrated, args.camera_model, principal_point)
         label = "calibration.txt" if calibrated else f"none ({args.camera_model}, pp {args.principal_point})"
