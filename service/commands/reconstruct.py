@@ -107,7 +107,14 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
     intrinsics = report["intrinsics"]
     camera = intrinsics.get("camera") or next(iter(intrinsics["cameras"].values()))
     click.echo(f"camera {intrinsics['model']} ({intrinsics['source']}): fx {camera['fx']:.2f} "
-               f"fy {camera['fy']:.2f} k1 {camera['k1']:.4f} k2 {camera['k2']:.4f}")
+               f"fy {camera['fy']:.2f} cx {camera['cx']:.2f} cy {camera['cy']:.2f} k1 {camera['k1']:.4f} "
+               f"k2 {camera['k2']:.4f}")
+    test = intrinsics.get("principal_point_test")
+    if test is not None:
+        outcome = "kept" if test["kept"] else "not significant: held at the image centre"
+        click.echo(f"principal point shift from the image centre ({test['shift_px'][0]:+.1f}, "
+                   f"{test['shift_px'][1]:+.1f}) px, 1-sigma ({test['sigma_px'][0]:.1f}, "
+                   f"{test['sigma_px'][1]:.1f}) px: {outcome}")
     for warning in report["warnings"]:
         click.echo(f"warning: {warning}")
     for entry in report["unregistered"]:
