@@ -234,6 +234,10 @@ class CameraConfig(BaseModel):
         "Strecha camera by 0.46 deg, while the synthetic off-centre checks (bench_intrinsics.py "
         "--synthetic) recover it within a few pixels."
     )
+    principal_point_in_final_rounds_only: bool = Field(
+        True, description="A refined principal point is held at its start while the model grows and "
+        "refined from the final global refinement on (once the structure is good); False: from the first BA."
+    )
     principal_point_min_d2: float = Field(
         9.21, ge=0, description="A refined principal point is kept only when its shift from the image centre "
         "is significant: delta^T Sigma^-1 delta (Sigma: its marginal covariance in the final BA at the "

@@ -174,7 +174,12 @@ class _ModelBuilder:
                  config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
                  progress: ProgressCallback | None) -> None:
         self.config, self.mapper = config, config.mapper
-        self.scene = Scene(tracks, camera, refine)
+        # The principal point is refined only from the final global refinement on (`release_principal_point`):
+        # while the model grows, its few images cannot determine it, and a drifting one bends what follows.
+        self.refine = refine
+        staged = config.camera.principal_point_in_final_rounds_only
+        self.scene = Scene(tracks, camera,
+                           replace(refine, principal_point=refine.principal_point and not staged))
         self.available = available  # images no earlier model holds
         self.timer, self.progress = timer, progress
         self.rng = np.random.default_rng(config.ransac.seed)
@@ -401,6 +406,10 @@ class _ModelBuilder:
         return PrincipalPointTest((float(shift[0]), float(shift[1])), (float(sigma[0]), float(sigma[1])), d2,
                                   d2 >= self.config.camera.principal_point_min_d2)
 
+    def release_principal_point(self) -> None:
+        """From now on, refine the principal point if asked for (the final rounds)."""
+        self.scene.refine = replace(self.scene.refine, principal_point=self.refine.principal_point)
+
     def hold_principal_point(self) -> None:
         """Put the principal point back where it started and hold it in every later BA."""
         scene = self.scene
@@ -577,6 +586,7 @@ def reconstruct_models(
             )
         before = summarize(builder.scene.errors(builder.scene.used_observations()))
         with timer.stage("bundle adjustment"):
+            builder.release_principal_point()
             builder.global_refinement(config.bundle_adjustment)
             decrease, iterations, covariance = builder.final_bundle_adjustment()
             principal_point_test = builder.test_principal_point(covariance)
