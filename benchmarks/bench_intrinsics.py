@@ -100,27 +100,30 @@ def synthetic_scenes() -> dict[str, SyntheticScene]:
     }
 
 
+ALWAYS_KEPT = {"principal_point_min_d2": 0.0}
 SYNTHETIC_SETTINGS = {
     "true K, fixed": None,
-    "simple-radial, pp held": ("simple-radial", False, 0.0),
-    "opencv, pp refined": ("opencv", True, 0.0),
-    "pinhole, pp refined": ("pinhole", True, 0.0),
-    "simple-radial, pp refined": ("simple-radial", True, 0.0),
-    "simple-radial, pp refined if significant (default)": ("simple-radial", True, None),
+    "simple-radial, pp held": ("simple-radial", False, {}),
+    "opencv, pp refined": ("opencv", True, ALWAYS_KEPT),
+    "pinhole, pp refined": ("pinhole", True, ALWAYS_KEPT),
+    "simple-radial, pp refined from the first BA": (
+        "simple-radial", True, {**ALWAYS_KEPT, "principal_point_in_final_rounds_only": False}),
+    "simple-radial, pp refined in the final rounds": ("simple-radial", True, ALWAYS_KEPT),
+    "simple-radial, pp refined in the final rounds, kept if significant (default)": (
+        "simple-radial", True, {}),
 }
-"""Intrinsics setting -> (camera model, principal point refined, CameraConfig.principal_point_min_d2: 0
-keeps it whatever its significance, None the default); None: the true camera held fixed."""
+"""Intrinsics setting -> (camera model, principal point refined, CameraConfig fields changed from their
+defaults); None: the true camera held fixed."""
 
 
-def run_synthetic(scene: SyntheticScene, setting: tuple[str, bool, float | None] | None) -> dict:
+def run_synthetic(scene: SyntheticScene, setting: tuple[str, bool, dict] | None) -> dict:
     """The mapper from COLMAP's prior (1.2 max(w, h), principal point at the centre), or from the truth."""
     config = ReconstructionConfig(write_figures=False)
     if setting is None:
         camera, refine = scene.camera, IntrinsicsRefinement()
     else:
-        model, principal_point, min_d2 = setting
-        if min_d2 is not None:
-            config.camera.principal_point_min_d2 = min_d2
+        model, principal_point, camera_fields = setting
+        config = config.model_copy(update={"camera": config.camera.model_copy(update=camera_fields)})
         focal = 1.2 * max(scene.width, scene.height)
         camera = Camera(model, fx=focal, fy=focal, cx=(scene.width - 1) / 2, cy=(scene.height - 1) / 2)
         refine = IntrinsicsRefinement(focal=True, distortion=True, principal_point=principal_point)
