@@ -230,9 +230,9 @@ class CameraConfig(BaseModel):
     refine_principal_point: bool | None = Field(
         None, description="Refine cx, cy when there is no calibration file. None: refined for a shared "
         "camera, held at the image centre for per-image cameras (each sees too little to determine it). "
-        "COLMAP holds it by default; measured here, holding it 16-22 px from the true one turned every "
+        "COLMAP holds it by default; measured here, holding it 22 px from the true one turned every "
         "Strecha camera by 0.46 deg, while the synthetic off-centre checks (bench_intrinsics.py "
-        "--synthetic) recover it within a few pixels."
+        "--synthetic) recover it within 2 px."
     )
     principal_point_in_final_rounds_only: bool = Field(
         True, description="A refined principal point is held at its start while the model grows and "
@@ -243,7 +243,8 @@ class CameraConfig(BaseModel):
         "is significant: delta^T Sigma^-1 delta (Sigma: its marginal covariance in the final BA at the "
         "measured noise) reaches this; else it is put back at the centre and held. 9.21: chi-square with "
         "2 degrees of freedom at 99 %. On the synthetic object ring with it centred, a free principal point "
-        "cost 0.16 deg against 0.10 held (bench_intrinsics.py --synthetic). 0: always kept."
+        "cost 0.16 deg against 0.10 held (bench_intrinsics.py --synthetic). 0: always kept. Per-image "
+        "cameras (principal point refined on request only) are not tested."
     )
     focal_prior_factor: float = Field(
         1.2, gt=0, description="Focal length = this * max(width, height) when neither calibration nor EXIF "
