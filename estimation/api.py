@@ -158,12 +158,11 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
     """The cameras to start from: the calibration file's K (held fixed, distortion refined if the
     model has any, unless `distortion` gives it: then everything is held); else each photo's EXIF focal
     length, else focal_prior_factor * max(w, h) with a warning (focal length and distortion refined).
-    The principal point is K's, or the image centre."""
+    The principal point is K's (held), or the image centre (refined as `refine_principal_point` says)."""
     model = resolve_camera_model(config, K is not None, distortion is not None)
     per_image = not config.single_camera
-    if config.refine_principal_point and model not in ("pinhole", "opencv"):
-        raise InputError(f"refining the principal point needs the pinhole or opencv camera model, "
-                         f"not {model}")
+    principal_point = (not per_image if config.refine_principal_point is None
+                       else config.refine_principal_point)
     if K is not None:
         camera = Camera.from_K(K, "opencv", **(distortion or {})).as_model(model)
         return InitialIntrinsics(
@@ -203,7 +202,7 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
     source = "prior" if not found else "exif" if not missing else "exif and prior"
     return InitialIntrinsics(cameras=cameras, source=source, focal_sources=focal_sources,
                              refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image,
-                                                         principal_point=config.refine_principal_point),
+                                                         principal_point=principal_point),
                              warnings=warnings)
 
 
@@ -219,7 +218,10 @@ def _registered_cameras(model: SparseModel) -> list[Camera]:
 
 def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: SparseModel) -> dict:
     """report.json's intrinsics: the refined camera(s) (OpenCV pixel convention), their source,
-    what was refined and the warnings."""
+    what was refined, the 1-sigma of the refined shared camera (`camera.sigma`: marginal covariance of
+    the final BA at the measured pixel noise), whether the refined principal point's shift was significant
+    enough to keep (`principal_point_test`; if not, it is back at the centre and `refined` says False) and
+    the warnings."""
     cameras = _registered_cameras(model)
     report = {
         "K": cameras[0].K.tolist(), "width": images.width, "height": images.height,
@@ -236,7 +238,13 @@ def intrinsics_report(images: ImageSet, initial: InitialIntrinsics, model: Spars
                                                "focal_source": initial.focal_sources[i]}
                              for i in sorted(model.poses)}
     else:
-        report["camera"] = {**cameras[0].to_dict(), "initial_focal_px": float(initial.cameras[0].fx)}
+        report["camera"] = {**cameras[0].to_dict(), "initial_focal_px": float(initial.cameras[0].fx),
+                            "sigma": dict(model.stats.intrinsics_sigma)}
+    test = model.stats.principal_point_test
+    if test is not None:
+        report["refined"]["principal_point"] = test.kept
+        report["principal_point_test"] = {"shift_px": list(test.shift_px), "sigma_px": list(test.sigma_px),
+                                          "d2": test.d2, "kept": test.kept}
         report["focal_sources"] = dict(zip(images.names, initial.focal_sources, strict=True))
     return report
 

@@ -69,9 +69,10 @@ def project(camera: Camera | np.ndarray, pose: CameraPose, points: np.ndarray) -
     return project_with_camera(camera, pose.R, pose.t, points).uv
 
 
-def _camera_poses(num_cameras: int, rng: np.random.Generator) -> list[CameraPose]:
-    full_ring = ARC_STEP_DEG * num_cameras >= 360.0
-    span_deg = 360.0 * (num_cameras - 1) / num_cameras if full_ring else ARC_STEP_DEG * (num_cameras - 1)
+def _camera_poses(num_cameras: int, rng: np.random.Generator, arc_step_deg: float = ARC_STEP_DEG
+                  ) -> list[CameraPose]:
+    full_ring = arc_step_deg * num_cameras >= 360.0
+    span_deg = 360.0 * (num_cameras - 1) / num_cameras if full_ring else arc_step_deg * (num_cameras - 1)
     azimuths = np.deg2rad(np.linspace(-span_deg / 2, span_deg / 2, num_cameras))
     world_up = np.array([0.0, -1.0, 0.0])     # the world uses OpenCV-like axes: y points down
     poses = []
@@ -144,13 +145,15 @@ def make_scene(
     height: int = 600,
     visibility: float = 1.0,
     camera: Camera | None = None,
+    arc_step_deg: float = ARC_STEP_DEG,
 ) -> SyntheticScene:
     """A scene with known poses and points; tracks are projections + N(0, noise_px^2) pixel noise.
 
     `outlier_fraction` of all observations are replaced by uniformly random pixels (so a pair of
     images shares a fraction 1 - (1 - f)^2 of wrong matches). `visibility` < 1 drops each observation
     with probability 1 - visibility, keeping at least two per track. `camera` (default: pinhole, focal
-    0.75 width, principal point at the centre) may add distortion.
+    0.75 width, principal point at the centre) may add distortion or move the principal point.
+    `arc_step_deg` is the azimuth between neighbouring cameras (a façade capture turns a few degrees).
     """
     if num_cameras < 2:
         raise ValueError(f"make_scene needs at least 2 cameras, got {num_cameras}")
@@ -162,7 +165,7 @@ def make_scene(
     if camera is None:
         focal = 0.75 * width
         camera = Camera("pinhole", fx=focal, fy=focal, cx=width / 2, cy=height / 2)
-    poses = _camera_poses(num_cameras, rng)
+    poses = _camera_poses(num_cameras, rng, arc_step_deg)
     points = _points_inside_all_images(camera, poses, width, height, num_points, rng)
     colors = rng.integers(0, 256, (num_points, 3), dtype=np.uint8)
 

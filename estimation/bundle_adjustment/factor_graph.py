@@ -8,9 +8,11 @@ GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt; pi is `geometry.projec
   in the undistorted image) and each becomes a GenericProjectionFactorCal3_S2 (vectorized insertion).
 - Intrinsics refined (`IntrinsicsRefinement`): each observation is a GeneralSFMFactor2 on (pose, point,
   calibration), the calibration a variable of the graph, one shared by every camera or one per camera:
-  Cal3Bundler (f, k1, k2) for simple-radial and radial, Cal3DS2 (fx, fy, s, u0, v0, k1, k2, p1, p2)
-  for pinhole and opencv. What the model or the request holds fixed (the skew always, the principal
-  point unless asked, as COLMAP does by default) is held by a near-hard prior on that component only.
+  Cal3Bundler (f, k1, k2) for simple-radial and radial with the principal point held, Cal3DS2 (fx, fy,
+  s, u0, v0, k1, k2, p1, p2) otherwise (Cal3Bundler has no principal point among its variables). What
+  the model or the request holds fixed (the skew always, the principal point unless asked, as COLMAP
+  does by default, the coefficients the model lacks) is held by a near-hard prior on that component
+  only; a model with one focal length on a Cal3DS2 ties fx to fy by a near-hard factor on fx - fy.
 The gauge (7 DoF: rotation, translation, scale) is fixed by near-hard priors: a PriorFactorPose3 on each
 fixed camera and, when only one camera is fixed, a RangeFactorPose3 holding the distance between the
 centres of the first fixed camera and the scale-reference camera at its initial value. With fixed
@@ -29,9 +31,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
+from scipy import sparse
 
 from estimation.config import BundleAdjustmentConfig
 from estimation.errors import InputError
@@ -55,6 +59,10 @@ _LINEAR_SOLVERS = {
     "pcg_block_jacobi": "ITERATIVE",
 }
 _ORDERING_TYPES = {"colamd": "COLAMD", "metis": "METIS", "natural": "NATURAL"}
+EQUAL_FOCALS_SIGMA_PX = 1e-3
+"""Std-dev of fx - fy for a one-focal model on a Cal3DS2. Not fixed_intrinsics_sigma (1e-6): this factor
+couples two variables, and at a precision of 1e12 the elimination loses the sum fx + fy to cancellation
+(measured: Levenberg-Marquardt made no step at 1e-6 and the same steps at 1e-3 and 1e-1)."""
 
 
 @dataclass(frozen=True)
@@ -64,10 +72,31 @@ class IntrinsicsRefinement:
     focal: bool = False            # fx, fy (f for simple-radial and radial)
     distortion: bool = False       # the coefficients the camera model has (none for pinhole)
     per_image: bool = False        # one calibration variable per camera instead of one shared by all
-    principal_point: bool = False  # cx, cy: pinhole and opencv only (GTSAM's Cal3Bundler holds it fixed)
+    principal_point: bool = False  # cx, cy
 
     def refines(self, model: str) -> bool:
         return self.focal or self.principal_point or (self.distortion and model != "pinhole")
+
+
+class IntrinsicsCovariance(NamedTuple):
+    """Marginal covariance of a shared camera's refined intrinsics at the optimum (how well the views
+    determine them), for the pixel noise it was computed with."""
+
+    names: tuple[str, ...]  # the refined components ("f" or "fx", "fy", "cx", "cy", "k1", ...)
+    matrix: np.ndarray      # (k, k) in their units (pixels, unitless)
+
+    def scaled(self, noise_ratio: float) -> IntrinsicsCovariance:
+        """For noise_ratio times the pixel noise (the covariance grows with its square)."""
+        return self._replace(matrix=self.matrix * noise_ratio**2)
+
+    def sigma(self) -> dict[str, float]:
+        """1-sigma of each component."""
+        return {name: float(np.sqrt(v)) for name, v in zip(self.names, np.diag(self.matrix), strict=True)}
+
+    def block(self, names: Sequence[str]) -> np.ndarray:
+        """The covariance of the named components."""
+        index = [self.names.index(name) for name in names]
+        return self.matrix[np.ix_(index, index)]
 
 
 @dataclass(frozen=True)
@@ -83,6 +112,8 @@ class BundleAdjustmentResult:
     initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
     final_cost: float
     cameras: list[Camera]  # intrinsics per pose after the adjustment (the same object when shared)
+    # of a shared refined camera, for measurement_sigma_px pixel noise; None unless asked for
+    intrinsics_covariance: IntrinsicsCovariance | None = None
 
 
 def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
@@ -230,14 +261,21 @@ def _projection_factors(
     return graph
 
 
-def _uses_bundler(model: str) -> bool:
-    """Cal3Bundler (one focal length, k1, k2) for simple-radial and radial; Cal3DS2 otherwise."""
+def _one_focal(model: str) -> bool:
+    """simple-radial and radial have one focal length f = fx = fy."""
     return model in ("simple-radial", "radial")
 
 
-def camera_to_gtsam(camera: Camera) -> gtsam.Cal3Bundler | gtsam.Cal3DS2:
-    """The GTSAM calibration with the same projection as `camera`."""
-    if _uses_bundler(camera.model):
+def _uses_bundler(model: str, principal_point: bool = False) -> bool:
+    """Cal3Bundler (one focal length, k1, k2; principal point a constant) for simple-radial and radial
+    with the principal point held; Cal3DS2 otherwise."""
+    return _one_focal(model) and not principal_point
+
+
+def camera_to_gtsam(camera: Camera, principal_point: bool = False) -> gtsam.Cal3Bundler | gtsam.Cal3DS2:
+    """The GTSAM calibration with the same projection as `camera` (a Cal3DS2 whenever the principal
+    point is to be refined)."""
+    if _uses_bundler(camera.model, principal_point):
         return gtsam.Cal3Bundler(camera.fx, camera.k1, camera.k2, camera.cx, camera.cy)
     return gtsam.Cal3DS2(camera.fx, camera.fy, camera.skew, camera.cx, camera.cy,
                          camera.k1, camera.k2, camera.p1, camera.p2)
@@ -245,23 +283,101 @@ def camera_to_gtsam(camera: Camera) -> gtsam.Cal3Bundler | gtsam.Cal3DS2:
 
 def camera_from_gtsam(calibration: gtsam.Cal3Bundler | gtsam.Cal3DS2, like: Camera) -> Camera:
     """`like` (model, skew) with the focal lengths, principal point and coefficients of `calibration`
-    (those the model lacks, held near zero by a prior, are set to exactly zero)."""
+    (those the model lacks, held near zero by a prior, are set to exactly zero; a one-focal model's fx
+    and fy, tied by a near-hard factor, become their mean)."""
     bundler = isinstance(calibration, gtsam.Cal3Bundler)
     coefficients = {"k1": calibration.k1(), "k2": calibration.k2(),
                     "p1": 0.0 if bundler else calibration.p1(), "p2": 0.0 if bundler else calibration.p2()}
     kept = {name: value for name, value in coefficients.items() if name in DISTORTION_PARAMETERS[like.model]}
-    return Camera(like.model, fx=calibration.fx(), fy=calibration.fx() if bundler else calibration.fy(),
-                  cx=calibration.px(), cy=calibration.py(), skew=like.skew, **kept)
+    fx = calibration.fx()
+    fy = fx if bundler else calibration.fy()
+    if _one_focal(like.model):
+        fx = fy = (fx + fy) / 2
+    return Camera(like.model, fx=fx, fy=fy, cx=calibration.px(), cy=calibration.py(), skew=like.skew, **kept)
+
+
+def _tangent_names(model: str, principal_point: bool) -> list[str]:
+    """The camera parameter behind each component of the GTSAM calibration's tangent vector."""
+    if _uses_bundler(model, principal_point):
+        return ["f", "k1", "k2"]
+    return ["fx", "fy", "skew", "cx", "cy", "k1", "k2", "p1", "p2"]
+
+
+def _intrinsics_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, calibration_key: int,
+                           num_cameras: int, fixed_cameras: Sequence[int], model: str,
+                           refine: IntrinsicsRefinement) -> IntrinsicsCovariance:
+    """Marginal covariance of the refined components of the calibration: inv(S) with S the Schur
+    complement of the points in H = J^T J (J: the whitened, robust-weighted Jacobian at the optimum),
+    conditioned on what is held (the fixed cameras, the calibration's held components).
+
+    Computed here rather than by gtsam.Marginals, whose Cholesky refuses the whole system when one
+    point or the near-hard priors make it nearly indeterminate (measured on a synthetic object ring);
+    each point's 3x3 block is pseudo-inverted instead."""
+    linear = graph.linearize(values)
+    rows, cols, entries = linear.sparseJacobian_()
+    keys = sorted(linear.keys())   # sparseJacobian_: columns in key order, 1-based (row, col, value)
+    calibration_dim = len(_tangent_names(model, refine.principal_point))
+    dims = np.array([6 if key < num_cameras else calibration_dim if key == calibration_key else 3
+                     for key in keys])
+    offsets = np.concatenate([[0], np.cumsum(dims)])
+    in_a = cols <= offsets[-1]   # the last column is the right-hand side b of [A | b]
+    jacobian = sparse.csr_matrix(
+        (entries[in_a], (rows[in_a].astype(np.int64) - 1, cols[in_a].astype(np.int64) - 1)),
+        shape=(int(rows.max()), int(offsets[-1])))
+    information = (jacobian.T @ jacobian).tocsc()
+    is_point = np.repeat([num_cameras <= key != calibration_key for key in keys], dims)
+    points, rest = np.flatnonzero(is_point), np.flatnonzero(~is_point)
+    block_diagonal = information[points][:, points].tocoo()
+    blocks = np.zeros((len(points) // 3, 3, 3))
+    np.add.at(blocks, (block_diagonal.row // 3, block_diagonal.row % 3, block_diagonal.col % 3),
+              block_diagonal.data)
+    inverse = sparse.bsr_matrix((np.linalg.pinv(blocks), np.arange(len(blocks)), np.arange(len(blocks) + 1)),
+                                shape=(len(points), len(points)))
+    coupling = information[rest][:, points]
+    schur = information[rest][:, rest].toarray() - (coupling @ inverse @ coupling.T).toarray()
+    # Condition on the held variables: drop their rows and columns.
+    held = np.zeros(int(offsets[-1]), bool)
+    for key, begin, dim in zip(keys, offsets[:-1], dims, strict=True):
+        if key in fixed_cameras:
+            held[begin:begin + dim] = True
+        elif key == calibration_key:
+            held[begin:begin + dim] = ~_free_components(model, refine)
+    calibration = np.zeros(int(offsets[-1]), bool)
+    calibration_begin = offsets[keys.index(calibration_key)]
+    calibration[calibration_begin:calibration_begin + calibration_dim] = True
+    kept = ~held[rest]
+    covariance = np.linalg.inv(schur[np.ix_(kept, kept)])
+    in_calibration = calibration[rest][kept]
+    free = _free_components(model, refine)
+    names = tuple(name for name, is_free in zip(_tangent_names(model, refine.principal_point), free,
+                                                strict=True) if is_free)
+    return IntrinsicsCovariance(names, covariance[np.ix_(in_calibration, in_calibration)])
 
 
 def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
     """Which components of the GTSAM calibration's tangent vector the BA may change."""
     distortion = refine.distortion and model != "pinhole"
-    if _uses_bundler(model):   # (f, k1, k2)
-        return np.array([refine.focal, distortion, distortion and model == "radial"])
-    opencv = distortion and model == "opencv"       # fx fy s, u0 v0, k1 k2 p1 p2
+    k2 = distortion and model in ("radial", "opencv")
+    if _uses_bundler(model, refine.principal_point):   # (f, k1, k2)
+        return np.array([refine.focal, distortion, k2])
+    tangential = distortion and model == "opencv"       # fx fy s, u0 v0, k1 k2 p1 p2
     return np.array([refine.focal, refine.focal, False, refine.principal_point, refine.principal_point,
-                     opencv, opencv, opencv, opencv])
+                     distortion, k2, tangential, tangential])
+
+
+def _equal_focals_factor(key: int) -> gtsam.CustomFactor:
+    """fx - fy = 0 on a Cal3DS2 variable (tangent order fx, fy, s, u0, v0, k1, k2, p1, p2), within
+    EQUAL_FOCALS_SIGMA_PX."""
+    jacobian = np.zeros((1, 9))
+    jacobian[0, :2] = (1.0, -1.0)
+
+    def error(factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list | None) -> np.ndarray:
+        calibration = values.atCal3DS2(factor.keys()[0])
+        if jacobians is not None:
+            jacobians[0] = jacobian
+        return np.array([calibration.fx() - calibration.fy()])
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, EQUAL_FOCALS_SIGMA_PX), [key], error)
 
 
 def _calibrated_factors(
@@ -279,8 +395,9 @@ def _calibrated_factors(
     components that `refine` and the model keep fixed."""
     graph = gtsam.NonlinearFactorGraph()
     model = cameras[0].model
-    factor = gtsam.GeneralSFMFactor2Cal3Bundler if _uses_bundler(model) else gtsam.GeneralSFMFactor2Cal3DS2
-    prior = gtsam.PriorFactorCal3Bundler if _uses_bundler(model) else gtsam.PriorFactorCal3DS2
+    bundler = _uses_bundler(model, refine.principal_point)
+    factor = gtsam.GeneralSFMFactor2Cal3Bundler if bundler else gtsam.GeneralSFMFactor2Cal3DS2
+    prior = gtsam.PriorFactorCal3Bundler if bundler else gtsam.PriorFactorCal3DS2
     pixel_noise = _pixel_noise(config)
     point_keys = len(cameras) + point_index
     observation_calibration = calibration_offset + calibration_of_camera[camera_index]
@@ -292,7 +409,9 @@ def _calibrated_factors(
     hold_noise = gtsam.noiseModel.Diagonal.Precisions(held / config.fixed_intrinsics_sigma**2)
     for key in np.unique(observation_calibration).tolist():
         first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
-        graph.add(prior(key, camera_to_gtsam(cameras[first]), hold_noise))
+        graph.add(prior(key, camera_to_gtsam(cameras[first], refine.principal_point), hold_noise))
+        if _one_focal(model) and not bundler:
+            graph.add(_equal_focals_factor(key))
     return graph
 
 
@@ -373,6 +492,7 @@ def bundle_adjust(
     scale_reference: int | None = 1,
     on_iteration: IterationHook | None = None,
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
+    intrinsics_covariance: bool = False,
 ) -> BundleAdjustmentResult:
     """Minimize the Huber-robust reprojection error over all observed cameras and points (GTSAM LM).
 
@@ -385,6 +505,8 @@ def bundle_adjust(
     Cameras and points without observations (and not fixed) are returned unchanged.
     `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
     graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
+    `intrinsics_covariance`: also the marginal covariance of a shared refined camera's intrinsics
+    (how well the views determine them; one more elimination of the graph).
     """
     start = time.perf_counter()
     cameras = per_pose_cameras(camera, len(poses))
@@ -394,9 +516,6 @@ def bundle_adjust(
     uv = np.asarray(uv, float)
     fixed_cameras = [int(c) for c in fixed_cameras]
     _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
-    if refine.principal_point and _uses_bundler(cameras[0].model):
-        raise InputError(f"bundle_adjust: the principal point can be refined for the pinhole and opencv "
-                         f"models only, not {cameras[0].model}")
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
 
     num_cameras = len(poses)
@@ -430,7 +549,7 @@ def bundle_adjust(
         initial.insert(key, point)
     for key in calibration_keys.tolist():
         first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
-        initial.insert(key, camera_to_gtsam(cameras[first]))
+        initial.insert(key, camera_to_gtsam(cameras[first], refine.principal_point))
 
     ordering = _elimination_ordering(config, camera_keys, point_keys, calibration_keys)
     params = _optimizer_params(config, ordering, on_iteration)
@@ -446,11 +565,16 @@ def bundle_adjust(
         adjusted_points[observed_points] = gtsam.utilities.extractPoint3(values)
     adjusted_cameras = list(cameras)
     if refines:
-        at = values.atCal3Bundler if _uses_bundler(cameras[0].model) else values.atCal3DS2
+        bundler = _uses_bundler(cameras[0].model, refine.principal_point)
+        at = values.atCal3Bundler if bundler else values.atCal3DS2
         refined = {key - calibration_offset: camera_from_gtsam(at(key), cameras[0])
                    for key in calibration_keys.tolist()}
         adjusted_cameras = [refined.get(int(calibration_of_camera[c]), cameras[c])
                             for c in range(num_cameras)]
+    covariance = None
+    if refines and intrinsics_covariance and not refine.per_image:
+        covariance = _intrinsics_covariance(graph, values, int(calibration_keys[0]), num_cameras,
+                                            fixed_cameras, cameras[0].model, refine)
 
     initial_residuals = reprojection_residuals(cameras, poses, points, camera_index, point_index, uv)
     final_residuals = reprojection_residuals(
@@ -466,4 +590,5 @@ def bundle_adjust(
         initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         cameras=adjusted_cameras,
+        intrinsics_covariance=covariance,
     )

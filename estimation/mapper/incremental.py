@@ -16,13 +16,13 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
 from scipy import sparse
 
-from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
+from estimation.bundle_adjustment.factor_graph import IntrinsicsCovariance, IntrinsicsRefinement
 from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
@@ -70,6 +70,19 @@ class ReconstructionStats:
     final_cost_decrease: float  # relative robust-cost decrease of the last BA call (~0: converged)
     noise_sigma_px: float  # per-axis pixel noise measured on the final residuals
     reprojection_limit_px: float  # the error limit of the last filter (fixed, or sigmas x noise)
+    # 1-sigma of each refined intrinsic of a shared camera at the measured pixel noise (empty: none refined)
+    intrinsics_sigma: dict[str, float] = field(default_factory=dict)
+    # the refined principal point's shift from where it started, against its covariance (None: held)
+    principal_point_test: PrincipalPointTest | None = None
+
+
+class PrincipalPointTest(NamedTuple):
+    """Is the refined principal point's shift from its start significant? d2 = delta^T Sigma^-1 delta."""
+
+    shift_px: tuple[float, float]  # refined - initial (cx, cy)
+    sigma_px: tuple[float, float]  # its marginal 1-sigma at the measured noise
+    d2: float                      # squared Mahalanobis distance (chi-square, 2 degrees of freedom)
+    kept: bool                     # d2 reached CameraConfig.principal_point_min_d2: the refined one stays
 
 
 @dataclass
@@ -161,7 +174,12 @@ class _ModelBuilder:
                  config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
                  progress: ProgressCallback | None) -> None:
         self.config, self.mapper = config, config.mapper
-        self.scene = Scene(tracks, camera, refine)
+        # The principal point is refined only from the final global refinement on (`release_principal_point`):
+        # while the model grows, its few images cannot determine it, and a drifting one bends what follows.
+        self.refine = refine
+        staged = config.camera.principal_point_in_final_rounds_only
+        self.scene = Scene(tracks, camera,
+                           replace(refine, principal_point=refine.principal_point and not staged))
         self.available = available  # images no earlier model holds
         self.timer, self.progress = timer, progress
         self.rng = np.random.default_rng(config.ransac.seed)
@@ -354,22 +372,50 @@ class _ModelBuilder:
                 break
         return decrease
 
-    def final_bundle_adjustment(self) -> tuple[float, int]:
+    def final_bundle_adjustment(self) -> tuple[float, int, IntrinsicsCovariance | None]:
         """Converged global BA (tight tolerance), filtering and adjusting again while the filter removes
-        observations. Returns (relative cost decrease of the last BA, its iterations)."""
+        observations. Returns (relative cost decrease of the last BA, its iterations, the covariance of
+        the refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
         final = ba.model_copy(
             update={"relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol)}
         )
-        decrease, iterations = 0.0, 0
+        decrease, iterations, covariance = 0.0, 0, None
         for _ in range(FINAL_BA_ROUNDS):
-            result = self.scene.bundle_adjust(final)
+            result = self.scene.bundle_adjust(final, intrinsics_covariance=True)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
             iterations = result.iterations
             self.measure_noise()
+            # The BA's covariance is for measurement_sigma_px of noise; scale it to the measured noise.
+            noise = self.scene.noise_sigma(self.config.filter.max_reprojection_px) / ba.measurement_sigma_px
+            covariance = result.intrinsics_covariance and result.intrinsics_covariance.scaled(noise)
             if self.scene.filter_points(self.max_error, self.min_angle) == 0:
                 break
-        return decrease, iterations
+        return decrease, iterations, covariance
+
+    def test_principal_point(self, covariance: IntrinsicsCovariance | None) -> PrincipalPointTest | None:
+        """The refined principal point's shift from its start (the image centre) against its covariance;
+        None when it was not refined."""
+        if covariance is None or "cx" not in covariance.names:
+            return None
+        camera = self.scene.cameras[self.scene.order[0]]
+        shift = np.array([camera.cx - self.scene.K[0, 2], camera.cy - self.scene.K[1, 2]])
+        block = covariance.block(("cx", "cy"))
+        d2 = float(shift @ np.linalg.solve(block, shift))
+        sigma = np.sqrt(np.diag(block))
+        return PrincipalPointTest((float(shift[0]), float(shift[1])), (float(sigma[0]), float(sigma[1])), d2,
+                                  d2 >= self.config.camera.principal_point_min_d2)
+
+    def release_principal_point(self) -> None:
+        """From now on, refine the principal point if asked for (the final rounds)."""
+        self.scene.refine = replace(self.scene.refine, principal_point=self.refine.principal_point)
+
+    def hold_principal_point(self) -> None:
+        """Put the principal point back where it started and hold it in every later BA."""
+        scene = self.scene
+        scene.refine = replace(scene.refine, principal_point=False)
+        centred = replace(scene.cameras[scene.order[0]], cx=scene.K[0, 2], cy=scene.K[1, 2])
+        scene.use_cameras([centred] * len(scene.cameras))
 
     # -------------------------------------------------------------------------------------- loop
 
@@ -540,8 +586,14 @@ def reconstruct_models(
             )
         before = summarize(builder.scene.errors(builder.scene.used_observations()))
         with timer.stage("bundle adjustment"):
+            builder.release_principal_point()
             builder.global_refinement(config.bundle_adjustment)
-            decrease, iterations = builder.final_bundle_adjustment()
+            decrease, iterations, covariance = builder.final_bundle_adjustment()
+            principal_point_test = builder.test_principal_point(covariance)
+            if principal_point_test is not None and not principal_point_test.kept:
+                # Not determined beyond its noise: the image centre is the better guess (model selection).
+                builder.hold_principal_point()
+                decrease, iterations, covariance = builder.final_bundle_adjustment()
         after = summarize(builder.scene.errors(builder.scene.used_observations()))
         available[builder.scene.order] = False
         stats = ReconstructionStats(
@@ -558,6 +610,8 @@ def reconstruct_models(
             final_cost_decrease=decrease,
             noise_sigma_px=builder.scene.noise_sigma(config.filter.max_reprojection_px),
             reprojection_limit_px=builder.error_limit,
+            intrinsics_sigma=covariance.sigma() if covariance is not None else {},
+            principal_point_test=principal_point_test,
         )
         built.append((builder, _sparse_model(builder, candidate, stats)))
     if not built:

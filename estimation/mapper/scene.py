@@ -383,7 +383,8 @@ class Scene:
     # ------------------------------------------------------------------------------------------ BA
 
     def bundle_adjust(
-        self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None
+        self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None,
+        intrinsics_covariance: bool = False,
     ) -> BundleAdjustmentResult:
         """Global BA (variable_images None: first image fixed, scale by the second) or local BA of the
         points seen by `variable_images`, with the other images that see them held fixed; both refine the
@@ -410,7 +411,7 @@ class Scene:
         result = bundle_adjust(
             [self.cameras[m] for m in cameras], [self.pose(m) for m in cameras], self.point_xyz[point_ids],
             position[images[used]], point_index, self.observed_uv[used], config, fixed_cameras=fixed,
-            scale_reference=scale_reference, refine=refine,
+            scale_reference=scale_reference, refine=refine, intrinsics_covariance=intrinsics_covariance,
         )
         for m, pose in zip(cameras, result.poses, strict=True):
             self.set_pose(m, pose)

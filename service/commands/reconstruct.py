@@ -66,12 +66,13 @@ class StageProgressBars:
                    "adjustment).")
 @click.option("--single-camera/--per-image-camera", default=True, show_default=True,
               help="One camera shared by all photos, or one per photo.")
-@click.option("--refine-principal-point", is_flag=True,
-              help="Without a calibration file, also refine cx, cy (pinhole and opencv models only).")
+@click.option("--refine-principal-point/--fixed-principal-point", default=None,
+              help="Without a calibration file: refine cx, cy from the image centre, or hold them there "
+                   "(default: refined for a shared camera, held for per-image cameras).")
 @click.option("--all-models", is_flag=True,
               help="Also write every smaller model (images no model could join) to OUT/models/<k>/.")
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, relative_pose: str,
-                camera_model: str, single_camera: bool, refine_principal_point: bool,
+                camera_model: str, single_camera: bool, refine_principal_point: bool | None,
                 all_models: bool) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
@@ -106,7 +107,14 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
     intrinsics = report["intrinsics"]
     camera = intrinsics.get("camera") or next(iter(intrinsics["cameras"].values()))
     click.echo(f"camera {intrinsics['model']} ({intrinsics['source']}): fx {camera['fx']:.2f} "
-               f"fy {camera['fy']:.2f} k1 {camera['k1']:.4f} k2 {camera['k2']:.4f}")
+               f"fy {camera['fy']:.2f} cx {camera['cx']:.2f} cy {camera['cy']:.2f} k1 {camera['k1']:.4f} "
+               f"k2 {camera['k2']:.4f}")
+    test = intrinsics.get("principal_point_test")
+    if test is not None:
+        outcome = "kept" if test["kept"] else "not significant: held at the image centre"
+        click.echo(f"principal point shift from the image centre ({test['shift_px'][0]:+.1f}, "
+                   f"{test['shift_px'][1]:+.1f}) px, 1-sigma ({test['sigma_px'][0]:.1f}, "
+                   f"{test['sigma_px'][1]:.1f}) px: {outcome}")
     for warning in report["warnings"]:
         click.echo(f"warning: {warning}")
     for entry in report["unregistered"]:

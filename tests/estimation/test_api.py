@@ -189,7 +189,9 @@ def test_the_exif_focal_length_starts_a_shared_simple_radial_camera_at_the_image
     assert camera.model == "simple-radial"
     assert camera.fx == pytest.approx(35 / np.hypot(36, 24) * np.hypot(120, 80))
     assert (camera.cx, camera.cy) == (59.5, 39.5)      # pixel centres at integers: the centre is (w-1)/2
-    assert initial.refine == IntrinsicsRefinement(focal=True, distortion=True, per_image=False)
+    # the principal point is refined from the centre for a shared camera (kept if significant)
+    assert initial.refine == IntrinsicsRefinement(focal=True, distortion=True, per_image=False,
+                                                  principal_point=True)
 
 
 def test_exif_that_lies_falls_back_to_the_prior_with_a_warning_in_the_log(tmp_path, caplog):
@@ -213,6 +215,7 @@ def test_a_calibration_file_wins_over_exif_and_is_held_fixed(tmp_path):
     assert not initial.refine.focal
     per_image = initial_intrinsics(list_images(folder), None, CameraConfig(single_camera=False))
     assert per_image.refine.per_image and len(set(map(id, per_image.cameras))) == 3
+    assert not per_image.refine.principal_point          # held at the centre for per-image cameras
 
 
 def test_unity_hall_without_calibration_registers_every_image_and_exports_the_refined_camera(

@@ -317,6 +317,19 @@ def test_the_principal_point_is_refined_on_request_for_the_opencv_model():
     camera = result.cameras[0]
     assert np.hypot(camera.cx - truth.cx, camera.cy - truth.cy) < 3.0     # started 10.8 px away
     assert camera.fx == pytest.approx(truth.fx, rel=0.01) and camera.fy == pytest.approx(truth.fy, rel=0.01)
-    with pytest.raises(InputError, match="principal point can be refined for the pinhole and opencv"):
-        bundle_adjust(prior_camera("radial"), poses, points, *observations(scene), BundleAdjustmentConfig(),
-                      refine=refine)
+
+
+@pytest.mark.parametrize("model", ["simple-radial", "radial"])
+def test_a_one_focal_model_refines_its_principal_point_with_fx_equal_to_fy(model):
+    truth = TRUE_RADIAL.as_model(model)
+    truth = Camera(model, fx=truth.fx, fy=truth.fy, cx=412.0, cy=291.0, k1=truth.k1, k2=truth.k2)
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.3, seed=6, camera=truth)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3))
+    result = bundle_adjust(prior_camera(model), poses, points, *observations(scene), BundleAdjustmentConfig(),
+                           refine=IntrinsicsRefinement(focal=True, distortion=True, principal_point=True))
+    camera = result.cameras[0]
+    assert camera.model == model and camera.fx == camera.fy            # one focal length, as exported
+    assert camera.fx == pytest.approx(truth.fx, rel=0.005)
+    assert np.hypot(camera.cx - truth.cx, camera.cy - truth.cy) < 1.5  # started 15 px away
+    assert camera.k1 == pytest.approx(truth.k1, rel=0.10)
+    assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 0.1

@@ -296,6 +296,43 @@ def test_unknown_focal_length_and_radial_distortion_are_recovered_from_the_prior
     assert np.isin(model.obs_uv[:, 0], scene.tracks.uv[:, 0]).all()
 
 
+def test_an_off_centre_principal_point_is_recovered_and_holding_it_at_the_centre_turns_the_cameras():
+    """A shared simple-radial camera, principal point 18 px off the centre, started from COLMAP's prior."""
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=415.0, cy=290.0, k1=-0.1)
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
+    prior = Camera("simple-radial", fx=960.0, fy=960.0, cx=399.5, cy=299.5)
+    refined = run_incremental(scene.tracks, prior, CONFIG,
+                              refine=IntrinsicsRefinement(focal=True, distortion=True, principal_point=True))
+    held = run_incremental(scene.tracks, prior, CONFIG,
+                           refine=IntrinsicsRefinement(focal=True, distortion=True))
+    camera, sigma = refined.cameras[0], refined.stats.intrinsics_sigma
+    assert len(refined.poses) == 8 and camera.fx == camera.fy
+    assert camera.fx == pytest.approx(truth.fx, rel=0.005)
+    error = np.hypot(camera.cx - truth.cx, camera.cy - truth.cy)
+    assert error < 4.0                                             # measured 2.9 px
+    # the reported 1-sigma (marginal covariance at the measured noise) accounts for the error left
+    assert 0 < np.hypot(sigma["cx"], sigma["cy"]) < 4.0 and error < 3 * np.hypot(sigma["cx"], sigma["cy"])
+    # held 18 px off, every camera turns by about atan(18 / 600) = 1.7 deg; refined, 5x less
+    assert pose_errors(held, scene).rotation_deg.mean() > 1.0
+    assert pose_errors(refined, scene).rotation_deg.max() < 0.5
+    assert "cx" not in held.stats.intrinsics_sigma and held.stats.intrinsics_sigma["f"] > 0
+    assert refined.stats.principal_point_test.kept and held.stats.principal_point_test is None
+
+
+def test_a_principal_point_that_the_views_do_not_determine_goes_back_to_the_centre_and_is_held():
+    """An object ring whose principal point is the image centre: its refined shift is within its noise."""
+    scene = make_object_scene(num_cameras=16, num_points=600, noise_px=0.5, seed=31)
+    prior = Camera("simple-radial", fx=768.0, fy=768.0, cx=319.5, cy=239.5)
+    model = run_incremental(scene.tracks, prior, CONFIG,
+                            refine=IntrinsicsRefinement(focal=True, distortion=True, principal_point=True))
+    test = model.stats.principal_point_test
+    assert not test.kept and test.d2 < CONFIG.camera.principal_point_min_d2
+    assert all(sigma > 0 for sigma in test.sigma_px)
+    camera = model.cameras[model.registration_order[0]]
+    assert (camera.cx, camera.cy) == (319.5, 239.5) and "cx" not in model.stats.intrinsics_sigma
+    assert len(model.poses) == 16 and pose_errors(model, scene).rotation_deg.mean() < 0.3
+
+
 def test_per_image_cameras_are_refined_one_by_one():
     truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
     scene = make_scene(num_cameras=8, num_points=400, noise_px=0.3, seed=5, camera=truth, visibility=0.8)
