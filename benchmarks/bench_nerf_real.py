@@ -12,9 +12,12 @@ images: the command has no image-size option), into OUT/sfm/SCENE (kept and reus
 time, then is evaluated (`neural.evaluate`) on the held-out split (LLFF: every 8th image from the first;
 never trained on): PSNR and SSIM at the training size. The held-out renders are written as
 OUT/SCENE/CONFIG/heldout/NAME.png beside NAME_truth.png, and one 800x600 frame is rendered and timed.
-Prints a table and writes OUT/results.json.
+Prints a table and writes OUT/results.json. With --side-by-side, a scene's configurations train at the same
+time in their own processes (give each one thread: `--threads 1` on 2 cores), so they share the machine's
+conditions (load from others included) and a scene takes --minutes of wall-clock.
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf_real.py --minutes 3 --out /tmp/bench_real
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf_real.py --side-by-side --threads 1 --out /tmp/r
 """
 
 from __future__ import annotations
@@ -164,6 +167,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads (2 cores here)")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--out", type=Path, default=Path("bench_nerf_real_runs"))
+    parser.add_argument(
+        "--side-by-side",
+        action="store_true",
+        help="train a scene's configurations at the same time, one process each (use --threads 1 on 2 "
+        "cores): the same conditions for each, and one scene takes --minutes instead of twice that",
+    )
     parser.add_argument("--single", nargs=2, metavar=("SCENE", "CONFIGURATION"), help=argparse.SUPPRESS)
     args = parser.parse_args()
 
@@ -185,14 +194,22 @@ def main() -> None:
             run_dir = args.out / scene / configuration
             if run_dir.exists():
                 raise SystemExit(f"{run_dir} exists: choose another --out or remove it")
-            print(f"== {scene} {configuration} (load average {load_average()})", flush=True)
-            command = [
-                sys.executable, __file__, "--single", scene, configuration, "--out", str(args.out),
-                "--minutes", str(args.minutes), "--max-side", str(args.max_side), "--threads",
-                str(args.threads), "--device", args.device,
+        # One group of subprocesses at a time: all of a scene's configurations with --side-by-side, else one.
+        groups = [args.configurations] if args.side_by_side else [[c] for c in args.configurations]
+        for group in groups:
+            print(f"== {scene} {' + '.join(group)} (load average {load_average()})", flush=True)
+            common = [
+                "--out", str(args.out), "--minutes", str(args.minutes), "--max-side", str(args.max_side),
+                "--threads", str(args.threads), "--device", args.device,
             ]  # fmt: skip
-            subprocess.run(command, check=True, cwd=REPO)
-            results.append(json.loads((args.out / f"result_{scene}_{configuration}.json").read_text()))
+            processes = [
+                subprocess.Popen([sys.executable, __file__, "--single", scene, c, *common], cwd=REPO)
+                for c in group
+            ]
+            for configuration, process in zip(group, processes, strict=True):
+                if process.wait() != 0:
+                    raise SystemExit(f"{scene} {configuration}: the training subprocess failed")
+                results.append(json.loads((args.out / f"result_{scene}_{configuration}.json").read_text()))
     (args.out / "results.json").write_text(json.dumps({"sfm": sfm, "runs": results}, indent=2))
     print()
     print_table(sfm, results)
