@@ -92,10 +92,11 @@ def test_a_fresh_unbounded_model_gives_each_sample_step_its_initial_opacity_out_
     config = small_config(initial_alpha=1e-4, shell_initial_alpha=1e-2)
     model = FastModel(UNBOUNDED_SCENE, config)
     origins, directions, _ = ring_views(2, 8, half_fov_deg=40.0)
+    near, far = UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far
     with torch.no_grad():
-        samples = model._occupied_samples(origins, directions, UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far, None)
+        samples = model._occupied_samples(origins, directions, near, far, None)
         alpha = -torch.expm1(-model.density_at(samples.positions) * samples.deltas)
-        out = model.render_rays(origins, directions, UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far, WHITE, False)
+        out = model.render_rays(origins, directions, near, far, WHITE, False)
     rho = model.inner_cube.contract(samples.positions).abs().amax(dim=-1)
     inner, shell = rho < 0.9, rho > 1.1
     assert torch.allclose(alpha[inner], torch.tensor(1e-4), rtol=0.05)
