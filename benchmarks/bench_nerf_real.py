@@ -12,9 +12,14 @@ images: the command has no image-size option), into OUT/sfm/SCENE (kept and reus
 time, then is evaluated (`neural.evaluate`) on the held-out split (LLFF: every 8th image from the first;
 never trained on): PSNR and SSIM at the training size. The held-out renders are written as
 OUT/SCENE/CONFIG/heldout/NAME.png beside NAME_truth.png, and one 800x600 frame is rendered and timed.
-Prints a table and writes OUT/results.json.
+Prints a table and writes OUT/results.json. With --side-by-side, a scene's configurations train at the same
+time in their own processes (give each one thread: `--threads 1` on 2 cores), so they share the machine's
+conditions (load from others included) and a scene takes --minutes of wall-clock.
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf_real.py --minutes 3 --out /tmp/bench_real
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf_real.py --side-by-side --threads 1 --out /tmp/r
+    python benchmarks/bench_nerf_real.py --scenes fountain-P11 --configurations unbounded --steps 300 \
+        --max-side 400 --threads 1 --variant 'tv={"model_options": {"tv_density_weight": 1e-4}}'
 """
 
 from __future__ import annotations
@@ -62,8 +67,13 @@ def reconstruct(scene: str, out: Path) -> dict:
     }
 
 
-def run_one(scene: str, configuration: str, out: Path, minutes: float, max_side: int, device: str) -> dict:
-    """Train, evaluate and time one (scene, configuration); called in the subprocess."""
+def run_one(
+    scene: str, configuration: str, settings: dict, out: Path, budget: dict, max_side: int, device: str
+) -> dict:
+    """Train, evaluate and time one (scene, configuration); called in the subprocess.
+
+    settings: the configuration's TrainConfig fields; budget: {"minutes": M} or {"steps": N}.
+    """
     import numpy as np
     import torch
     from PIL import Image
@@ -76,14 +86,12 @@ def run_one(scene: str, configuration: str, out: Path, minutes: float, max_side:
     run_dir = out / scene / configuration
     load_before = load_average()
     config = TrainConfig(
-        model="fast",
-        minutes=minutes,
+        **{"model": "fast", **budget, **settings},
         max_side=max_side,
         device=device,
         val_every=10**9,  # validation renders would count as training time
         checkpoint_every=10**9,
         log_every=50,
-        **CONFIGURATIONS[configuration],
     )
     result = train(data, run_dir, config)
     load_after = load_average()
@@ -111,7 +119,7 @@ def run_one(scene: str, configuration: str, out: Path, minutes: float, max_side:
         "configuration": configuration,
         "device": str(run.device),
         "threads": torch.get_num_threads(),
-        "minutes": minutes,
+        "minutes": budget.get("minutes"),
         "train_seconds": result.seconds,
         "steps": result.step,
         "image_size": [dataset.width, dataset.height],
@@ -143,7 +151,7 @@ def print_table(sfm: list[dict], results: list[dict]) -> None:
     for r in results:
         size = f"{r['image_size'][0]}x{r['image_size'][1]}"
         print(
-            f"{r['scene']:14} {r['configuration']:10} {size:>9} {r['minutes']:>4g} {r['steps']:>6} "
+            f"{r['scene']:14} {r['configuration']:10} {size:>9} {r['minutes'] or 0:>4g} {r['steps']:>6} "
             f"{r['psnr']:>13.2f} {r['ssim']:>6.3f} {r['render_800x600_seconds']:>9.2f} "
             f"{r['peak_rss_mib']:>8.0f} {r['load_average_after_training']:>16}"
         )
@@ -159,20 +167,40 @@ def main() -> None:
     )
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     parser.add_argument("--configurations", nargs="+", default=list(CONFIGURATIONS), choices=CONFIGURATIONS)
-    parser.add_argument("--minutes", type=float, default=10.0, help="training wall-clock per run")
+    budget = parser.add_mutually_exclusive_group()
+    budget.add_argument("--minutes", type=float, default=10.0, help="training wall-clock per run")
+    budget.add_argument("--steps", type=int, help="train each run this many steps instead (tuning)")
+    parser.add_argument(
+        "--variant", action="append", default=[], metavar="NAME=JSON",
+        help="an extra configuration: NAME={TrainConfig fields as JSON} (e.g. model_options)",
+    )  # fmt: skip
     parser.add_argument("--max-side", type=int, default=800, help="training image size (longer side)")
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads (2 cores here)")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     parser.add_argument("--out", type=Path, default=Path("bench_nerf_real_runs"))
+    parser.add_argument(
+        "--side-by-side",
+        action="store_true",
+        help="train a scene's configurations at the same time, one process each (use --threads 1 on 2 "
+        "cores): the same conditions for each, and one scene takes --minutes instead of twice that",
+    )
     parser.add_argument("--single", nargs=2, metavar=("SCENE", "CONFIGURATION"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    configurations = {name: CONFIGURATIONS[name] for name in args.configurations}
+    for spec in args.variant:
+        name, _, settings = spec.partition("=")
+        if not name or name in configurations:
+            raise SystemExit(f"--variant expects a new NAME=JSON, got {spec!r}")
+        configurations[name] = json.loads(settings)
+    budget = {"steps": args.steps} if args.steps else {"minutes": args.minutes}
 
     if args.single:  # the subprocess of one (scene, configuration)
         import torch
 
         torch.set_num_threads(args.threads)
         scene, configuration = args.single
-        result = run_one(scene, configuration, args.out, args.minutes, args.max_side, args.device)
+        settings = configurations[configuration]
+        result = run_one(scene, configuration, settings, args.out, budget, args.max_side, args.device)
         (args.out / f"result_{scene}_{configuration}.json").write_text(json.dumps(result, indent=2))
         return
 
@@ -181,18 +209,28 @@ def main() -> None:
     sfm = [reconstruct(scene, args.out) for scene in args.scenes]
     results = []
     for scene in args.scenes:
-        for configuration in args.configurations:
+        for configuration in configurations:
             run_dir = args.out / scene / configuration
             if run_dir.exists():
                 raise SystemExit(f"{run_dir} exists: choose another --out or remove it")
-            print(f"== {scene} {configuration} (load average {load_average()})", flush=True)
-            command = [
-                sys.executable, __file__, "--single", scene, configuration, "--out", str(args.out),
-                "--minutes", str(args.minutes), "--max-side", str(args.max_side), "--threads",
-                str(args.threads), "--device", args.device,
+        # One group of subprocesses at a time: all of a scene's configurations with --side-by-side, else one.
+        groups = [list(configurations)] if args.side_by_side else [[c] for c in configurations]
+        for group in groups:
+            print(f"== {scene} {' + '.join(group)} (load average {load_average()})", flush=True)
+            common = [
+                "--out", str(args.out), "--max-side", str(args.max_side), "--threads", str(args.threads),
+                "--device", args.device, "--configurations", *args.configurations,
+                *(["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]),
+                *(f"--variant={spec}" for spec in args.variant),
             ]  # fmt: skip
-            subprocess.run(command, check=True, cwd=REPO)
-            results.append(json.loads((args.out / f"result_{scene}_{configuration}.json").read_text()))
+            processes = [
+                subprocess.Popen([sys.executable, __file__, "--single", scene, c, *common], cwd=REPO)
+                for c in group
+            ]
+            for configuration, process in zip(group, processes, strict=True):
+                if process.wait() != 0:
+                    raise SystemExit(f"{scene} {configuration}: the training subprocess failed")
+                results.append(json.loads((args.out / f"result_{scene}_{configuration}.json").read_text()))
     (args.out / "results.json").write_text(json.dumps({"sfm": sfm, "runs": results}, indent=2))
     print()
     print_table(sfm, results)

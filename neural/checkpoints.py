@@ -161,7 +161,15 @@ def load_checkpoint(path: Path, map_location: torch.device | str = "cpu") -> dic
 
 
 def load_model_state(model: torch.nn.Module, state: dict[str, torch.Tensor], where: Path | str) -> None:
-    """Load a state dict, first resizing tensors whose shape the model changed while training (grids)."""
+    """Load a state dict, first resizing tensors whose shape the model changed while training (grids).
+
+    A submodule with an `upgrade_state(state, prefix)` method first fills in what older versions did not save.
+    """
+    state = dict(state)
+    for name, module in model.named_modules():
+        upgrade = getattr(module, "upgrade_state", None)
+        if upgrade is not None:
+            upgrade(state, f"{name}." if name else "")
     own = model.state_dict()
     unknown = sorted(set(state) - set(own))
     missing = sorted(set(own) - set(state))

@@ -3,6 +3,9 @@
 The grid covers an axis-aligned box with `resolution` cells per axis. A cell is occupied when the density
 inside it may make a sample's opacity exceed a threshold. It starts fully occupied (warm-up) and is then
 recomputed from the model's density during training, so it is learned from the images alone (no masks).
+A cell may be emptied only once training has rendered samples in it on enough steps (`seen_steps`): a cell
+the photos have not yet reached (the far shell of an unbounded scene, whose density starts transparent)
+keeps its chance to become dense.
 Samples are taken at a fixed spacing along each ray inside the box and kept only in occupied cells; the
 result is *packed*: one flat list of samples, sorted by ray and then by distance.
 
@@ -84,14 +87,17 @@ class GridSchedule:
 class OccupancyGrid(torch.nn.Module):
     """A boolean grid of cells over [box_min, box_max]; all cells start occupied.
 
-    Buffers (saved in state_dict): `occupied` (X,Y,Z) bool, `box_min` (3,), `box_max` (3,).
+    Buffers (saved in state_dict): `occupied` (X,Y,Z) bool, `seen_steps` (X,Y,Z) int32 (training steps that
+    rendered a sample in the cell, see `mark_seen`), `box_min` (3,), `box_max` (3,).
     """
 
     def __init__(self, box_min: Tensor, box_max: Tensor, resolution: tuple[int, int, int]) -> None:
         super().__init__()
+        shape = tuple(int(r) for r in resolution)
         self.register_buffer("box_min", torch.as_tensor(box_min, dtype=torch.float32).clone())
         self.register_buffer("box_max", torch.as_tensor(box_max, dtype=torch.float32).clone())
-        self.register_buffer("occupied", torch.ones(tuple(int(r) for r in resolution), dtype=torch.bool))
+        self.register_buffer("occupied", torch.ones(shape, dtype=torch.bool))
+        self.register_buffer("seen_steps", torch.zeros(shape, dtype=torch.int32))
         self._coarse: Tensor | None = None
 
     def _load_from_state_dict(
@@ -101,8 +107,17 @@ class OccupancyGrid(torch.nn.Module):
         stored = state_dict.get(prefix + "occupied")
         if stored is not None and stored.shape != self.occupied.shape:
             self.occupied = torch.ones(stored.shape, dtype=torch.bool, device=self.occupied.device)
+            self.seen_steps = torch.zeros(stored.shape, dtype=torch.int32, device=self.occupied.device)
         self._coarse = None
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    @staticmethod
+    def upgrade_state(state: dict[str, Tensor], prefix: str) -> None:
+        """A checkpoint from before `seen_steps` existed counts every cell as seen (its grid was updated
+        without that rule); see neural.checkpoints.load_model_state."""
+        occupied = state.get(prefix + "occupied")
+        if occupied is not None and prefix + "seen_steps" not in state:
+            state[prefix + "seen_steps"] = torch.full(occupied.shape, 2**30, dtype=torch.int32)
 
     @property
     def resolution(self) -> tuple[int, int, int]:
@@ -110,12 +125,31 @@ class OccupancyGrid(torch.nn.Module):
         return int(x), int(y), int(z)
 
     def reset(self, box_min: Tensor, box_max: Tensor, resolution: tuple[int, int, int]) -> None:
-        """Move the grid to a new box and resolution, all cells occupied."""
+        """Move the grid to a new box and resolution, all cells occupied; a new cell keeps the seen count of
+        the old cell at its centre (0 outside the old box)."""
         device = self.occupied.device
-        self.box_min = torch.as_tensor(box_min, dtype=torch.float32, device=device).clone()
-        self.box_max = torch.as_tensor(box_max, dtype=torch.float32, device=device).clone()
-        self.occupied = torch.ones(tuple(int(r) for r in resolution), dtype=torch.bool, device=device)
+        box_min = torch.as_tensor(box_min, dtype=torch.float32, device=device).clone()
+        box_max = torch.as_tensor(box_max, dtype=torch.float32, device=device).clone()
+        shape = tuple(int(r) for r in resolution)
+        axes = [
+            low + (torch.arange(n, device=device) + 0.5) * (high - low) / n
+            for low, high, n in zip(box_min, box_max, shape, strict=True)
+        ]
+        centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        cell, inside = _cell_indices(self.seen_steps.shape, centres, self.box_min, self.box_max)
+        seen = torch.where(inside, self.seen_steps.reshape(-1)[cell], 0).reshape(shape)
+        self.box_min, self.box_max = box_min, box_max
+        self.occupied = torch.ones(shape, dtype=torch.bool, device=device)
+        self.seen_steps = seen.to(torch.int32)
         self._coarse = None
+
+    @torch.no_grad()
+    def mark_seen(self, positions: Tensor) -> None:
+        """One more seen step for every cell holding one of this training step's samples (N,3)."""
+        cell, inside = _cell_indices(self.seen_steps.shape, positions, self.box_min, self.box_max)
+        hit = torch.zeros(self.seen_steps.numel(), dtype=torch.bool, device=cell.device)
+        hit[cell[inside]] = True
+        self.seen_steps += hit.reshape(self.seen_steps.shape)
 
     def set_occupied(self, occupied: Tensor) -> None:
         """Replace the cell states by `occupied` (same resolution)."""
@@ -155,8 +189,10 @@ class OccupancyGrid(torch.nn.Module):
         step_size: float | Tensor,
         alpha_threshold: float,
         dilation: int = 0,
+        min_seen_steps: int = 0,
     ) -> Tensor:
-        """Occupied iff the cell's opacity bound exceeds alpha_threshold, dilated by `dilation` cells.
+        """Occupied iff the cell's opacity bound exceeds alpha_threshold, dilated by `dilation` cells, or
+        training has rendered samples in it on fewer than `min_seen_steps` steps (`mark_seen`).
 
         density: sigma at the cell vertices (X+1, Y+1, Z+1), or a callback sigma(x) evaluated there. The
         max over a cell's vertices bounds sigma everywhere inside it whenever sigma is a monotonic function
@@ -169,7 +205,7 @@ class OccupancyGrid(torch.nn.Module):
         occupied = (alpha > alpha_threshold).float()[None, None]
         if dilation > 0:
             occupied = F.max_pool3d(occupied, kernel_size=2 * dilation + 1, stride=1, padding=dilation)
-        self.set_occupied(occupied[0, 0] > 0)
+        self.set_occupied((occupied[0, 0] > 0) | (self.seen_steps < min_seen_steps))
         return alpha
 
     def query(self, positions: Tensor) -> Tensor:
@@ -317,11 +353,18 @@ def _lookup(grid: Tensor, positions: Tensor, box_min: Tensor, box_max: Tensor, i
     inside_only: points outside the box are False; otherwise they take the nearest cell (for points known to
     be inside, where rounding at the box faces must not drop them).
     """
-    resolution = torch.tensor(grid.shape, device=positions.device)
+    flat, inside = _cell_indices(grid.shape, positions, box_min, box_max)
+    occupied = grid.reshape(-1)[flat]
+    return occupied & inside if inside_only else occupied
+
+
+def _cell_indices(
+    shape: tuple[int, ...] | torch.Size, positions: Tensor, box_min: Tensor, box_max: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Flat index (N,) of the cell of each point in an (X,Y,Z) grid over the box (the nearest cell for points
+    outside), and whether the point is inside the box (N,) bool."""
+    resolution = torch.tensor(tuple(shape), device=positions.device)
     cell = ((positions - box_min) * (resolution / (box_max - box_min))).floor().long()
     clamped = torch.minimum(cell.clamp_min(0), resolution - 1)
-    flat = (clamped[:, 0] * grid.shape[1] + clamped[:, 1]) * grid.shape[2] + clamped[:, 2]
-    occupied = grid.reshape(-1)[flat]
-    if inside_only:
-        occupied = occupied & ((cell >= 0) & (cell < resolution)).all(dim=-1)
-    return occupied
+    flat = (clamped[:, 0] * shape[1] + clamped[:, 1]) * shape[2] + clamped[:, 2]
+    return flat, ((cell >= 0) & (cell < resolution)).all(dim=-1)

@@ -77,10 +77,22 @@ class FastModelConfig(BaseModel):
     )
     step_ratio: float = Field(0.5, gt=0, description="sample spacing along rays, in voxels")
     initial_alpha: float = Field(1e-4, gt=0, lt=1, description="opacity of one sample step at initialization")
+    # The far backdrop starts a little denser than the inner cube: with 1e-4 (= initial_alpha) the boxes'
+    # far sphere (tests/neural) was fitted as floaters 1.5 units in front of the cameras; with 1e-2 it lands
+    # in the shell (depth ~7), while the shell stays translucent (a uniform raw density made it opaque).
+    shell_initial_alpha: float = Field(
+        1e-2,
+        gt=0,
+        lt=1,
+        description="unbounded scenes: opacity of one sample step in the contracted shell at initialization",
+    )
     occupancy_warmup_steps: int = Field(40, ge=0, description="steps during which every cell counts occupied")
     occupancy_update_every: int = Field(16, gt=0, description="steps between occupancy-grid updates")
     occupancy_alpha_threshold: float = Field(
         1e-3, gt=0, lt=1, description="a cell is empty when no sample step in it can reach this opacity"
+    )
+    occupancy_min_seen_steps: int = Field(
+        8, ge=0, description="a cell stays occupied until training rendered samples in it on this many steps"
     )
     transmittance_threshold: float = Field(
         1e-4, ge=0, lt=1, description="samples behind this transmittance are dropped (early ray termination)"
@@ -119,6 +131,15 @@ def grid_shape_for(box_min: Tensor, box_max: Tensor, num_voxels: int) -> tuple[t
     voxel_size = float((extent.prod() / num_voxels) ** (1.0 / 3.0))
     shape = tuple(max(2, round(float(e) / voxel_size) + 1) for e in extent)
     return (shape[0], shape[1], shape[2]), voxel_size
+
+
+def grid_vertices(box_min: Tensor, box_max: Tensor, shape: tuple[int, int, int]) -> Tensor:
+    """The (X*Y*Z, 3) vertices of a grid of `shape` vertices spanning the box, in (X,Y,Z) order."""
+    axes = [
+        torch.linspace(float(low), float(high), n, device=box_min.device)
+        for low, high, n in zip(box_min, box_max, shape, strict=True)
+    ]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
 
 
 def sh_basis(directions: Tensor, degree: int) -> Tensor:
@@ -178,7 +199,7 @@ class FastModel(GridSchedule, RadianceModel):
         self.register_buffer("box_min", box_min)
         self.register_buffer("box_max", box_max)
         self.register_buffer("voxel_size", torch.tensor(voxel_size, dtype=torch.float32))
-        self.density = torch.nn.Parameter(torch.zeros((1, 1, *shape)))
+        self.density = torch.nn.Parameter(self._initial_density(box_min, box_max, shape))
         self.color = torch.nn.Parameter(torch.zeros((1, 3 * self.num_color_sh, *shape)))
         self.color_view = (
             torch.nn.Parameter(torch.zeros((1, 3 * (self.num_sh - 1), *self.view_grid_shape(shape))))
@@ -192,6 +213,27 @@ class FastModel(GridSchedule, RadianceModel):
         self.density_shift = math.log(initial_sigma)
 
     # ----------------------------------------------------------------------------------------- grids
+    def _initial_density(self, box_min: Tensor, box_max: Tensor, shape: tuple[int, int, int]) -> Tensor:
+        """Raw density (1,1,X,Y,Z) giving every sample step the opacity `initial_alpha` (raw 0), in the shell
+        of contracted space `shell_initial_alpha`: there a step is r^2 longer in the world, so raw is
+        -log r^2 + log(sigma_shell / sigma_inner).
+
+        A uniform raw density would make the shell's far steps opaque from the start: every ray would end in
+        the shell, the photos would be explained as a far backdrop, and no foreground would form.
+        """
+        if self.inner_cube is None:
+            return torch.zeros((1, 1, *shape))
+        rho = grid_vertices(box_min, box_max, shape).abs().amax(dim=-1)
+        config = self.config
+        shell = math.log(math.log1p(-config.shell_initial_alpha) / math.log1p(-config.initial_alpha))
+        raw = torch.where(rho > 1.0, shell - 2.0 * self._uncontracted_norm(rho).log(), 0.0)
+        return raw.reshape(1, 1, *shape)
+
+    def _uncontracted_norm(self, rho: Tensor) -> Tensor:
+        """r = 1 / (2 - rho) of contracted max norms rho > 1 (1 inside), capped at the far bound."""
+        far_unit = self.scene.far / self.inner_cube.half_side
+        return torch.where(rho > 1.0, 1.0 / (CONTRACTED_RADIUS - rho).clamp_min(1.0 / far_unit), 1.0)
+
     @property
     def num_sh(self) -> int:
         return (self.config.sh_degree + 1) ** 2
@@ -271,6 +313,8 @@ class FastModel(GridSchedule, RadianceModel):
             samples, directions, self.density_at, self.color_at, background,
             self.config.color_weight_threshold,
         )  # fmt: skip
+        if train:
+            self.occupancy.mark_seen(self.to_grid_space(samples.positions))
         extra_loss = self._regularizer() if train else None
         if train and self.config.distortion_weight > 0:
             distortion = self.config.distortion_weight * packed_distortion(
@@ -316,10 +360,14 @@ class FastModel(GridSchedule, RadianceModel):
         The occupancy cells are the grid's voxels and sigma is monotonic in the interpolated raw density, so
         the max over a cell's vertices bounds every sample inside it: no skipped sample can be denser than
         the threshold. The step is the longest world length a sample stands for in the cell
-        (`_cell_world_steps`: longer in the outer shell of contracted space).
+        (`_cell_world_steps`: longer in the outer shell of contracted space). Cells that training has not
+        rendered samples in on occupancy_min_seen_steps steps stay occupied.
         """
         vertex_sigma = self.activate_density(self.density)[0, 0]
-        self.occupancy.update(vertex_sigma, self._cell_world_steps(), self.config.occupancy_alpha_threshold)
+        self.occupancy.update(
+            vertex_sigma, self._cell_world_steps(), self.config.occupancy_alpha_threshold,
+            min_seen_steps=self.config.occupancy_min_seen_steps,
+        )  # fmt: skip
 
     def _cell_alpha(self) -> Tensor:
         """Upper bound of one sample step's opacity in each cell: from the max sigma of its 8 vertices."""
@@ -341,9 +389,7 @@ class FastModel(GridSchedule, RadianceModel):
         outer = [torch.maximum(axis[:-1].abs(), axis[1:].abs()) for axis in axes]
         rho = torch.maximum(outer[0][:, None, None], outer[1][None, :, None])
         rho = torch.maximum(rho, outer[2][None, None, :])
-        far_unit = self.scene.far / self.inner_cube.half_side
-        radius = torch.where(rho > 1.0, 1.0 / (CONTRACTED_RADIUS - rho).clamp_min(1.0 / far_unit), 1.0)
-        return self.step_size * self.unit_length * radius.square()
+        return self.step_size * self.unit_length * self._uncontracted_norm(rho).square()
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""
@@ -383,11 +429,7 @@ class FastModel(GridSchedule, RadianceModel):
         self, grid: Tensor, box_min: Tensor, box_max: Tensor, shape: tuple[int, int, int]
     ) -> Tensor:
         """The (1,C,X,Y,Z) grid (over the current box) interpolated at the vertices of `shape` over a box."""
-        axes = [
-            torch.linspace(float(low), float(high), n, device=grid.device)
-            for low, high, n in zip(box_min, box_max, shape, strict=True)
-        ]
-        vertices = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        vertices = grid_vertices(box_min.to(grid.device), box_max.to(grid.device), shape)
         return self._sample_grid(grid, vertices).T.reshape(1, -1, *shape).contiguous()
 
     def _load_from_state_dict(

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from neural.checkpoints import load_model_state
 from neural.models import build_model
 from neural.models.fast import FastModel, FastModelConfig
 from neural.occupancy import OccupancyGrid, ray_box_intersection
@@ -83,6 +84,24 @@ def test_unbounded_model_fits_boxes_inside_a_textured_far_sphere_above_25_db_on_
     # the far sphere is far: rays that miss the boxes end beyond the cameras' ring (radius 3)
     misses = (render_boxes_in_sphere(origins, directions) != torch.tensor([0.9, 0.1, 0.1])).all(-1)
     assert out.depth[misses].median() > 6.0
+
+
+def test_a_fresh_unbounded_model_gives_each_sample_step_its_initial_opacity_out_to_the_far_shell():
+    """Steps in the shell stand for up to r^2 more world length; the initial density makes up for it, so the
+    far shell does not start opaque (every ray would end there, and training crawls through it)."""
+    config = small_config(initial_alpha=1e-4, shell_initial_alpha=1e-2)
+    model = FastModel(UNBOUNDED_SCENE, config)
+    origins, directions, _ = ring_views(2, 8, half_fov_deg=40.0)
+    near, far = UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far
+    with torch.no_grad():
+        samples = model._occupied_samples(origins, directions, near, far, None)
+        alpha = -torch.expm1(-model.density_at(samples.positions) * samples.deltas)
+        out = model.render_rays(origins, directions, near, far, WHITE, False)
+    rho = model.inner_cube.contract(samples.positions).abs().amax(dim=-1)
+    inner, shell = rho < 0.9, rho > 1.1
+    assert torch.allclose(alpha[inner], torch.tensor(1e-4), rtol=0.05)
+    assert 0.3e-2 < alpha[shell].median() < 3e-2 and alpha[shell].max() < 0.1
+    assert out.opacity.max() < 0.2  # the shell as a whole is translucent (0.55 with a uniform raw density)
 
 
 def view_dependent_boxes(origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
@@ -177,7 +196,7 @@ def test_render_rays_returns_one_colour_depth_and_opacity_per_ray_and_a_white_em
 
 
 def test_upsampling_replaces_the_grids_and_fits_them_to_the_occupied_box():
-    model = FastModel(SCENE, small_config(upsample_steps=[5]))
+    model = FastModel(SCENE, small_config(upsample_steps=[5], occupancy_min_seen_steps=0))
     with torch.no_grad():
         model.density.fill_(-30.0)  # empty everywhere ...
         model.density[..., 2:5, 3:6, 4:8] = 10.0  # ... but a dense block near one corner
@@ -278,7 +297,9 @@ def test_march_keeps_exactly_the_samples_in_occupied_cells():
 
 
 def test_occupancy_warm_up_keeps_every_cell_then_learns_empty_space_from_density():
-    model = FastModel(SCENE, small_config(occupancy_warmup_steps=10, upsample_steps=[1000]))
+    model = FastModel(
+        SCENE, small_config(occupancy_warmup_steps=10, upsample_steps=[1000], occupancy_min_seen_steps=0)
+    )
     with torch.no_grad():
         model.density.fill_(-30.0)
         model.density[..., 8, 8, 8] = 20.0  # one dense vertex at the centre
@@ -289,6 +310,46 @@ def test_occupancy_warm_up_keeps_every_cell_then_learns_empty_space_from_density
     assert int(occupied.sum()) == 8  # the 8 cells sharing the dense vertex
     assert model.occupancy.query(torch.zeros(1, 3)).all()
     assert not model.occupancy.query(torch.tensor([[0.7, 0.7, 0.7], [5.0, 0.0, 0.0]])).any()
+
+
+def test_occupancy_keeps_cells_that_training_has_not_rendered_on_enough_steps():
+    grid = OccupancyGrid(torch.full((3,), -1.0), torch.ones(3), (4, 4, 4))
+    empty = torch.zeros(5, 5, 5)
+    seen_point = torch.tensor([[-0.9, -0.9, -0.9]])  # the corner cell (0, 0, 0)
+    for _ in range(3):
+        grid.mark_seen(torch.cat([seen_point, seen_point, torch.tensor([[5.0, 0.0, 0.0]])]))  # one step
+    assert int(grid.seen_steps[0, 0, 0]) == 3 and int(grid.seen_steps.sum()) == 3  # outside: not counted
+    grid.update(empty, 0.1, 1e-3, min_seen_steps=4)
+    assert grid.occupied.all()  # no cell was rendered on 4 steps yet: none is emptied
+    grid.mark_seen(seen_point)
+    grid.update(empty, 0.1, 1e-3, min_seen_steps=4)
+    assert not grid.occupied[0, 0, 0] and int(grid.occupied.sum()) == 63
+    grid.update(empty, 0.1, 1e-3)  # without the rule: density alone
+    assert not grid.occupied.any()
+
+
+def test_seen_counts_follow_the_cells_through_a_reset_and_old_checkpoints_count_as_seen():
+    grid = OccupancyGrid(torch.full((3,), -1.0), torch.ones(3), (4, 4, 4))
+    grid.mark_seen(torch.tensor([[-0.9, -0.9, -0.9]]))
+    grid.reset(torch.full((3,), -1.0), torch.zeros(3), (4, 4, 4))  # the lower octant, 4x finer per axis
+    assert grid.seen_steps[:2, :2, :2].eq(1).all() and int(grid.seen_steps.sum()) == 8
+    old = {k: v for k, v in grid.state_dict().items() if k != "seen_steps"}
+    loaded = OccupancyGrid(torch.full((3,), -1.0), torch.ones(3), (2, 2, 2))
+    load_model_state(loaded, old, "old.pt")
+    assert loaded.seen_steps.shape == (4, 4, 4) and loaded.seen_steps.min() > 10**6
+
+
+def test_training_steps_mark_the_cells_of_the_rendered_samples_as_seen():
+    torch.manual_seed(0)
+    origins, directions, colours = ring_views(num_views=2, size=8)
+    model = FastModel(SCENE, small_config())
+    model.train()
+    model.render_rays(origins, directions, SCENE.near, SCENE.far, WHITE, train=True)
+    seen = model.occupancy.seen_steps
+    assert seen.max() == 1 and 0 < int((seen > 0).sum()) < seen.numel()
+    with torch.no_grad():
+        model.render_rays(origins, directions, SCENE.near, SCENE.far, WHITE, train=False)
+    assert torch.equal(model.occupancy.seen_steps, seen)  # renders outside training do not count
 
 
 # -------------------------------------------------------------------------------------- packed rendering

@@ -133,7 +133,7 @@ def test_positions_go_through_one_mapping_before_the_lookup():
 def test_the_occupancy_estimator_never_skips_a_point_denser_than_its_threshold(which):
     torch.manual_seed(4)
     if which == "fast":
-        model = FastModel(SCENE, FastModelConfig(initial_voxels=12**3))
+        model = FastModel(SCENE, FastModelConfig(initial_voxels=12**3, occupancy_min_seen_steps=0))
         with torch.no_grad():
             model.density.normal_(-2.0, 3.0)
     else:
