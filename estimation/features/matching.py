@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import NamedTuple
 
@@ -117,17 +118,21 @@ def torch_threads(count: int) -> Iterator[None]:
 
 
 def match_pairs(descriptors: list[np.ndarray], pairs: list[tuple[int, int]], ratio: float,
-                max_distance: float = np.inf, device: torch.device = torch.device("cpu"), cpu_threads: int = 1
-                ) -> dict[tuple[int, int], DescriptorMatches]:
+                max_distance: float = np.inf, device: torch.device = torch.device("cpu"),
+                cpu_threads: int = 1, workers: int = 1) -> dict[tuple[int, int], DescriptorMatches]:
     """Matches of every pair (i, j), each image i matched against all its partners j in one batch
-    (`cpu_threads` torch threads on the CPU)."""
+    (`cpu_threads` torch threads each), the images i in `workers` threads at once (torch releases the GIL
+    in its kernels)."""
     sets = [descriptor_set(d) for d in descriptors]
     partners_of: dict[int, list[int]] = defaultdict(list)
     for i, j in pairs:
         partners_of[i].append(j)
+
+    def match_image(i: int) -> list[DescriptorMatches]:
+        return match_one_to_many(sets[i], [sets[j] for j in partners_of[i]], ratio, max_distance, device)
+
     matches = {}
-    with torch_threads(cpu_threads):
-        for i, partners in partners_of.items():
-            results = match_one_to_many(sets[i], [sets[j] for j in partners], ratio, max_distance, device)
-            matches.update({(i, j): result for j, result in zip(partners, results, strict=True)})
+    with torch_threads(cpu_threads), ThreadPoolExecutor(workers) as threads:
+        for i, results in zip(partners_of, threads.map(match_image, partners_of), strict=True):
+            matches.update({(i, j): result for j, result in zip(partners_of[i], results, strict=True)})
     return matches
