@@ -77,6 +77,7 @@ class Outcome:
     seconds: float
     rms_px: float = float("nan")
     ceres_left: float = float("nan")
+    stage_seconds: dict[str, float] | None = None
 
 
 def lego_set(work: Path) -> BenchSet:
@@ -118,7 +119,9 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
     return Outcome(poses={names[m]: pose for m, pose in result.model.poses.items()},
                    points=result.report["points"], mean_track_length=result.report["mean_track_length"],
                    seconds=seconds, rms_px=result.report["reprojection_error_px"]["after_ba"]["rms"],
-                   ceres_left=ceres_cost_left(out / "sparse"))
+                   ceres_left=ceres_cost_left(out / "sparse"),
+                   stage_seconds={**result.report["seconds_per_stage"],
+                                  **result.report["features"].get("seconds_per_stage", {})})
 
 
 def ceres_cost_left(sparse: Path) -> float:
@@ -227,6 +230,9 @@ def main() -> None:
                             + f" | {theirs.points} | {theirs.mean_track_length:.2f} | - | - | "
                             f"{theirs.seconds:.1f} | |")
             print(rows[-2 if theirs else -1], flush=True)
+            stages = ", ".join(f"{stage} {value:.1f}" for stage, value in ours.stage_seconds.items())
+            print(f"ours, seconds per stage (detection, matching, verification: inside features): {stages}",
+                  flush=True)
             if theirs:
                 print(rows[-1], flush=True)
     print(f"load average after: {os.getloadavg()}")
