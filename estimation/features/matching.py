@@ -73,23 +73,22 @@ def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio
     top_distance = torch.empty((num_a, num_partners, 2), device=device)
     top_index = torch.empty((num_a, num_partners), dtype=torch.int64, device=device)
     nearest_a_distance = torch.full((num_partners, width), float("inf"), device=device)
-    nearest_a = torch.zeros((num_partners, width), dtype=torch.int64, device=device)
     block = max(1, DISTANCE_BLOCK_ELEMENTS // (num_partners * width))
     for start in range(0, num_a, block):
         stop = min(start + block, num_a)
-        distance = torch.addmm(squared_a[start:stop, None] + flat_squared_b, a[start:stop], flat_b.T,
-                               alpha=-2.0).reshape(stop - start, num_partners, width)
+        # ||b||^2 - 2 a.b in the product, + ||a||^2 in place: no second block-sized temporary.
+        distance = torch.addmm(flat_squared_b, a[start:stop], flat_b.T, alpha=-2.0)
+        distance = distance.add_(squared_a[start:stop, None]).reshape(stop - start, num_partners, width)
         top = torch.topk(distance, 2, dim=2, largest=False)
         top_distance[start:stop] = top.values
         top_index[start:stop] = top.indices[:, :, 0]
-        block_min, block_arg = distance.min(dim=0)
-        better = block_min < nearest_a_distance
-        nearest_a_distance = torch.where(better, block_min, nearest_a_distance)
-        nearest_a = torch.where(better, block_arg + start, nearest_a)
+        nearest_a_distance = torch.minimum(nearest_a_distance, distance.amin(dim=0))
 
     distances = top_distance.clamp_min(0.0).sqrt()
     ratios = distances[..., 0] / distances[..., 1].clamp_min(torch.finfo(torch.float32).tiny)
-    mutual = torch.gather(nearest_a.T, 0, top_index) == torch.arange(num_a, device=device)[:, None]
+    # Mutual: a is as near to its b as b's nearest a is (the column minimum, far cheaper than its argmin;
+    # only exactly equal distances, i.e. duplicate descriptors in a, could let two a's through).
+    mutual = top_distance[..., 0] <= torch.gather(nearest_a_distance.T, 0, top_index)
     accepted = (ratios < ratio) & (distances[..., 0] < max_distance) & mutual
     accepted, top_index, ratios = accepted.cpu().numpy(), top_index.cpu().numpy(), ratios.cpu().numpy()
     for row, k in enumerate(usable):
