@@ -7,7 +7,10 @@ strongest keypoints; descriptors are RootSIFT (sqrt of the L1-normalized SIFT ve
 norm, so Euclidean distance compares them by the Hellinger kernel). Candidate pairs come from
 `features.pairs` (exhaustive, or retrieval + sequence), matches from `features.matching` (ratio test and
 mutual check). With a TwoViewConfig every pair is verified geometrically (`two_view.geometry`: E, F and H
-in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. The surviving matches
+in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. `SiftConfig.workers`
+images are detected and matched at once (threads: OpenCV and torch release the GIL) and as many pairs
+verified at once (processes, `estimation.parallel`: the RANSAC loops hold it); the result does not depend
+on the count. The surviving matches
 are joined into tracks by the image-aware union-find of `track_building`, most distinctive matches
 (lowest ratio) first.
 """
