@@ -77,6 +77,7 @@ class Outcome:
     seconds: float
     rms_px: float = float("nan")
     ceres_left: float = float("nan")
+    stage_seconds: dict[str, float] | None = None
 
 
 def lego_set(work: Path) -> BenchSet:
@@ -108,9 +109,11 @@ def strecha_set(name: str) -> BenchSet:
     return BenchSet(name, folder, np.loadtxt(folder / "calibration.txt"), truth)
 
 
-def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None) -> Outcome:
+def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None, workers: int = 0
+             ) -> Outcome:
     limit = {} if max_reprojection_sigmas is None else {"max_reprojection_sigmas": max_reprojection_sigmas}
-    config = ReconstructionConfig(features=bench.features, write_figures=False, filter=limit)
+    config = ReconstructionConfig(features=bench.features, write_figures=False, filter=limit,
+                                  sift={"workers": workers})
     start = time.perf_counter()
     result = reconstruct(bench.images, out, config)
     seconds = time.perf_counter() - start
@@ -118,7 +121,9 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
     return Outcome(poses={names[m]: pose for m, pose in result.model.poses.items()},
                    points=result.report["points"], mean_track_length=result.report["mean_track_length"],
                    seconds=seconds, rms_px=result.report["reprojection_error_px"]["after_ba"]["rms"],
-                   ceres_left=ceres_cost_left(out / "sparse"))
+                   ceres_left=ceres_cost_left(out / "sparse"),
+                   stage_seconds={**result.report["seconds_per_stage"],
+                                  **result.report["features"].get("seconds_per_stage", {})})
 
 
 def ceres_cost_left(sparse: Path) -> float:
@@ -192,6 +197,8 @@ def main() -> None:
     parser.add_argument("--no-pycolmap", action="store_true", help="ours only")
     parser.add_argument("--max-reprojection-sigmas", type=float, default=None,
                         help="ours: the filter's noise-following limit in sigmas (0: the fixed 4 px limit)")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="ours: SIFT detection threads and verification processes (0: one per core)")
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()}")
     header = ("| set | method | registered | rot mean deg | rot max deg | centre mean | centre max | points "
@@ -213,7 +220,7 @@ def main() -> None:
             else:
                 raise SystemExit(f"unknown set {key!r}")
             total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-            ours = run_ours(bench, work / f"ours_{key}", args.max_reprojection_sigmas)
+            ours = run_ours(bench, work / f"ours_{key}", args.max_reprojection_sigmas, args.workers)
             skip_colmap = args.no_pycolmap or key == "unity"
             theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
             ratio = f"{ours.seconds / theirs.seconds:.2f}" if theirs else "-"
@@ -227,6 +234,9 @@ def main() -> None:
                             + f" | {theirs.points} | {theirs.mean_track_length:.2f} | - | - | "
                             f"{theirs.seconds:.1f} | |")
             print(rows[-2 if theirs else -1], flush=True)
+            stages = ", ".join(f"{stage} {value:.1f}" for stage, value in ours.stage_seconds.items())
+            print(f"ours, seconds per stage (detection, matching, verification: inside features): {stages}",
+                  flush=True)
             if theirs:
                 print(rows[-1], flush=True)
     print(f"load average after: {os.getloadavg()}")

@@ -139,6 +139,7 @@ def extract_tracks(
             for (i, j), geometry in result.two_view.items()
         },
         "rejected_links": result.num_rejected_links,
+        "seconds_per_stage": result.seconds_per_stage,
     }
     return FeatureTracks(result.tracks, source, details)
 

@@ -125,6 +125,10 @@ class SiftConfig(BaseModel):
         "thread took 6.4 s and two 11.0 s (wall, load 2.5-3 on 2 cores): its many small reductions gain "
         "nothing from a second thread.",
     )
+    workers: int = Field(
+        0, ge=0, description="Processes verifying image pairs and threads detecting features, side by "
+        "side (0: one per available CPU core; 1: all in the calling process).",
+    )
 
 
 class TwoViewConfig(BaseModel):

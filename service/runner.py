@@ -169,6 +169,8 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
 
     params: ReconstructionParams = context.params
     config = ReconstructionConfig.model_validate(params.config)
+    if config.sift.workers == 0:      # "all cores": this job's share of them, beside the other jobs
+        config.sift.workers = context.settings.threads_per_job()
     shutil.rmtree(context.output_dir, ignore_errors=True)  # a re-run starts from scratch
     result = reconstruct(context.input_dir, context.output_dir, config, progress=context.progress)
     model = result.model

@@ -6,37 +6,11 @@ polling the parent), so a restarted service can re-queue the job without a stray
 
 from __future__ import annotations
 
-import ctypes
 import os
-import signal
 import sys
-import threading
-import time
 
+from estimation.parallel import die_with_parent
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
-
-PR_SET_PDEATHSIG = 1
-PARENT_POLL_SECONDS = 1.0
-
-
-def die_with_parent(parent_pid: int) -> None:
-    """Ends this process as soon as the process that started it is gone."""
-    if sys.platform.startswith("linux"):
-        try:
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-        except (OSError, AttributeError):
-            pass
-
-    def watch() -> None:
-        while True:
-            if os.getppid() != parent_pid:
-                os._exit(1)
-            time.sleep(PARENT_POLL_SECONDS)
-
-    if os.getppid() != parent_pid:  # the parent died before prctl took effect
-        os._exit(1)
-    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import NamedTuple
 
@@ -72,23 +73,22 @@ def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio
     top_distance = torch.empty((num_a, num_partners, 2), device=device)
     top_index = torch.empty((num_a, num_partners), dtype=torch.int64, device=device)
     nearest_a_distance = torch.full((num_partners, width), float("inf"), device=device)
-    nearest_a = torch.zeros((num_partners, width), dtype=torch.int64, device=device)
     block = max(1, DISTANCE_BLOCK_ELEMENTS // (num_partners * width))
     for start in range(0, num_a, block):
         stop = min(start + block, num_a)
-        distance = torch.addmm(squared_a[start:stop, None] + flat_squared_b, a[start:stop], flat_b.T,
-                               alpha=-2.0).reshape(stop - start, num_partners, width)
+        # ||b||^2 - 2 a.b in the product, + ||a||^2 in place: no second block-sized temporary.
+        distance = torch.addmm(flat_squared_b, a[start:stop], flat_b.T, alpha=-2.0)
+        distance = distance.add_(squared_a[start:stop, None]).reshape(stop - start, num_partners, width)
         top = torch.topk(distance, 2, dim=2, largest=False)
         top_distance[start:stop] = top.values
         top_index[start:stop] = top.indices[:, :, 0]
-        block_min, block_arg = distance.min(dim=0)
-        better = block_min < nearest_a_distance
-        nearest_a_distance = torch.where(better, block_min, nearest_a_distance)
-        nearest_a = torch.where(better, block_arg + start, nearest_a)
+        nearest_a_distance = torch.minimum(nearest_a_distance, distance.amin(dim=0))
 
     distances = top_distance.clamp_min(0.0).sqrt()
     ratios = distances[..., 0] / distances[..., 1].clamp_min(torch.finfo(torch.float32).tiny)
-    mutual = torch.gather(nearest_a.T, 0, top_index) == torch.arange(num_a, device=device)[:, None]
+    # Mutual: a is as near to its b as b's nearest a is (the column minimum, far cheaper than its argmin;
+    # only exactly equal distances, i.e. duplicate descriptors in a, could let two a's through).
+    mutual = top_distance[..., 0] <= torch.gather(nearest_a_distance.T, 0, top_index)
     accepted = (ratios < ratio) & (distances[..., 0] < max_distance) & mutual
     accepted, top_index, ratios = accepted.cpu().numpy(), top_index.cpu().numpy(), ratios.cpu().numpy()
     for row, k in enumerate(usable):
@@ -117,17 +117,21 @@ def torch_threads(count: int) -> Iterator[None]:
 
 
 def match_pairs(descriptors: list[np.ndarray], pairs: list[tuple[int, int]], ratio: float,
-                max_distance: float = np.inf, device: torch.device = torch.device("cpu"), cpu_threads: int = 1
-                ) -> dict[tuple[int, int], DescriptorMatches]:
+                max_distance: float = np.inf, device: torch.device = torch.device("cpu"),
+                cpu_threads: int = 1, workers: int = 1) -> dict[tuple[int, int], DescriptorMatches]:
     """Matches of every pair (i, j), each image i matched against all its partners j in one batch
-    (`cpu_threads` torch threads on the CPU)."""
+    (`cpu_threads` torch threads each), the images i in `workers` threads at once (torch releases the GIL
+    in its kernels)."""
     sets = [descriptor_set(d) for d in descriptors]
     partners_of: dict[int, list[int]] = defaultdict(list)
     for i, j in pairs:
         partners_of[i].append(j)
+
+    def match_image(i: int) -> list[DescriptorMatches]:
+        return match_one_to_many(sets[i], [sets[j] for j in partners_of[i]], ratio, max_distance, device)
+
     matches = {}
-    with torch_threads(cpu_threads):
-        for i, partners in partners_of.items():
-            results = match_one_to_many(sets[i], [sets[j] for j in partners], ratio, max_distance, device)
-            matches.update({(i, j): result for j, result in zip(partners, results, strict=True)})
+    with torch_threads(cpu_threads), ThreadPoolExecutor(workers) as threads:
+        for i, results in zip(partners_of, threads.map(match_image, partners_of), strict=True):
+            matches.update({(i, j): result for j, result in zip(partners_of[i], results, strict=True)})
     return matches

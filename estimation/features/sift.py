@@ -7,14 +7,22 @@ strongest keypoints; descriptors are RootSIFT (sqrt of the L1-normalized SIFT ve
 norm, so Euclidean distance compares them by the Hellinger kernel). Candidate pairs come from
 `features.pairs` (exhaustive, or retrieval + sequence), matches from `features.matching` (ratio test and
 mutual check). With a TwoViewConfig every pair is verified geometrically (`two_view.geometry`: E, F and H
-in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. The surviving matches
+in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. `SiftConfig.workers`
+images are detected and matched at once (threads: OpenCV and torch release the GIL) and as many pairs
+verified at once (processes, `estimation.parallel`: the RANSAC loops hold it); the result does not depend
+on the count. The surviving matches
 are joined into tracks by the image-aware union-find of `track_building`, most distinctive matches
 (lowest ratio) first.
 """
 
 from __future__ import annotations
 
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
+from itertools import repeat
+from pathlib import Path
 from typing import NamedTuple
 
 import cv2
@@ -26,6 +34,7 @@ from estimation.features.matching import DescriptorMatches, match_pairs, matchin
 from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
 from estimation.io.images import ImageSet, load_rgb
+from estimation.parallel import resolve_workers, worker_pool
 from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry
 from estimation.types import ProgressCallback, Tracks
 
@@ -51,6 +60,7 @@ class SiftResult:
     verified_per_pair: dict[tuple[int, int], int]       # kept after geometric verification
     num_rejected_links: int
     two_view: dict[tuple[int, int], TwoViewGeometry] = field(default_factory=dict)   # verified pairs
+    seconds_per_stage: dict[str, float] = field(default_factory=dict)   # detection, matching, verification
 
 
 def root_sift(descriptors: np.ndarray) -> np.ndarray:
@@ -81,20 +91,19 @@ def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
     return ImageFeatures((uv_small + 0.5) * to_full - 0.5, root_sift(descriptors))
 
 
+def _detect_in_file(path: Path, config: SiftConfig) -> tuple[ImageFeatures, np.ndarray]:
+    """The image's features and the RGB colour at each keypoint."""
+    rgb = load_rgb(path)
+    features = detect_features(rgb, config)
+    return features, sample_colors(rgb, features.uv)
+
+
 def sample_colors(rgb: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """RGB (N, 3) uint8 at the pixels nearest to uv (N, 2), clamped to the image."""
     height, width = rgb.shape[:2]
     columns = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, width - 1)
     rows = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, height - 1)
     return rgb[rows, columns]
-
-
-def verify_pair(uv_a: np.ndarray, uv_b: np.ndarray, matches: DescriptorMatches, K: np.ndarray | None,
-                two_view: TwoViewConfig, ransac: RansacConfig) -> tuple[DescriptorMatches, TwoViewGeometry]:
-    """The matches that are inliers of the pair's two-view geometry (none when it is degenerate)."""
-    geometry = estimate_two_view_geometry(uv_a[matches.index_a], uv_b[matches.index_b], K, K, two_view,
-                                          ransac)
-    return DescriptorMatches(*(array[geometry.inlier_mask] for array in matches)), geometry
 
 
 def sift_tracks(
@@ -108,34 +117,52 @@ def sift_tracks(
     """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
     merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1."""
     report = progress or (lambda stage, fraction: None)
-    features, colors = [], []
-    for index, path in enumerate(images.paths):
-        rgb = load_rgb(path)
-        image_features = detect_features(rgb, config)
-        features.append(image_features)
-        colors.append(sample_colors(rgb, image_features.uv))
-        report("features", DETECTION_SHARE * (index + 1) / len(images))
+    workers = resolve_workers(config.workers)
+    seconds: dict[str, float] = {}
+    started = time.perf_counter()
+    with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
+        detected = []
+        for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):
+            detected.append(image_features)
+            report("features", DETECTION_SHARE * len(detected) / len(images))
+    features, colors = [f for f, _ in detected], [c for _, c in detected]
+    seconds["detection"] = time.perf_counter() - started
 
     pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
-    report("matching", DETECTION_SHARE)
-    matches = match_pairs([f.descriptors for f in features], pairs, config.ratio, config.max_distance,
-                          matching_device(config.device), config.cpu_threads)
-    report("matching", DETECTION_SHARE + MATCHING_SHARE)
+    # The verifying processes start now, so that their imports overlap the matching.
+    verifiers = worker_pool(workers if two_view is not None else 1, modules=("estimation.two_view.geometry",))
+    with verifiers as pool:
+        started = time.perf_counter()
+        report("matching", DETECTION_SHARE)
+        matches = match_pairs([f.descriptors for f in features], pairs, config.ratio, config.max_distance,
+                              matching_device(config.device), config.cpu_threads, workers)
+        report("matching", DETECTION_SHARE + MATCHING_SHARE)
+        seconds["matching"] = time.perf_counter() - started
+
+        started = time.perf_counter()
+        geometries: dict[tuple[int, int], TwoViewGeometry] = {}
+        if two_view is not None:
+            verifiable = [pair for pair in pairs if len(matches[pair].ratio) >= two_view.min_inliers]
+            estimate = partial(estimate_two_view_geometry, K1=K, K2=K, config=two_view, ransac=ransac)
+            results = pool.map(estimate, [features[i].uv[matches[(i, j)].index_a] for i, j in verifiable],
+                               [features[j].uv[matches[(i, j)].index_b] for i, j in verifiable])
+            for count, (pair, geometry) in enumerate(zip(verifiable, results, strict=True), start=1):
+                geometries[pair] = geometry
+                report("verification", DETECTION_SHARE + MATCHING_SHARE
+                       + (1 - DETECTION_SHARE - MATCHING_SHARE) * count / len(verifiable))
+        seconds["verification"] = time.perf_counter() - started
 
     offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])
-    links, link_ratios, verified_per_pair, geometries = [], [], {}, {}
-    for count, (i, j) in enumerate(pairs, start=1):
+    links, link_ratios, verified_per_pair = [], [], {}
+    for i, j in pairs:
         pair_matches = matches[(i, j)]
-        if two_view is not None and len(pair_matches.ratio) < two_view.min_inliers:
-            pair_matches = DescriptorMatches(*(array[:0] for array in pair_matches))
-        elif two_view is not None:
-            pair_matches, geometries[(i, j)] = verify_pair(features[i].uv, features[j].uv, pair_matches,
-                                                           K, two_view, ransac)
+        if two_view is not None:
+            geometry = geometries.get((i, j))     # none: too few matches to verify
+            mask = geometry.inlier_mask if geometry is not None else np.zeros(len(pair_matches.ratio), bool)
+            pair_matches = DescriptorMatches(*(array[mask] for array in pair_matches))
         verified_per_pair[(i, j)] = len(pair_matches.ratio)
         links.append(np.stack([offsets[i] + pair_matches.index_a, offsets[j] + pair_matches.index_b], axis=1))
         link_ratios.append(pair_matches.ratio)
-        report("verification", DETECTION_SHARE + MATCHING_SHARE + (1 - DETECTION_SHARE - MATCHING_SHARE)
-               * count / len(pairs))
     all_links = np.concatenate(links).reshape(-1, 2) if links else np.zeros((0, 2), np.int64)
     if len(all_links) == 0:
         raise DegenerateConfigurationError(f"{images.folder}: SIFT found no matches between any two images")
@@ -156,4 +183,5 @@ def sift_tracks(
         verified_per_pair=verified_per_pair,
         num_rejected_links=assembly.num_rejected_links,
         two_view=geometries,
+        seconds_per_stage=seconds,
     )

@@ -71,9 +71,12 @@ class StageProgressBars:
                    "(default: refined for a shared camera, held for per-image cameras).")
 @click.option("--all-models", is_flag=True,
               help="Also write every smaller model (images no model could join) to OUT/models/<k>/.")
+@click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
+              help="SIFT detection threads and pair verification processes side by side (0: one per "
+                   "available CPU core; 1: everything in this process).")
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, relative_pose: str,
                 camera_model: str, single_camera: bool, refine_principal_point: bool | None,
-                all_models: bool) -> None:
+                all_models: bool, workers: int) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
     from estimation import reconstruct as run_reconstruction
@@ -83,7 +86,7 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
                                   two_view=TwoViewConfig(relative_pose=relative_pose),
                                   camera=CameraConfig(model=camera_model, single_camera=single_camera,
                                                       refine_principal_point=refine_principal_point),
-                                  mapper={"export_all_models": all_models})
+                                  mapper={"export_all_models": all_models}, sift={"workers": workers})
     try:
         with StageProgressBars() as progress:
             result = run_reconstruction(images_dir, out_dir, config, progress=progress)

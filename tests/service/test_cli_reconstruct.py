@@ -96,3 +96,20 @@ def test_the_relative_pose_solver_is_chosen_on_the_command_line(monkeypatch, sha
     monkeypatch.setattr(estimation, "reconstruct", capture)
     assert_clean_failure(run(shared_data / "unity_hall", "--out", tmp_path / "out", *arguments), "stopped")
     assert seen == [expected]
+
+
+@pytest.mark.parametrize(("arguments", "expected"),
+                         [([], 0), (["--workers", "1"], 1), (["--workers", "3"], 3)])
+def test_the_worker_count_is_chosen_on_the_command_line(monkeypatch, shared_data, tmp_path, arguments,
+                                                        expected):
+    import estimation
+
+    seen = []
+
+    def capture(images_dir, out_dir, config, progress=None):
+        seen.append(config.sift.workers)
+        raise estimation.InputError("stopped after reading the options")
+
+    monkeypatch.setattr(estimation, "reconstruct", capture)
+    assert_clean_failure(run(shared_data / "unity_hall", "--out", tmp_path / "out", *arguments), "stopped")
+    assert seen == [expected]

@@ -176,3 +176,28 @@ def test_a_nerf_job_can_train_on_the_finished_reconstruction(api):
     assert nerf["kind"] == "nerf" and nerf["source_job_id"] == job["id"]
     assert client.post(f"/v1/jobs/{nerf['id']}/cancel").status_code == 200
     assert wait_for_job(client, nerf["id"], timeout=10)["state"] == "cancelled"
+
+
+@pytest.mark.parametrize(("requested", "job_threads", "expected"), [(0, 1, 1), (0, 3, 3), (2, 1, 2)])
+def test_a_job_asking_for_all_cores_gets_its_share_of_them(monkeypatch, tmp_path, requested, job_threads,
+                                                           expected):
+    from types import SimpleNamespace
+
+    import estimation
+    from service.params import ReconstructionParams
+    from service.runner import run_reconstruction
+
+    seen = []
+
+    def capture(images_dir, out_dir, config, progress=None):
+        seen.append(config.sift.workers)
+        raise estimation.InputError("stopped after reading the configuration")
+
+    monkeypatch.setattr(estimation, "reconstruct", capture)
+    context = SimpleNamespace(
+        params=ReconstructionParams(config={"sift": {"workers": requested}}), input_dir=tmp_path / "in",
+        output_dir=tmp_path / "out", progress=None, settings=make_settings(tmp_path, job_threads=job_threads),
+    )
+    with pytest.raises(estimation.InputError):
+        run_reconstruction(context)
+    assert seen == [expected]

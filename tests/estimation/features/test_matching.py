@@ -67,6 +67,9 @@ def test_batched_matching_of_many_pairs_equals_brute_force_pair_by_pair(monkeypa
     monkeypatch.setattr("estimation.features.matching.DISTANCE_BLOCK_ELEMENTS", DISTANCE_BLOCK_ELEMENTS >> 8)
     matches = match_pairs(images, pairs, ratio=0.8)
     assert set(matches) == set(pairs)
+    threaded = match_pairs(images, pairs, ratio=0.8, workers=3)   # images matched side by side
+    for pair in pairs:
+        assert all(np.array_equal(a, b) for a, b in zip(matches[pair], threaded[pair], strict=True))
     for (i, j), result in matches.items():
         found = set(zip(result.index_a.tolist(), result.index_b.tolist(), strict=True))
         enough = min(len(images[i]), len(images[j])) >= 2

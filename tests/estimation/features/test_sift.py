@@ -79,7 +79,8 @@ def test_colours_are_sampled_at_the_nearest_pixel_clamped_to_the_image():
 def unity_sift(shared_data):
     images = list_images(shared_data / "unity_hall")
     K = find_calibration(shared_data / "unity_hall")
-    return images, sift_tracks(images, SiftConfig(max_features=1500), TwoViewConfig(), RansacConfig(), K=K)
+    config = SiftConfig(max_features=1500, workers=2)
+    return images, sift_tracks(images, config, TwoViewConfig(), RansacConfig(), K=K)
 
 
 def test_sift_tracks_on_unity_hall_are_multiview_and_consistent(unity_sift):
@@ -95,6 +96,21 @@ def test_sift_tracks_on_unity_hall_are_multiview_and_consistent(unity_sift):
     assert np.unique(keys).size == keys.size                     # at most once per image
     assert np.all((tracks.uv >= 0) & (tracks.uv <= [images.width, images.height]))
     assert tracks.colors.dtype == np.uint8 and len(tracks.colors) == tracks.num_tracks
+
+
+def test_one_worker_detects_matches_and_verifies_exactly_as_two_do(shared_data, unity_sift):
+    images, parallel = unity_sift                                  # two detecting threads, two verifiers
+    serial = sift_tracks(images, SiftConfig(max_features=1500, workers=1), TwoViewConfig(), RansacConfig(),
+                         K=find_calibration(shared_data / "unity_hall"))
+    assert serial.matches_per_pair == parallel.matches_per_pair
+    assert serial.two_view.keys() == parallel.two_view.keys()
+    for pair, geometry in serial.two_view.items():                # RANSAC is seeded per pair
+        assert geometry.type == parallel.two_view[pair].type
+        np.testing.assert_array_equal(geometry.inlier_mask, parallel.two_view[pair].inlier_mask)
+        np.testing.assert_array_equal(geometry.E, parallel.two_view[pair].E)
+    np.testing.assert_array_equal(serial.tracks.track_index, parallel.tracks.track_index)
+    np.testing.assert_array_equal(serial.tracks.uv, parallel.tracks.uv)
+    assert set(serial.seconds_per_stage) == {"detection", "matching", "verification"}
 
 
 def test_sift_correspondences_agree_with_the_course_matches_epipolar_geometry(shared_data, unity_sift):

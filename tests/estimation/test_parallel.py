@@ -1,0 +1,65 @@
+"""Worker processes: the worker count, results in order and equal to the calling process's, and no process
+outliving the one that started it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+from estimation.parallel import WorkerPool, available_cores, resolve_workers, worker_pool
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_zero_workers_means_one_per_available_core():
+    assert resolve_workers(0) == available_cores() >= 1
+    assert resolve_workers(3) == 3
+
+
+def test_processes_return_what_the_calling_process_computes_in_order():
+    with worker_pool(2, modules=("estimation.two_view.geometry",)) as pool:
+        assert pool.workers == 2
+        assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
+        assert len({os.getpid(), *pool.map(_pid, range(40))}) >= 2     # the work ran elsewhere
+    assert list(WorkerPool(1).map(divmod, range(5), [2] * 5)) == [divmod(n, 2) for n in range(5)]
+
+
+def _pid(_: int) -> int:
+    time.sleep(0.01)
+    return os.getpid()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"      # a zombie has exited
+    except FileNotFoundError:
+        return False
+
+
+def test_worker_processes_die_with_the_process_that_started_them(tmp_path):
+    # A script without the __main__ guard: the processes must not run it again.
+    script = tmp_path / "unguarded.py"
+    script.write_text(textwrap.dedent("""
+        import multiprocessing, time
+        from estimation.parallel import WorkerPool
+        pool = WorkerPool(2)
+        print(*(child.pid for child in multiprocessing.active_children()), flush=True)
+        time.sleep(60)
+    """))
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=ROOT,
+                              env={**os.environ, "PYTHONPATH": str(ROOT)})
+    children = [int(pid) for pid in parent.stdout.readline().split()]
+    assert len(children) == 2
+    assert all(_alive(pid) for pid in children)
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in children)
