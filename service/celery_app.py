@@ -20,7 +20,7 @@ from typing import Any
 
 from celery import Celery
 from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
-from celery.signals import task_failure
+from celery.signals import task_failure, worker_process_init
 
 from service.renders import RENDER_TASK, run_render_task
 from service.settings import ServiceSettings
@@ -122,6 +122,15 @@ def _store(settings: ServiceSettings) -> Any:
     return _stores[url]
 
 
+@worker_process_init.connect
+def _import_job_libraries(**_: Any) -> None:
+    """Each worker process imports the heavy libraries before its first task, so a job's soft time limit
+    can never stop an import halfway: a half-imported torch fails every later task of that process."""
+    import estimation.api  # noqa: F401  (OpenCV, GTSAM)
+    import neural.inference  # noqa: F401  (PyTorch; what renders use)
+    import neural.training  # noqa: F401
+
+
 @task_failure.connect
 def _mark_failed(
     sender: Any = None,
@@ -134,7 +143,7 @@ def _mark_failed(
     from service.db import JobState
     from service.runner import complete_job, runtime_exceeded
 
-    if not args:
+    if not args or getattr(sender, "name", None) != RUN_JOB_TASK:  # a render's failure is its own answer
         return
     settings = ServiceSettings()
     store = _store(settings)
