@@ -207,6 +207,17 @@ def print_table(results: list[dict], tune: bool) -> None:
         )
 
 
+def with_variants(configs: dict[str, dict], variants: list[str]) -> dict[str, dict]:
+    """The named configurations plus each --variant NAME=JSON (a new name, its settings as JSON)."""
+    configs = dict(configs)
+    for spec in variants:
+        name, _, settings = spec.partition("=")
+        if not name or name in configs:
+            raise SystemExit(f"--variant expects a new NAME=JSON, got {spec!r}")
+        configs[name] = json.loads(settings)
+    return configs
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -242,12 +253,7 @@ def main() -> None:
         (args.out / f"result_{job['name']}_{job['resolution']}.json").write_text(json.dumps(result, indent=2))
         return
 
-    configs = {name: CONFIGS[name] for name in args.configs}
-    for spec in args.variant:
-        name, _, settings = spec.partition("=")
-        if not name or name in configs:
-            raise SystemExit(f"--variant expects a new NAME=JSON, got {spec!r}")
-        configs[name] = json.loads(settings)
+    configs = with_variants({name: CONFIGS[name] for name in args.configs}, args.variant)
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
     for resolution in args.resolutions:

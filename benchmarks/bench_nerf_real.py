@@ -33,6 +33,8 @@ import sys
 import time
 from pathlib import Path
 
+from bench_nerf import load_average, with_variants
+
 REPO = Path(__file__).resolve().parents[1]
 STRECHA = REPO.parent / "shared" / "data" / "strecha"
 SCENES = ("fountain-P11", "Herz-Jesus-P8")
@@ -42,10 +44,6 @@ CONFIGURATIONS: dict[str, dict] = {
     "box": {"unbounded": False, "background": "white"},
 }
 RENDER_SIZE = (800, 600)
-
-
-def load_average() -> str:
-    return " ".join(f"{value:.2f}" for value in os.getloadavg())
 
 
 def reconstruct(scene: str, out: Path) -> dict:
@@ -186,12 +184,7 @@ def main() -> None:
     )
     parser.add_argument("--single", nargs=2, metavar=("SCENE", "CONFIGURATION"), help=argparse.SUPPRESS)
     args = parser.parse_args()
-    configurations = {name: CONFIGURATIONS[name] for name in args.configurations}
-    for spec in args.variant:
-        name, _, settings = spec.partition("=")
-        if not name or name in configurations:
-            raise SystemExit(f"--variant expects a new NAME=JSON, got {spec!r}")
-        configurations[name] = json.loads(settings)
+    configurations = with_variants({name: CONFIGURATIONS[name] for name in args.configurations}, args.variant)
     budget = {"steps": args.steps} if args.steps else {"minutes": args.minutes}
 
     if args.single:  # the subprocess of one (scene, configuration)

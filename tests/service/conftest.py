@@ -101,6 +101,21 @@ class WebhookReceiver:
         return [json.loads(request["body"]) for request in self.requests]
 
 
+def capture_reconstruction_config(monkeypatch: pytest.MonkeyPatch) -> list:
+    """Replaces `estimation.reconstruct` by a stub that records the ReconstructionConfig it is given and
+    stops with an InputError: what the CLI or a job passes on, without running anything."""
+    import estimation
+
+    seen: list = []
+
+    def capture(images_dir, out_dir, config, progress=None):
+        seen.append(config)
+        raise estimation.InputError("stopped after reading the configuration")
+
+    monkeypatch.setattr(estimation, "reconstruct", capture)
+    return seen
+
+
 def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:
     """Settings for a test: a private data folder, quick heartbeats and webhook retries."""
     values: dict[str, object] = {

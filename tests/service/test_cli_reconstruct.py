@@ -10,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from service.cli import main
+from tests.service.conftest import capture_reconstruction_config
 
 
 def run(*args: str):
@@ -85,31 +86,15 @@ def test_an_unknown_feature_source_is_a_usage_error(shared_data, tmp_path):
                                                      (["--relative-pose", "eight-point"], "eight-point")])
 def test_the_relative_pose_solver_is_chosen_on_the_command_line(monkeypatch, shared_data, tmp_path, arguments,
                                                                  expected):
-    import estimation
-
-    seen = []
-
-    def capture(images_dir, out_dir, config, progress=None):
-        seen.append(config.two_view.relative_pose)
-        raise estimation.InputError("stopped after reading the options")
-
-    monkeypatch.setattr(estimation, "reconstruct", capture)
+    seen = capture_reconstruction_config(monkeypatch)
     assert_clean_failure(run(shared_data / "unity_hall", "--out", tmp_path / "out", *arguments), "stopped")
-    assert seen == [expected]
+    assert [config.two_view.relative_pose for config in seen] == [expected]
 
 
 @pytest.mark.parametrize(("arguments", "expected"),
                          [([], 0), (["--workers", "1"], 1), (["--workers", "3"], 3)])
 def test_the_worker_count_is_chosen_on_the_command_line(monkeypatch, shared_data, tmp_path, arguments,
                                                         expected):
-    import estimation
-
-    seen = []
-
-    def capture(images_dir, out_dir, config, progress=None):
-        seen.append(config.sift.workers)
-        raise estimation.InputError("stopped after reading the options")
-
-    monkeypatch.setattr(estimation, "reconstruct", capture)
+    seen = capture_reconstruction_config(monkeypatch)
     assert_clean_failure(run(shared_data / "unity_hall", "--out", tmp_path / "out", *arguments), "stopped")
-    assert seen == [expected]
+    assert [config.sift.workers for config in seen] == [expected]

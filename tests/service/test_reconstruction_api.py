@@ -14,7 +14,13 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.cli import main as cli
-from tests.service.conftest import WebhookReceiver, make_settings, unity_hall_files, wait_for_job
+from tests.service.conftest import (
+    WebhookReceiver,
+    capture_reconstruction_config,
+    make_settings,
+    unity_hall_files,
+    wait_for_job,
+)
 
 
 @pytest.fixture(scope="module")
@@ -187,17 +193,11 @@ def test_a_job_asking_for_all_cores_gets_its_share_of_them(monkeypatch, tmp_path
     from service.params import ReconstructionParams
     from service.runner import run_reconstruction
 
-    seen = []
-
-    def capture(images_dir, out_dir, config, progress=None):
-        seen.append(config.sift.workers)
-        raise estimation.InputError("stopped after reading the configuration")
-
-    monkeypatch.setattr(estimation, "reconstruct", capture)
+    seen = capture_reconstruction_config(monkeypatch)
     context = SimpleNamespace(
         params=ReconstructionParams(config={"sift": {"workers": requested}}), input_dir=tmp_path / "in",
         output_dir=tmp_path / "out", progress=None, settings=make_settings(tmp_path, job_threads=job_threads),
     )
     with pytest.raises(estimation.InputError):
         run_reconstruction(context)
-    assert seen == [expected]
+    assert [config.sift.workers for config in seen] == [expected]
