@@ -27,6 +27,9 @@ from service.settings import ServiceSettings
 
 RUN_JOB_TASK = "sfmnerf.run_job"
 RENDER_QUEUE = "renders"
+PROCESS_START_SECONDS = 300.0
+"""How long a fresh worker process may take to start (Celery's default of 4 s killed processes that were
+still importing PyTorch on a busy machine, then started and killed the next one, and no task ran)."""
 VISIBILITY_MARGIN_SECONDS = 3600.0
 """The default visibility timeout: the longest maximum runtime of any job kind plus this margin."""
 
@@ -52,6 +55,7 @@ def make_celery(settings: ServiceSettings) -> Celery:
         task_routes={RENDER_TASK: {"queue": RENDER_QUEUE}},
         broker_connection_retry_on_startup=True,
         worker_hijack_root_logger=False,
+        worker_proc_alive_timeout=PROCESS_START_SECONDS,
         broker_transport_options={
             "visibility_timeout": timeout,
             # sweep for messages past their visibility timeout often enough for short timeouts too
@@ -125,7 +129,8 @@ def _store(settings: ServiceSettings) -> Any:
 @worker_process_init.connect
 def _import_job_libraries(**_: Any) -> None:
     """Each worker process imports the heavy libraries before its first task, so a job's soft time limit
-    can never stop an import halfway: a half-imported torch fails every later task of that process."""
+    can never stop an import halfway: a half-imported torch fails every later task of that process. (Not in
+    the parent before it forks: importing OpenBLAS and OpenCV starts threads there.)"""
     import estimation.api  # noqa: F401  (OpenCV, GTSAM)
     import neural.inference  # noqa: F401  (PyTorch; what renders use)
     import neural.training  # noqa: F401

@@ -16,6 +16,7 @@ import concurrent.futures
 import hashlib
 import io
 import json
+import logging
 import multiprocessing
 import os
 import uuid
@@ -26,11 +27,13 @@ from typing import Any
 
 from service.settings import ServiceSettings
 
+logger = logging.getLogger(__name__)
 RENDER_TASK = "sfmnerf.render"
 CACHE_DIR = "renders"
 MODELS_KEPT_PER_PROCESS = 2
 RETRY_AFTER_SECONDS = 2
 CELERY_POLL_SECONDS = 0.05
+UNEXPECTED_RENDER_ERROR = "the render failed on the worker; its log has the reason"
 
 
 class RenderBusy(Exception):
@@ -137,7 +140,19 @@ def run_render_task(spec: dict, out_path: str, error_path: str, cache_dir: str |
         png = render_png(RenderSpec(**{**spec, "c2w": tuple(map(tuple, spec["c2w"]))}), cache_dir)
         _write_atomically(Path(out_path), png)
     except RenderFailed as error:
-        _write_atomically(Path(error_path), error.detail.encode())
+        _write_render_error(Path(error_path), error)
+    except Exception:  # the API waits for an answer file: without one it would wait out its timeout
+        logger.exception("render of job %s failed", spec.get("job_id"))
+        _write_render_error(Path(error_path), RenderFailed(UNEXPECTED_RENDER_ERROR, 500))
+
+
+def _write_render_error(path: Path, error: RenderFailed) -> None:
+    _write_atomically(path, json.dumps({"detail": error.detail, "status_code": error.status_code}).encode())
+
+
+def read_render_error(path: Path) -> RenderFailed:
+    answer = json.loads(path.read_text())
+    return RenderFailed(answer["detail"], answer["status_code"])
 
 
 # ---- in the API process ------------------------------------------------------------------------------------
@@ -231,7 +246,7 @@ class RenderQueue:
                 if out_path.is_file():
                     return out_path.read_bytes()
                 if error_path.is_file():
-                    raise RenderFailed(error_path.read_text())
+                    raise read_render_error(error_path)
                 await asyncio.sleep(CELERY_POLL_SECONDS)
         finally:
             for path in (out_path, error_path):
