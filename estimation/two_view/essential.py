@@ -209,10 +209,10 @@ def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.nda
 
 
 def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold_px: float,
-                     config: RansacConfig) -> EssentialResult:
+                     config: RansacConfig, refine: bool = True) -> EssentialResult:
     """E maximizing #{Sampson distance of F = K2^-T E K1^-1 < threshold_px}: minimal 5-point samples in the
     RANSAC driver, each new best E re-fitted by the 8-point algorithm on its normalized inliers (LO), and
-    the final E polished by `refine_essential` on its inliers."""
+    (with `refine`) the final E polished by `refine_essential` on its inliers."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
 
     def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
@@ -228,6 +228,9 @@ def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.nd
     result = ransac((uv1, uv2), minimal, FIVE_POINT_SAMPLE, residuals, threshold_px, config, refit=refit,
                     model_name="essential matrix")
     inliers = result.inlier_mask
+    if not refine:
+        return EssentialResult(E=result.model, inlier_mask=inliers, sampson_px=result.residuals,
+                               iterations=result.iterations)
     E = refine_essential(result.model, uv1[inliers], uv2[inliers], K1, K2)
     distance = residuals(E[None], uv1, uv2)[0]
     if (distance < threshold_px).sum() < inliers.sum():       # the polish may not lose consensus

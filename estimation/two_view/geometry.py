@@ -83,9 +83,13 @@ def _robust(estimate, *args):
 
 
 def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray | None, K2: np.ndarray | None,
-                               config: TwoViewConfig, ransac: RansacConfig) -> TwoViewGeometry:
+                               config: TwoViewConfig, ransac: RansacConfig, refine_essential: bool = True
+                               ) -> TwoViewGeometry:
     """F (8-point), E (5-point, or E = K^T F K under relative_pose "eight-point"; only with K) and H
-    (4-point) in RANSAC at max_error_px, and the pair's type from their inlier counts."""
+    (4-point) in RANSAC at max_error_px, and the pair's type from their inlier counts.
+
+    `refine_essential`: polish the 5-point E non-linearly on its inliers (`refine_essential`); needed
+    where E's pose is used (the initial pair), not where only the type and the inliers are (matching)."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
     threshold = config.max_error_px
     ransac = ransac.model_copy(update={"threshold_px": threshold})
@@ -111,7 +115,8 @@ def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray 
     E, e_mask, H, h_mask = None, none, None, none
     if calibrated and config.relative_pose == "five-point":
         essential = _robust(ransac_essential, uv1, uv2, K1, K2, threshold,
-                            searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE))
+                            searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE),
+                            refine_essential)
         if essential is not None:
             E, e_mask = essential.E, essential.inlier_mask
     elif calibrated:
