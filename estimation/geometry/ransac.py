@@ -117,12 +117,14 @@ def ransac(
         models = minimal_solver(*(array[samples] for array in data))
         if len(models) == 0:
             continue
-        # Pre-verification: only hypotheses doing well on a random subset are scored on every row.
-        subset = rng.choice(num, size=min(num, PREVERIFICATION_POINTS), replace=False)
-        subset_ratio = (residuals(models, *(array[subset] for array in data)) < threshold).mean(axis=1)
-        models = models[subset_ratio >= PREVERIFICATION_FRACTION * max(best_count, 0) / num]
-        if len(models) == 0:
-            continue
+        if num > PREVERIFICATION_POINTS:
+            # Pre-verification: only hypotheses doing well on a random subset are scored on every row
+            # (with no more rows than the subset, scoring every row costs the same, so no subset).
+            subset = rng.choice(num, size=PREVERIFICATION_POINTS, replace=False)
+            subset_ratio = (residuals(models, *(array[subset] for array in data)) < threshold).mean(axis=1)
+            models = models[subset_ratio >= PREVERIFICATION_FRACTION * max(best_count, 0) / num]
+            if len(models) == 0:
+                continue
         masks, counts = score(models)
         best = int(np.argmax(counts))
         if counts[best] > best_count:
