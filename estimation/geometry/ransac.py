@@ -61,6 +61,31 @@ def random_samples(rng: np.random.Generator, num_items: int, sample_size: int, b
     return np.argpartition(rng.random((batch, num_items)), sample_size - 1, axis=1)[:, :sample_size]
 
 
+def locally_optimized(model: np.ndarray, mask: np.ndarray, data: Sequence[np.ndarray],
+                      residuals: ResidualFunction, threshold: float, refit: RefitSolver | None, refits: int
+                      ) -> tuple[np.ndarray, np.ndarray, int]:
+    """LO: re-fit the model on its inliers up to `refits` times, kept while the consensus does not shrink
+    (stops when it no longer changes). Returns (model, inlier mask, inlier count)."""
+    count = int(mask.sum())
+    for _ in range(refits if refit is not None else 0):
+        try:
+            candidates = refit(*(array[mask] for array in data))
+        except DegenerateConfigurationError:
+            break
+        if len(candidates) == 0:
+            break
+        masks = residuals(candidates, *data) < threshold
+        counts = masks.sum(axis=1)
+        best = int(np.argmax(counts))
+        if counts[best] < count:
+            break
+        converged = np.array_equal(masks[best], mask)
+        model, mask, count = candidates[best], masks[best], int(counts[best])
+        if converged:
+            break
+    return model, mask, count
+
+
 def ransac(
     data: Sequence[np.ndarray],
     minimal_solver: MinimalSolver,
@@ -90,25 +115,6 @@ def ransac(
         masks = residuals(models, *data) < threshold
         return masks, masks.sum(axis=1)
 
-    def locally_optimized(model: np.ndarray, mask: np.ndarray, count: int
-                          ) -> tuple[np.ndarray, np.ndarray, int]:
-        for _ in range(config.local_refits if refit is not None else 0):
-            try:
-                candidates = refit(*(array[mask] for array in data))
-            except DegenerateConfigurationError:
-                break
-            if len(candidates) == 0:
-                break
-            masks, counts = score(candidates)
-            best = int(np.argmax(counts))
-            if counts[best] < count:
-                break
-            converged = np.array_equal(masks[best], mask)
-            model, mask, count = candidates[best], masks[best], int(counts[best])
-            if converged:
-                break
-        return model, mask, count
-
     best_model, best_mask, best_count = None, np.zeros(num, bool), -1
     needed, iterations = config.max_iterations, 0
     while iterations < max(needed, config.min_iterations) and iterations < config.max_iterations:
@@ -128,8 +134,8 @@ def ransac(
         masks, counts = score(models)
         best = int(np.argmax(counts))
         if counts[best] > best_count:
-            best_model, best_mask, best_count = locally_optimized(models[best], masks[best],
-                                                                  int(counts[best]))
+            best_model, best_mask, best_count = locally_optimized(
+                models[best], masks[best], data, residuals, threshold, refit, config.local_refits)
             needed = required_iterations(best_count / num, sample_size, config.confidence,
                                          config.max_iterations)
     if best_model is None or best_count < sample_size:
