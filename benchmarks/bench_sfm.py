@@ -109,11 +109,12 @@ def strecha_set(name: str) -> BenchSet:
     return BenchSet(name, folder, np.loadtxt(folder / "calibration.txt"), truth)
 
 
-def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None, workers: int = 0
-             ) -> Outcome:
+def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None, workers: int = 0,
+             estimator: str | None = None) -> Outcome:
     limit = {} if max_reprojection_sigmas is None else {"max_reprojection_sigmas": max_reprojection_sigmas}
     config = ReconstructionConfig(features=bench.features, write_figures=False, filter=limit,
-                                  sift={"workers": workers})
+                                  sift={"workers": workers},
+                                  two_view={} if estimator is None else {"estimator": estimator})
     start = time.perf_counter()
     result = reconstruct(bench.images, out, config)
     seconds = time.perf_counter() - start
@@ -199,6 +200,8 @@ def main() -> None:
                         help="ours: the filter's noise-following limit in sigmas (0: the fixed 4 px limit)")
     parser.add_argument("--workers", type=int, default=0,
                         help="ours: SIFT detection threads and verification processes (0: one per core)")
+    parser.add_argument("--estimator", choices=["numpy", "opencv"], default=None,
+                        help="ours: whose RANSAC verifies the pairs (default: TwoViewConfig's)")
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()}")
     header = ("| set | method | registered | rot mean deg | rot max deg | centre mean | centre max | points "
@@ -220,7 +223,8 @@ def main() -> None:
             else:
                 raise SystemExit(f"unknown set {key!r}")
             total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-            ours = run_ours(bench, work / f"ours_{key}", args.max_reprojection_sigmas, args.workers)
+            ours = run_ours(bench, work / f"ours_{key}", args.max_reprojection_sigmas, args.workers,
+                            args.estimator)
             skip_colmap = args.no_pycolmap or key == "unity"
             theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
             ratio = f"{ours.seconds / theirs.seconds:.2f}" if theirs else "-"

@@ -139,6 +139,12 @@ class TwoViewConfig(BaseModel):
         description="five-point: E by the minimal 5-point solver in RANSAC (needs K); eight-point: the "
         "seed's normalized 8-point F in RANSAC, then E = K^T F K.",
     )
+    estimator: Literal["numpy", "opencv"] = Field(
+        "numpy",
+        description="RANSAC of F, E and H: numpy: the project's own driver (LO-RANSAC, batched minimal "
+        "solvers); opencv: cv2's compiled RANSAC with the same minimal solvers, inliers re-scored by the "
+        "project's residuals.",
+    )
     max_error_px: float = Field(4.0, gt=0, description="Inlier threshold (Sampson / transfer error), pixels.")
     min_inliers: int = Field(15, ge=8, description="Fewest inliers of a verified pair.")
     min_e_f_inlier_ratio: float = Field(

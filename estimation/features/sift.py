@@ -143,7 +143,10 @@ def sift_tracks(
         geometries: dict[tuple[int, int], TwoViewGeometry] = {}
         if two_view is not None:
             verifiable = [pair for pair in pairs if len(matches[pair].ratio) >= two_view.min_inliers]
-            estimate = partial(estimate_two_view_geometry, K1=K, K2=K, config=two_view, ransac=ransac)
+            # Only the type and the inliers are kept here (the initial pair's E is estimated and polished
+            # again by the mapper): no non-linear polish of E per pair.
+            estimate = partial(estimate_two_view_geometry, K1=K, K2=K, config=two_view, ransac=ransac,
+                               refine_essential=False)
             results = pool.map(estimate, [features[i].uv[matches[(i, j)].index_a] for i, j in verifiable],
                                [features[j].uv[matches[(i, j)].index_b] for i, j in verifiable])
             for count, (pair, geometry) in enumerate(zip(verifiable, results, strict=True), start=1):

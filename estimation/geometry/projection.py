@@ -71,7 +71,9 @@ class Camera:
             )
         allowed = DISTORTION_PARAMETERS[self.model]
         for name in ("k1", "k2", "p1", "p2"):
-            if name not in allowed and np.any(np.asarray(getattr(self, name)) != 0):
+            value = getattr(self, name)
+            # Plain floats (the common case) are checked without numpy's per-call overhead.
+            if name not in allowed and (value != 0 if isinstance(value, float) else np.any(value != 0)):
                 raise ValueError(f"camera model {self.model} has no {name} (got {getattr(self, name)})")
 
     @property
@@ -170,6 +172,8 @@ class Projection(NamedTuple):
 
 def distort(camera: Camera, x: np.ndarray) -> np.ndarray:
     """x_d = x (1 + k1 r^2 + k2 r^4) + [2 p1 x y + p2 (r^2 + 2 x^2), p1 (r^2 + 2 y^2) + 2 p2 x y], (N, 2)."""
+    if camera.model == "pinhole":          # no coefficients: x_d = x
+        return x
     x, y = x[..., 0], x[..., 1]
     r2 = x * x + y * y
     radial = 1.0 + camera.k1 * r2 + camera.k2 * r2 * r2

@@ -61,6 +61,31 @@ def random_samples(rng: np.random.Generator, num_items: int, sample_size: int, b
     return np.argpartition(rng.random((batch, num_items)), sample_size - 1, axis=1)[:, :sample_size]
 
 
+def locally_optimized(model: np.ndarray, mask: np.ndarray, data: Sequence[np.ndarray],
+                      residuals: ResidualFunction, threshold: float, refit: RefitSolver | None, refits: int
+                      ) -> tuple[np.ndarray, np.ndarray, int]:
+    """LO: re-fit the model on its inliers up to `refits` times, kept while the consensus does not shrink
+    (stops when it no longer changes). Returns (model, inlier mask, inlier count)."""
+    count = int(mask.sum())
+    for _ in range(refits if refit is not None else 0):
+        try:
+            candidates = refit(*(array[mask] for array in data))
+        except DegenerateConfigurationError:
+            break
+        if len(candidates) == 0:
+            break
+        masks = residuals(candidates, *data) < threshold
+        counts = masks.sum(axis=1)
+        best = int(np.argmax(counts))
+        if counts[best] < count:
+            break
+        converged = np.array_equal(masks[best], mask)
+        model, mask, count = candidates[best], masks[best], int(counts[best])
+        if converged:
+            break
+    return model, mask, count
+
+
 def ransac(
     data: Sequence[np.ndarray],
     minimal_solver: MinimalSolver,
@@ -90,25 +115,6 @@ def ransac(
         masks = residuals(models, *data) < threshold
         return masks, masks.sum(axis=1)
 
-    def locally_optimized(model: np.ndarray, mask: np.ndarray, count: int
-                          ) -> tuple[np.ndarray, np.ndarray, int]:
-        for _ in range(config.local_refits if refit is not None else 0):
-            try:
-                candidates = refit(*(array[mask] for array in data))
-            except DegenerateConfigurationError:
-                break
-            if len(candidates) == 0:
-                break
-            masks, counts = score(candidates)
-            best = int(np.argmax(counts))
-            if counts[best] < count:
-                break
-            converged = np.array_equal(masks[best], mask)
-            model, mask, count = candidates[best], masks[best], int(counts[best])
-            if converged:
-                break
-        return model, mask, count
-
     best_model, best_mask, best_count = None, np.zeros(num, bool), -1
     needed, iterations = config.max_iterations, 0
     while iterations < max(needed, config.min_iterations) and iterations < config.max_iterations:
@@ -117,17 +123,19 @@ def ransac(
         models = minimal_solver(*(array[samples] for array in data))
         if len(models) == 0:
             continue
-        # Pre-verification: only hypotheses doing well on a random subset are scored on every row.
-        subset = rng.choice(num, size=min(num, PREVERIFICATION_POINTS), replace=False)
-        subset_ratio = (residuals(models, *(array[subset] for array in data)) < threshold).mean(axis=1)
-        models = models[subset_ratio >= PREVERIFICATION_FRACTION * max(best_count, 0) / num]
-        if len(models) == 0:
-            continue
+        if num > PREVERIFICATION_POINTS:
+            # Pre-verification: only hypotheses doing well on a random subset are scored on every row
+            # (with no more rows than the subset, scoring every row costs the same, so no subset).
+            subset = rng.choice(num, size=PREVERIFICATION_POINTS, replace=False)
+            subset_ratio = (residuals(models, *(array[subset] for array in data)) < threshold).mean(axis=1)
+            models = models[subset_ratio >= PREVERIFICATION_FRACTION * max(best_count, 0) / num]
+            if len(models) == 0:
+                continue
         masks, counts = score(models)
         best = int(np.argmax(counts))
         if counts[best] > best_count:
-            best_model, best_mask, best_count = locally_optimized(models[best], masks[best],
-                                                                  int(counts[best]))
+            best_model, best_mask, best_count = locally_optimized(
+                models[best], masks[best], data, residuals, threshold, refit, config.local_refits)
             needed = required_iterations(best_count / num, sample_size, config.confidence,
                                          config.max_iterations)
     if best_model is None or best_count < sample_size:

@@ -356,13 +356,18 @@ class _ModelBuilder:
 
     def global_refinement(self, ba_config: BundleAdjustmentConfig) -> float:
         """Rounds of global BA -> complete and merge tracks -> filter -> re-triangulate, until fewer than
-        refinement_min_change of the observations changed. Returns the last BA's relative cost decrease."""
+        refinement_min_change of the observations changed, or until a later round's BA finds the model
+        already at its optimum (relative decrease below relative_error_tol: what the previous round
+        changed did not move it, and the filters would act on the same model again). Returns the last
+        BA's relative cost decrease."""
         scene = self.scene
         decrease = 0.0
-        for _ in range(self.mapper.refinement_max_rounds):
+        for round_ in range(self.mapper.refinement_max_rounds):
             before = len(scene.used_observations())
             result = scene.bundle_adjust(ba_config)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
+            if round_ > 0 and decrease < ba_config.relative_error_tol:
+                break
             self.measure_noise()
             changed = scene.complete_tracks(self.max_error) + scene.merge_tracks(self.max_error)
             changed += scene.filter_points(self.max_error, self.min_angle)

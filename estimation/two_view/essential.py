@@ -208,11 +208,22 @@ def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.nda
     return essentials_of(solution.x[None])[0]
 
 
+def polish_essential(estimate: EssentialResult, uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray,
+                     K2: np.ndarray, threshold_px: float) -> EssentialResult:
+    """`refine_essential` on the estimate's inliers, kept when it does not lose consensus."""
+    inliers = estimate.inlier_mask
+    E = refine_essential(estimate.E, uv1[inliers], uv2[inliers], K1, K2)
+    distance = sampson_distance(fundamental_from_essential(E, K1, K2), uv1, uv2)
+    if (distance < threshold_px).sum() < inliers.sum():
+        return estimate
+    return estimate._replace(E=E, inlier_mask=distance < threshold_px, sampson_px=distance)
+
+
 def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.ndarray, threshold_px: float,
-                     config: RansacConfig) -> EssentialResult:
+                     config: RansacConfig, refine: bool = True) -> EssentialResult:
     """E maximizing #{Sampson distance of F = K2^-T E K1^-1 < threshold_px}: minimal 5-point samples in the
     RANSAC driver, each new best E re-fitted by the 8-point algorithm on its normalized inliers (LO), and
-    the final E polished by `refine_essential` on its inliers."""
+    (with `refine`) the final E polished by `polish_essential`."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
 
     def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
@@ -227,10 +238,6 @@ def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.nd
 
     result = ransac((uv1, uv2), minimal, FIVE_POINT_SAMPLE, residuals, threshold_px, config, refit=refit,
                     model_name="essential matrix")
-    inliers = result.inlier_mask
-    E = refine_essential(result.model, uv1[inliers], uv2[inliers], K1, K2)
-    distance = residuals(E[None], uv1, uv2)[0]
-    if (distance < threshold_px).sum() < inliers.sum():       # the polish may not lose consensus
-        E, distance = result.model, result.residuals
-    return EssentialResult(E=E, inlier_mask=distance < threshold_px, sampson_px=distance,
-                           iterations=result.iterations)
+    estimate = EssentialResult(E=result.model, inlier_mask=result.inlier_mask, sampson_px=result.residuals,
+                               iterations=result.iterations)
+    return polish_essential(estimate, uv1, uv2, K1, K2, threshold_px) if refine else estimate

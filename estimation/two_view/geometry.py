@@ -22,12 +22,14 @@ from estimation.geometry.ransac import required_iterations
 from estimation.two_view.essential import (
     FIVE_POINT_SAMPLE,
     fundamental_from_essential,
+    polish_essential,
     project_to_essential,
     ransac_essential,
 )
 from estimation.two_view.fundamental import ransac_fundamental, sampson_distance
 from estimation.two_view.homography import MIN_CORRESPONDENCES as H_SAMPLE
 from estimation.two_view.homography import homography_translation, ransac_homography
+from estimation.two_view.opencv import opencv_essential, opencv_fundamental, opencv_homography
 
 
 class TwoViewGeometryType(StrEnum):
@@ -83,16 +85,23 @@ def _robust(estimate, *args):
 
 
 def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray | None, K2: np.ndarray | None,
-                               config: TwoViewConfig, ransac: RansacConfig) -> TwoViewGeometry:
+                               config: TwoViewConfig, ransac: RansacConfig, refine_essential: bool = True
+                               ) -> TwoViewGeometry:
     """F (8-point), E (5-point, or E = K^T F K under relative_pose "eight-point"; only with K) and H
-    (4-point) in RANSAC at max_error_px, and the pair's type from their inlier counts."""
+    (4-point) in RANSAC at max_error_px, and the pair's type from their inlier counts.
+
+    `config.estimator` says whose RANSAC (the project's or OpenCV's); `refine_essential`: polish the
+    5-point E non-linearly on its inliers (`polish_essential`); needed where E's pose is used (the initial
+    pair), not where only the type and the inliers are (matching)."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
     threshold = config.max_error_px
     ransac = ransac.model_copy(update={"threshold_px": threshold})
     calibrated = K1 is not None and K2 is not None
     none = np.zeros(len(uv1), bool)
 
-    fundamental = _robust(ransac_fundamental, uv1, uv2, ransac)
+    opencv = config.estimator == "opencv"
+    fundamental = (_robust(opencv_fundamental, uv1, uv2, threshold, ransac) if opencv
+                   else _robust(ransac_fundamental, uv1, uv2, ransac))
     if fundamental is None or fundamental.inlier_mask.sum() < config.min_inliers:
         # Every pair that E or H explains satisfies an F too: too few F inliers leave too few for them.
         return TwoViewGeometry(type=TwoViewGeometryType.DEGENERATE, inlier_mask=none,
@@ -110,8 +119,13 @@ def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray 
 
     E, e_mask, H, h_mask = None, none, None, none
     if calibrated and config.relative_pose == "five-point":
-        essential = _robust(ransac_essential, uv1, uv2, K1, K2, threshold,
-                            searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE))
+        search = searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE)
+        if opencv:
+            essential = _robust(opencv_essential, uv1, uv2, K1, K2, threshold, search)
+            if essential is not None and refine_essential:
+                essential = polish_essential(essential, uv1, uv2, K1, K2, threshold)
+        else:
+            essential = _robust(ransac_essential, uv1, uv2, K1, K2, threshold, search, refine_essential)
         if essential is not None:
             E, e_mask = essential.E, essential.inlier_mask
     elif calibrated:
@@ -120,7 +134,7 @@ def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray 
     num_e = int(e_mask.sum())
     use_e = E is not None and num_e >= config.min_inliers and num_e >= config.min_e_f_inlier_ratio * num_f
     num_reference = num_e if use_e else num_f
-    homography = _robust(ransac_homography, uv1, uv2, threshold,
+    homography = _robust(opencv_homography if opencv else ransac_homography, uv1, uv2, threshold,
                          searching_for(config.max_h_inlier_ratio * num_reference / len(uv1), H_SAMPLE))
     if homography is not None:
         H, h_mask = homography.H, homography.inlier_mask

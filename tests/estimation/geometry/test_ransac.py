@@ -6,7 +6,12 @@ import pytest
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.linalg import null_vector
-from estimation.geometry.ransac import HYPOTHESES_PER_BATCH, ransac, required_iterations
+from estimation.geometry.ransac import (
+    HYPOTHESES_PER_BATCH,
+    PREVERIFICATION_POINTS,
+    ransac,
+    required_iterations,
+)
 
 
 def hyperplane_through(points: np.ndarray) -> np.ndarray:
@@ -93,3 +98,17 @@ def test_required_iterations_follows_the_formula():
     assert required_iterations(1.0, 8, 0.99, 10_000) == 1
     assert required_iterations(0.0, 8, 0.99, 500) == 500
     assert required_iterations(0.1, 8, 0.99, 500) == 500
+
+
+@pytest.mark.parametrize("num", [PREVERIFICATION_POINTS - 10, 4 * PREVERIFICATION_POINTS])
+def test_hypotheses_are_pre_verified_on_a_subset_only_when_there_are_more_rows_than_it(num):
+    points, inlier, _ = noisy_hyperplane(num, 2, 0.3, seed=5)
+    rows_scored = []
+
+    def recorded(models, rows):
+        rows_scored.append(len(rows))
+        return distances(models, rows)
+
+    result = ransac((points,), hyperplane_through, 2, recorded, 0.02, RansacConfig())
+    np.testing.assert_array_equal(result.inlier_mask, inlier)
+    assert set(rows_scored) == ({num} if num <= PREVERIFICATION_POINTS else {num, PREVERIFICATION_POINTS})

@@ -121,3 +121,17 @@ def test_five_point_ransac_under_noise_and_30_percent_outliers_is_within_0_2_deg
         truth = relative_pose(scene.poses[i], scene.poses[j])
         assert rotation_angle_deg(chosen.pose.R, truth.R) < 0.2
         assert direction_error_deg(chosen.pose.center, truth.center) < 1.0
+
+
+def test_without_the_polish_ransac_keeps_its_own_consensus_and_the_polish_does_not_lose_it():
+    scene = make_scene(num_points=300, noise_px=0.5, outlier_fraction=0.3, seed=2)
+    _, uv1, uv2 = scene.tracks.pair_correspondences(0, 1)
+    raw = ransac_essential(uv1, uv2, scene.K, scene.K, 1.5, RansacConfig(), refine=False)
+    polished = ransac_essential(uv1, uv2, scene.K, scene.K, 1.5, RansacConfig())
+    assert raw.iterations == polished.iterations                  # the same RANSAC, seeded alike
+    assert polished.inlier_mask.sum() >= raw.inlier_mask.sum()
+    np.testing.assert_array_equal(raw.inlier_mask, raw.sampson_px < 1.5)
+    truth = relative_pose(scene.poses[0], scene.poses[1])
+    for result in (raw, polished):
+        chosen = choose_relative_pose(result.E, scene.K, uv1[result.inlier_mask], uv2[result.inlier_mask])
+        assert rotation_angle_deg(chosen.pose.R, truth.R) < 0.5
