@@ -59,6 +59,9 @@ class StageProgressBars:
               show_default=True,
               help="five-point: E by the minimal 5-point solver in RANSAC; eight-point: the normalized "
                    "8-point F in RANSAC, then E = K^T F K.")
+@click.option("--estimator", type=click.Choice(["numpy", "opencv"]), default="numpy", show_default=True,
+              help="RANSAC of the pair geometry: numpy: the project's own LO-RANSAC; opencv: cv2's compiled "
+                   "RANSAC, inliers re-scored by the project's residuals (faster, slightly less accurate).")
 @click.option("--camera-model", type=click.Choice(["auto", "pinhole", "simple-radial", "radial", "opencv"]),
               default="auto", show_default=True,
               help="COLMAP camera model. auto: pinhole with a calibration file (K fixed), simple-radial "
@@ -75,7 +78,7 @@ class StageProgressBars:
               help="SIFT detection threads and pair verification processes side by side (0: one per "
                    "available CPU core; 1: everything in this process).")
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, relative_pose: str,
-                camera_model: str, single_camera: bool, refine_principal_point: bool | None,
+                estimator: str, camera_model: str, single_camera: bool, refine_principal_point: bool | None,
                 all_models: bool, workers: int) -> None:
     """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
     from estimation import InputError, ReconstructionConfig
@@ -83,7 +86,7 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
     from estimation.config import CameraConfig, TwoViewConfig
 
     config = ReconstructionConfig(features=features, calibration=calibration,
-                                  two_view=TwoViewConfig(relative_pose=relative_pose),
+                                  two_view=TwoViewConfig(relative_pose=relative_pose, estimator=estimator),
                                   camera=CameraConfig(model=camera_model, single_camera=single_camera,
                                                       refine_principal_point=refine_principal_point),
                                   mapper={"export_all_models": all_models}, sift={"workers": workers})

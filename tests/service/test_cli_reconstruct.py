@@ -82,13 +82,16 @@ def test_an_unknown_feature_source_is_a_usage_error(shared_data, tmp_path):
     assert result.exit_code == 2 and "Invalid value for '--features'" in result.output
 
 
-@pytest.mark.parametrize(("arguments", "expected"), [([], "five-point"),
-                                                     (["--relative-pose", "eight-point"], "eight-point")])
-def test_the_relative_pose_solver_is_chosen_on_the_command_line(monkeypatch, shared_data, tmp_path, arguments,
-                                                                 expected):
+@pytest.mark.parametrize(("arguments", "expected"), [
+    ([], ("five-point", "numpy")),
+    (["--relative-pose", "eight-point"], ("eight-point", "numpy")),
+    (["--estimator", "opencv"], ("five-point", "opencv")),
+])
+def test_the_relative_pose_solver_and_its_ransac_are_chosen_on_the_command_line(
+        monkeypatch, shared_data, tmp_path, arguments, expected):
     seen = capture_reconstruction_config(monkeypatch)
     assert_clean_failure(run(shared_data / "unity_hall", "--out", tmp_path / "out", *arguments), "stopped")
-    assert [config.two_view.relative_pose for config in seen] == [expected]
+    assert [(config.two_view.relative_pose, config.two_view.estimator) for config in seen] == [expected]
 
 
 @pytest.mark.parametrize(("arguments", "expected"),
