@@ -83,7 +83,7 @@ class FastModelConfig(BaseModel):
     )
     step_ratio: float = Field(0.5, gt=0, description="sample spacing along rays, in voxels")
     initial_alpha: float = Field(1e-4, gt=0, lt=1, description="opacity of one sample step at initialization")
-    # The far backdrop starts a little denser than the inner cube: with 1e-4 (= initial_alpha) the boxes'
+    # The far backdrop starts a little denser than the inner box: with 1e-4 (= initial_alpha) the boxes'
     # far sphere (tests/neural) was fitted as floaters 1.5 units in front of the cameras; with 1e-2 it lands
     # in the shell (depth ~7), while the shell stays translucent (a uniform raw density made it opaque).
     shell_initial_alpha: float = Field(
