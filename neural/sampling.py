@@ -62,49 +62,57 @@ def sample_pdf(
     return samples.detach()
 
 
-def contraction_spacing(t: Tensor, t_enter: Tensor, t_exit: Tensor) -> Tensor:
-    """s(t): t - t_in inside [t_in, t_out]; 1/(t_in - t + 1) - 1 before; L + 1 - 1/(t - t_out + 1) after.
+def contraction_spacing(t: Tensor, t_enter: Tensor, t_exit: Tensor, shell: float = 1.0) -> Tensor:
+    """s(t): t - t_in inside [t_in, t_out]; -g(t_in - t) before, L + g(t - t_out) after, g(x) = w x / (1 + x).
 
-    A C1, increasing map whose steps are unit-coordinate lengths inside the unit cube and disparity steps
-    outside it (mip-NeRF 360's spacing), so equal steps in s are about equal steps in contracted space.
-    L = t_out - t_in; all distances in unit coordinates.
+    An increasing map whose steps are distances inside the inner box and disparity steps outside it, scaled
+    by the shell's thickness w (mip-NeRF 360's spacing for w = 1), so that equal steps in s are about equal
+    steps in contracted space. L = t_out - t_in; all distances in grid units (world / max half-side).
     """
     length = t_exit - t_enter
-    before = 1.0 / (t_enter - t + 1.0).clamp_min(1.0) - 1.0
-    after = length + 1.0 - 1.0 / (t - t_exit + 1.0).clamp_min(1.0)
+    before = -shell * (1.0 - 1.0 / (t_enter - t + 1.0).clamp_min(1.0))
+    after = length + shell * (1.0 - 1.0 / (t - t_exit + 1.0).clamp_min(1.0))
     return torch.where(t < t_enter, before, torch.where(t > t_exit, after, t - t_enter))
 
 
-def contraction_spacing_inverse(s: Tensor, t_enter: Tensor, t_exit: Tensor) -> Tensor:
-    """t(s), the inverse of `contraction_spacing` for s in (-1, L + 1)."""
+def contraction_spacing_inverse(s: Tensor, t_enter: Tensor, t_exit: Tensor, shell: float = 1.0) -> Tensor:
+    """t(s), the inverse of `contraction_spacing` for s in (-w, L + w): g^-1(y) = 1 / (1 - y / w) - 1."""
     length = t_exit - t_enter
-    before = t_enter + 1.0 - 1.0 / (s + 1.0).clamp_min(1e-9)
-    after = t_exit - 1.0 + 1.0 / (length + 1.0 - s).clamp_min(1e-9)
+    before = t_enter + 1.0 - 1.0 / (1.0 + s / shell).clamp_min(1e-9)
+    after = t_exit - 1.0 + 1.0 / (1.0 - (s - length) / shell).clamp_min(1e-9)
     return torch.where(s < 0, before, torch.where(s > length, after, t_enter + s))
 
 
 def contracted_space_samples(
-    origins: Tensor, directions: Tensor, near: float, far: float, step: float, jitter: Tensor | None = None
+    origins: Tensor,
+    directions: Tensor,
+    near: float,
+    far: float,
+    step: float,
+    jitter: Tensor | None = None,
+    extent: Tensor | None = None,
+    shell: float = 1.0,
 ) -> PackedSamples:
-    """Samples at equal steps of `contraction_spacing` between near and far, packed; unit coordinates.
+    """Samples at equal steps of `contraction_spacing` between near and far, packed; grid units.
 
-    origins (R,3) in unit coordinates (the inner cube is [-1,1]^3), unit directions (R,3); near/far and the
-    returned t and deltas are unit-coordinate distances. The spacing switches from uniform to disparity-linear
-    where the ray leaves the cube (for a ray that misses it: at its closest approach to the centre). A sample
-    sits at s_i = s(near) + (i + j) step (j: jitter (R,) in [0,1), else 1/2) and stands for the ray length
+    origins (R,3) in grid units around the inner box [-extent, extent] (default: the unit cube), unit
+    directions (R,3); near/far and the returned t and deltas are grid-unit distances; shell: the contracted
+    shell's thickness. The spacing switches from uniform to disparity-linear where the ray leaves the box
+    (for a ray that misses it: at its closest approach to the centre). A sample sits at
+    s_i = s(near) + (i + j) step (j: jitter (R,) in [0,1), else 1/2) and stands for the ray length
     t(s_i + step/2) - t(s_i - step/2) of its bin, so the deltas tile [near, far] exactly.
     """
     num_rays = origins.shape[0]
     device = origins.device
-    unit = torch.ones(3, device=device, dtype=origins.dtype)
-    hits = ray_box_intersection(origins, directions, -unit, unit)
+    half = torch.ones(3, device=device, dtype=origins.dtype) if extent is None else extent.to(origins)
+    hits = ray_box_intersection(origins, directions, -half, half)
     closest = -(origins * directions).sum(dim=-1)
     missed = hits.t_exit <= hits.t_enter
     t_enter = torch.where(missed, closest, hits.t_enter).clamp(near, far)
     t_exit = torch.where(missed, closest, hits.t_exit).clamp(near, far)
     near_t = torch.full_like(t_enter, near)
-    s_near = contraction_spacing(near_t, t_enter, t_exit)
-    s_far = contraction_spacing(torch.full_like(t_enter, far), t_enter, t_exit)
+    s_near = contraction_spacing(near_t, t_enter, t_exit, shell)
+    s_far = contraction_spacing(torch.full_like(t_enter, far), t_enter, t_exit, shell)
     num_steps = ((s_far - s_near) / step).ceil().long().clamp_min(0)
     if jitter is None:
         jitter = torch.full((num_rays,), 0.5, device=device, dtype=origins.dtype)
@@ -116,8 +124,8 @@ def contracted_space_samples(
     upper = torch.minimum(lower + step, s_far[ray_indices])
     s = lower + (upper - lower) * jitter[ray_indices]
     enter, exit_ = t_enter[ray_indices], t_exit[ray_indices]
-    t = contraction_spacing_inverse(s, enter, exit_)
-    t_upper = contraction_spacing_inverse(upper, enter, exit_)
-    deltas = t_upper - contraction_spacing_inverse(lower, enter, exit_)
+    t = contraction_spacing_inverse(s, enter, exit_, shell)
+    t_upper = contraction_spacing_inverse(upper, enter, exit_, shell)
+    deltas = t_upper - contraction_spacing_inverse(lower, enter, exit_, shell)
     positions = origins[ray_indices] + directions[ray_indices] * t[:, None]
     return PackedSamples(ray_indices, t, deltas, positions)

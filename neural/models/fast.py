@@ -11,23 +11,23 @@ Speed comes from (1) an occupancy grid, recomputed from the density grid itself,
 (2) a coarse-to-fine schedule that upsamples the grids and refits them to the occupied box, with the sample
 spacing tied to the voxel size, and (3) early ray termination and skipping the colour of samples with
 negligible weight. Everything is learned from RGB images alone; no masks, no assumed background.
-Unbounded scenes (`SceneInfo.unbounded`): the grids cover contracted space [-2, 2]^3 (neural.contraction:
-the scene box's cube is kept as it is, everything beyond is squeezed into the shell), points are contracted
-before every grid lookup, and rays are sampled at equal steps in contracted space
-(neural.sampling.contracted_space_samples: uniform in the cube, disparity-linear beyond it).
+Unbounded scenes (`SceneInfo.unbounded`): the grids cover contracted space (neural.contraction: the scene
+box is kept as it is, everything beyond is squeezed into a shell of thickness `shell_thickness`), points are
+contracted before every grid lookup, and rays are sampled at equal steps in contracted space
+(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import torch
 import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
-from neural.contraction import CONTRACTED_RADIUS, InnerCube
+from neural.contraction import InnerBox, uncontracted_norm
 from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
 from neural.occupancy import (
     GridSchedule,
@@ -45,6 +45,12 @@ SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 #: Upper clamp of log density: exp(15) per unit length is opaque within any voxel.
 MAX_LOG_DENSITY = 15.0
+
+
+#: Fields added after the first stored configs, with the behaviour a stored config without them had.
+LEGACY_VALUES: dict[str, Any] = {"view_grid_stride": 1, "inner_region": "cube", "shell_thickness": 1.0}
+#: Every later field (those without a legacy value change training only, not a trained model).
+LATER_FIELDS = {*LEGACY_VALUES, "shell_initial_alpha", "occupancy_min_seen_steps"}
 
 
 class FastModelConfig(BaseModel):
@@ -77,7 +83,7 @@ class FastModelConfig(BaseModel):
     )
     step_ratio: float = Field(0.5, gt=0, description="sample spacing along rays, in voxels")
     initial_alpha: float = Field(1e-4, gt=0, lt=1, description="opacity of one sample step at initialization")
-    # The far backdrop starts a little denser than the inner cube: with 1e-4 (= initial_alpha) the boxes'
+    # The far backdrop starts a little denser than the inner box: with 1e-4 (= initial_alpha) the boxes'
     # far sphere (tests/neural) was fitted as floaters 1.5 units in front of the cameras; with 1e-2 it lands
     # in the shell (depth ~7), while the shell stays translucent (a uniform raw density made it opaque).
     shell_initial_alpha: float = Field(
@@ -85,6 +91,16 @@ class FastModelConfig(BaseModel):
         gt=0,
         lt=1,
         description="unbounded scenes: opacity of one sample step in the contracted shell at initialization",
+    )
+    # A flat region of interest (a facade and its square) fills a fraction of its enclosing cube; a thin
+    # shell leaves the inner box most voxels (1 / (1 + w)^3 of them; a half with w = 0.25).
+    inner_region: Literal["box", "cube"] = Field(
+        "box",
+        description="unbounded scenes: the region kept uncontracted is the scene box itself (voxels as long "
+        "along every axis) or the smallest cube holding it",
+    )
+    shell_thickness: float = Field(
+        0.25, gt=0, description="unbounded scenes: thickness of the contracted shell, in inner half-sides"
     )
     occupancy_warmup_steps: int = Field(40, ge=0, description="steps during which every cell counts occupied")
     occupancy_update_every: int = Field(16, gt=0, description="steps between occupancy-grid updates")
@@ -109,12 +125,12 @@ class FastModelConfig(BaseModel):
 
     @model_validator(mode="before")
     @classmethod
-    def _stored_before_view_grid(cls, data: Any) -> Any:
-        """A complete config stored before view_grid_stride existed (every other field given) had all SH
-        coefficients in one grid: stride 1."""
-        if isinstance(data, dict) and set(cls.model_fields) - set(data) == {"view_grid_stride"}:
-            data = {**data, "view_grid_stride": 1}
-        return data
+    def _stored_before_later_fields(cls, data: Any) -> Any:
+        """A complete config stored (in a checkpoint) before a field existed gets the value that field's
+        behaviour had then (`LEGACY_VALUES`): one colour grid, a cube with mip-NeRF 360's shell."""
+        if not isinstance(data, dict) or not set(cls.model_fields) - LATER_FIELDS <= set(data):
+            return data
+        return {**{name: value for name, value in LEGACY_VALUES.items() if name not in data}, **data}
 
     @model_validator(mode="after")
     def _check_schedule(self) -> FastModelConfig:
@@ -186,14 +202,19 @@ class FastModel(GridSchedule, RadianceModel):
         super().__init__(scene)
         self.config = config or FastModelConfig()
         # Grid coordinates: the world (scene frame) if bounded, contracted space for an unbounded scene.
-        self.inner_cube = (
-            InnerCube.around(scene.scene_box_min, scene.scene_box_max) if scene.unbounded else None
-        )
-        if self.inner_cube is None:
+        self.inner_box = (
+            InnerBox.around(
+                scene.scene_box_min, scene.scene_box_max, cube=self.config.inner_region == "cube",
+                shell=self.config.shell_thickness,
+            )
+            if scene.unbounded
+            else None
+        )  # fmt: skip
+        if self.inner_box is None:
             box_min = torch.tensor(scene.scene_box_min, dtype=torch.float32)
             box_max = torch.tensor(scene.scene_box_max, dtype=torch.float32)
         else:
-            box_max = torch.full((3,), CONTRACTED_RADIUS)
+            box_max = self.inner_box.contracted_extent
             box_min = -box_max
         shape, voxel_size = grid_shape_for(box_min, box_max, self.config.initial_voxels)
         self.register_buffer("box_min", box_min)
@@ -215,24 +236,27 @@ class FastModel(GridSchedule, RadianceModel):
     # ----------------------------------------------------------------------------------------- grids
     def _initial_density(self, box_min: Tensor, box_max: Tensor, shape: tuple[int, int, int]) -> Tensor:
         """Raw density (1,1,X,Y,Z) giving every sample step the opacity `initial_alpha` (raw 0), in the shell
-        of contracted space `shell_initial_alpha`: there a step is r^2 longer in the world, so raw is
-        -log r^2 + log(sigma_shell / sigma_inner).
+        of contracted space `shell_initial_alpha`: there a step is r^2 / w longer in the world
+        (`_shell_stretch`), so raw is -log(r^2 / w) + log(sigma_shell / sigma_inner).
 
         A uniform raw density would make the shell's far steps opaque from the start: every ray would end in
         the shell, the photos would be explained as a far backdrop, and no foreground would form.
         """
-        if self.inner_cube is None:
+        if self.inner_box is None:
             return torch.zeros((1, 1, *shape))
-        rho = grid_vertices(box_min, box_max, shape).abs().amax(dim=-1)
+        rho = self.inner_box.contracted_norm(grid_vertices(box_min, box_max, shape))
         config = self.config
         shell = math.log(math.log1p(-config.shell_initial_alpha) / math.log1p(-config.initial_alpha))
-        raw = torch.where(rho > 1.0, shell - 2.0 * self._uncontracted_norm(rho).log(), 0.0)
+        raw = torch.where(rho > 1.0, shell - self._shell_stretch(rho).log(), 0.0)
         return raw.reshape(1, 1, *shape)
 
-    def _uncontracted_norm(self, rho: Tensor) -> Tensor:
-        """r = 1 / (2 - rho) of contracted max norms rho > 1 (1 inside), capped at the far bound."""
-        far_unit = self.scene.far / self.inner_cube.half_side
-        return torch.where(rho > 1.0, 1.0 / (CONTRACTED_RADIUS - rho).clamp_min(1.0 / far_unit), 1.0)
+    def _shell_stretch(self, rho: Tensor) -> Tensor:
+        """r^2 / w at contracted max norms rho > 1 (1 inside): how much longer in the world a step in grid
+        coordinates is there than inside the box (r: the uncontracted norm, capped at the far bound)."""
+        box = self.inner_box
+        far_unit = self.scene.far / min(box.half_sides)
+        stretch = uncontracted_norm(rho, box.shell, far_unit).square() / box.shell
+        return torch.where(rho > 1.0, stretch, 1.0)
 
     @property
     def num_sh(self) -> int:
@@ -257,11 +281,11 @@ class FastModel(GridSchedule, RadianceModel):
     @property
     def unit_length(self) -> float:
         """World length of one grid-coordinate unit where space is not contracted."""
-        return 1.0 if self.inner_cube is None else self.inner_cube.half_side
+        return 1.0 if self.inner_box is None else self.inner_box.scale
 
     def to_grid_space(self, positions: Tensor) -> Tensor:
         """World points (N,3) -> grid coordinates: as they are, or contracted for an unbounded scene."""
-        return positions if self.inner_cube is None else self.inner_cube.contract(positions)
+        return positions if self.inner_box is None else self.inner_box.contract(positions)
 
     @property
     def grid_shape(self) -> tuple[int, int, int]:
@@ -329,16 +353,18 @@ class FastModel(GridSchedule, RadianceModel):
         """Samples in occupied cells (world units), marched through the box or spaced for contraction, then
         early ray termination (samples behind transmittance_threshold dropped)."""
         threshold = self.config.transmittance_threshold
-        if self.inner_cube is None:
+        box = self.inner_box
+        if box is None:
             return self.occupancy.sample(
                 origins, directions, near, far, self.step_size, jitter, self.density_at, threshold
             )
-        scale = self.inner_cube.half_side
+        scale = box.scale
         unit = contracted_space_samples(
-            self.inner_cube.to_unit(origins), directions, near / scale, far / scale, self.step_size, jitter
-        )
+            box.to_scaled(origins), directions, near / scale, far / scale, self.step_size, jitter,
+            box.extent(origins.device), box.shell,
+        )  # fmt: skip
         positions = origins[unit.ray_indices] + directions[unit.ray_indices] * (unit.t * scale)[:, None]
-        keep = self.occupancy.query(self.inner_cube.contract(positions))
+        keep = self.occupancy.query(box.contract(positions))
         samples = PackedSamples(
             unit.ray_indices[keep], unit.t[keep] * scale, unit.deltas[keep] * scale, positions[keep]
         )
@@ -376,20 +402,21 @@ class FastModel(GridSchedule, RadianceModel):
     def _cell_world_steps(self) -> float | Tensor:
         """The longest world length a sample stands for in each cell (X-1,Y-1,Z-1), or one number.
 
-        Contracted space: a step ds at contracted max norm rho > 1 is about r^2 ds long in unit coordinates,
-        r = 1 / (2 - rho) the uncontracted norm; taken at each cell's outer corner, and capped at the far end.
+        Contracted space: a step ds at contracted max norm rho > 1 is about r^2 ds / w long in the world
+        (`_shell_stretch`); taken at each cell's outer corner, and capped at the far end.
         """
-        if self.inner_cube is None:
+        if self.inner_box is None:
             return self.step_size
         resolution = torch.tensor(self.occupancy.resolution, device=self.density.device)
+        extent = self.inner_box.extent(self.density.device)
         axes = [
-            torch.linspace(float(low), float(high), int(n) + 1, device=self.density.device)
-            for low, high, n in zip(self.box_min, self.box_max, resolution, strict=True)
-        ]
+            torch.linspace(float(low), float(high), int(n) + 1, device=self.density.device) / half
+            for low, high, n, half in zip(self.box_min, self.box_max, resolution, extent, strict=True)
+        ]  # in contracted unit coordinates
         outer = [torch.maximum(axis[:-1].abs(), axis[1:].abs()) for axis in axes]
         rho = torch.maximum(outer[0][:, None, None], outer[1][None, :, None])
         rho = torch.maximum(rho, outer[2][None, None, :])
-        return self.step_size * self.unit_length * self._uncontracted_norm(rho).square()
+        return self.step_size * self.unit_length * self._shell_stretch(rho)
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""

@@ -1,8 +1,9 @@
 """mip-NeRF 360's contraction (max norm): identity inside the unit cube, all else into the shell below 2."""
 
+import pytest
 import torch
 
-from neural.contraction import CONTRACTED_RADIUS, InnerCube, contract
+from neural.contraction import CONTRACTED_RADIUS, InnerBox, contract, uncontracted_norm
 
 
 def test_points_inside_the_unit_cube_are_unchanged():
@@ -46,8 +47,36 @@ def test_contraction_is_monotone_along_rays_from_the_centre_and_keeps_the_order_
 
 
 def test_inner_cube_holds_its_box_and_maps_it_to_the_unit_cube():
-    cube = InnerCube.around((-1.0, 0.0, 2.0), (3.0, 1.0, 4.0))
-    assert cube.centre == (1.0, 0.5, 3.0) and cube.half_side == 2.0
+    cube = InnerBox.around((-1.0, 0.0, 2.0), (3.0, 1.0, 4.0), cube=True)
+    assert cube.centre == (1.0, 0.5, 3.0) and cube.half_sides == (2.0, 2.0, 2.0) and cube.scale == 2.0
     corners = torch.tensor([[-1.0, 0.0, 2.0], [3.0, 1.0, 4.0]])
-    torch.testing.assert_close(cube.contract(corners), cube.to_unit(corners))  # inside: identity
-    assert cube.to_unit(corners).abs().max() <= 1.0
+    torch.testing.assert_close(cube.contract(corners), cube.to_scaled(corners))  # inside: identity
+    assert cube.to_scaled(corners).abs().max() <= 1.0
+
+
+def test_an_inner_box_keeps_world_proportions_inside_and_its_shell_holds_everything_beyond():
+    """Grid coordinates are (x - c) / max(h) inside the box: a voxel is as long along every axis."""
+    box = InnerBox.around((-2.0, -0.5, 0.0), (2.0, 0.5, 1.0), shell=0.25)
+    assert box.half_sides == (2.0, 0.5, 0.5) and box.scale == 2.0
+    torch.testing.assert_close(box.extent(), torch.tensor([1.0, 0.25, 0.25]))
+    inside = torch.tensor([[-2.0, -0.5, 0.0], [1.0, 0.25, 0.75], [2.0, 0.5, 1.0]])
+    torch.testing.assert_close(box.contract(inside), box.to_scaled(inside))
+    torch.testing.assert_close(box.contracted_norm(box.contract(inside)), torch.tensor([1.0, 0.5, 1.0]))
+    generator = torch.Generator().manual_seed(3)
+    far = torch.randn(2000, 3, generator=generator).double() * torch.logspace(0, 4, 2000)[:, None]
+    contracted = box.contract(far)
+    extent = box.contracted_extent.double()
+    assert (contracted.abs() <= extent + 1e-9).all()  # the whole world inside (1 + w) h / max(h)
+    # going out along +y: 1 + w (1 - 1/r) in unit coordinates, times 0.25 in grid coordinates
+    along_y = box.contract(torch.tensor([[0.0, 0.5 + 0.5 * 3.0, 0.5]]).double())  # r = 4
+    torch.testing.assert_close(along_y[0, 1], torch.tensor(0.25 * (1.0 + 0.25 * 0.75)).double())
+
+
+def test_uncontracted_norm_inverts_the_shell_and_stops_at_its_cap():
+    generator = torch.Generator().manual_seed(4)
+    radii = 1.0 + torch.rand(500, generator=generator).double() * 100.0
+    for shell in (1.0, 0.25):
+        rho = contract(torch.stack([radii, 0 * radii, 0 * radii], dim=-1), shell)[:, 0]
+        torch.testing.assert_close(uncontracted_norm(rho, shell), radii)
+    assert uncontracted_norm(torch.tensor([1.25]), 0.25, cap=50.0).item() == pytest.approx(50.0)
+    assert uncontracted_norm(torch.tensor([0.5]), 0.25).item() == 0.5

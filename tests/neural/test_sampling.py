@@ -101,3 +101,33 @@ def test_sampling_in_contracted_space_reaches_a_far_wall_a_box_march_misses():
     # a box march over the inner cube never gets there
     box = OccupancyGrid(-torch.ones(3), torch.ones(3), (8, 8, 8))
     assert box.march(origins, directions, 0.05, 5000.0, 0.02).t.max() < 2.0
+
+
+def test_samples_around_a_flat_box_with_a_thin_shell_step_evenly_through_the_contracted_grid():
+    """Inside the box the samples are `step` apart; beyond it, consecutive samples stay at most `step` apart
+    along every grid axis (no voxel of the shell is skipped), out to the far end, with about as many samples
+    as steps across the grid."""
+    from neural.contraction import InnerBox
+    from neural.sampling import contracted_space_samples, contraction_spacing, contraction_spacing_inverse
+
+    box = InnerBox.around((-2.0, -0.5, -0.5), (2.0, 0.5, 0.5), shell=0.25)
+    enter, exit_ = torch.tensor([0.5]).double(), torch.tensor([1.5]).double()
+    t = torch.tensor([0.1, 0.5, 1.0, 1.5, 7.0, 1e4]).double()
+    for shell in (1.0, 0.25):
+        s = contraction_spacing(t, enter, exit_, shell)
+        torch.testing.assert_close(contraction_spacing_inverse(s, enter, exit_, shell), t)
+        assert s.max() < 1.0 + shell and s.min() > -shell
+    for direction in ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]):
+        origins = torch.tensor([[0.1, 0.05, 0.0]])
+        directions = torch.tensor([direction])
+        scaled = contracted_space_samples(
+            box.to_scaled(origins), directions, 0.0, 1e4 / box.scale, 0.01, None, box.extent(), box.shell
+        )
+        world = origins + directions * (scaled.t * box.scale)[:, None]
+        grid = box.contract(world.double())
+        gaps = (grid[1:] - grid[:-1]).abs().amax(dim=-1)  # along any grid axis
+        inside = box.contracted_norm(grid[1:]) < 1.0
+        torch.testing.assert_close(gaps[inside], torch.full_like(gaps[inside], 0.01), rtol=1e-4, atol=1e-6)
+        assert gaps.max() < 0.0101
+        assert box.contracted_norm(grid[-1:]).item() > 1.2  # reaches the outer shell (1 + w = 1.25)
+        assert gaps.numel() < (2.0 * 1.25 + 0.25) / 0.01  # about one sample per step across the grid
