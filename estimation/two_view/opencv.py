@@ -12,6 +12,8 @@ cap it was given.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -45,14 +47,8 @@ def opencv_fundamental(uv1: np.ndarray, uv2: np.ndarray, threshold_px: float, co
     _require(len(uv1), F_SAMPLE, "fundamental matrix")
     F, _ = cv2.findFundamentalMat(uv1, uv2, cv2.FM_RANSAC, threshold_px, config.confidence,
                                   config.max_iterations)
-    if F is None or F.shape != (3, 3):
-        raise DegenerateConfigurationError(f"OpenCV's RANSAC found no fundamental matrix among {len(uv1)} "
-                                           "correspondences")
-    F, _, _ = locally_optimized(F / np.linalg.norm(F), sampson_distance(F, uv1, uv2) < threshold_px,
-                                (uv1, uv2), sampson_distance, threshold_px,
-                                lambda inliers1, inliers2: eight_point(inliers1, inliers2)[None],
-                                config.local_refits)
-    distance = sampson_distance(F, uv1, uv2)
+    F, distance = _locally_optimized_3x3(F, "fundamental matrix", uv1, uv2, sampson_distance, eight_point,
+                                         threshold_px, config)
     return FundamentalResult(F=F, inlier_mask=distance < threshold_px, sampson_px=distance,
                              iterations=config.max_iterations)
 
@@ -95,13 +91,21 @@ def opencv_homography(uv1: np.ndarray, uv2: np.ndarray, threshold_px: float, con
     _require(len(uv1), H_SAMPLE, "homography")
     H, _ = cv2.findHomography(uv1, uv2, cv2.RANSAC, threshold_px, maxIters=config.max_iterations,
                               confidence=config.confidence)
-    if H is None or H.shape != (3, 3):
-        raise DegenerateConfigurationError(f"OpenCV's RANSAC found no homography among {len(uv1)} "
-                                           "correspondences")
-    H, _, _ = locally_optimized(H / np.linalg.norm(H), transfer_error(H, uv1, uv2) < threshold_px,
-                                (uv1, uv2), transfer_error, threshold_px,
-                                lambda inliers1, inliers2: homography_dlt(inliers1, inliers2)[None],
-                                config.local_refits)
-    error = transfer_error(H, uv1, uv2)
+    H, error = _locally_optimized_3x3(H, "homography", uv1, uv2, transfer_error, homography_dlt, threshold_px,
+                                      config)
     return HomographyResult(H=H, inlier_mask=error < threshold_px, transfer_px=error,
                             iterations=config.max_iterations)
+
+
+def _locally_optimized_3x3(model: np.ndarray | None, name: str, uv1: np.ndarray, uv2: np.ndarray,
+                           residuals: Callable, solver: Callable, threshold_px: float, config: RansacConfig
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's 3x3 model after LO by `solver` on its inliers, and its residuals in pixels."""
+    if model is None or model.shape != (3, 3):
+        raise DegenerateConfigurationError(f"OpenCV's RANSAC found no {name} among {len(uv1)} "
+                                           "correspondences")
+    model, _, _ = locally_optimized(model / np.linalg.norm(model), residuals(model, uv1, uv2) < threshold_px,
+                                    (uv1, uv2), residuals, threshold_px,
+                                    lambda inliers1, inliers2: solver(inliers1, inliers2)[None],
+                                    config.local_refits)
+    return model, residuals(model, uv1, uv2)
