@@ -290,6 +290,10 @@ def test_config_rejects_unknown_options_and_a_decreasing_schedule():
         FastModelConfig(upsample_steps=[10, 5])
     with pytest.raises(ValueError):
         FastModelConfig(voxel_count=10)
+    with pytest.raises(ValueError, match="shell_thickness"):
+        FastModelConfig(shell_thickness=0)
+    with pytest.raises(ValueError, match="inner_region"):
+        FastModelConfig(inner_region="sphere")
 
 
 # ------------------------------------------------------------------------------------------- occupancy grid

@@ -77,9 +77,10 @@ def test_a_singular_calibration_given_on_the_command_line_fails_naming_it(shared
     assert_clean_failure(result, f"{calibration}: K is singular")
 
 
-def test_an_unknown_feature_source_is_a_usage_error(shared_data, tmp_path):
-    result = run(shared_data / "unity_hall", "--out", tmp_path / "out", "--features", "orb")
-    assert result.exit_code == 2 and "Invalid value for '--features'" in result.output
+@pytest.mark.parametrize(("option", "value"), [("--features", "orb"), ("--estimator", "cuda")])
+def test_an_unknown_choice_is_a_usage_error_naming_the_option(shared_data, tmp_path, option, value):
+    result = run(shared_data / "unity_hall", "--out", tmp_path / "out", option, value)
+    assert result.exit_code == 2 and f"Invalid value for '{option}'" in result.output
 
 
 @pytest.mark.parametrize(("arguments", "expected"), [
