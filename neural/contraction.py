@@ -21,9 +21,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-#: The contracted scene lies inside the cube of this half-side with mip-NeRF 360's shell (thickness 1).
-CONTRACTED_RADIUS = 2.0
-
 
 def contract(unit_points: Tensor, shell: float = 1.0) -> Tensor:
     """contract(u) = u if ||u|| <= 1, else (1 + w (1 - 1/||u||)) u / ||u||, max norm, w = shell; (N,3)."""

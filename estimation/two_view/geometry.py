@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import partial
 
 import numpy as np
 
@@ -120,12 +121,10 @@ def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray 
     E, e_mask, H, h_mask = None, none, None, none
     if calibrated and config.relative_pose == "five-point":
         search = searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE)
-        if opencv:
-            essential = _robust(opencv_essential, uv1, uv2, K1, K2, threshold, search)
-            if essential is not None and refine_essential:
-                essential = polish_essential(essential, uv1, uv2, K1, K2, threshold)
-        else:
-            essential = _robust(ransac_essential, uv1, uv2, K1, K2, threshold, search, refine_essential)
+        estimator = opencv_essential if opencv else partial(ransac_essential, refine=False)
+        essential = _robust(estimator, uv1, uv2, K1, K2, threshold, search)
+        if essential is not None and refine_essential:
+            essential = polish_essential(essential, uv1, uv2, K1, K2, threshold)
         if essential is not None:
             E, e_mask = essential.E, essential.inlier_mask
     elif calibrated:

@@ -3,7 +3,9 @@
 import pytest
 import torch
 
-from neural.contraction import CONTRACTED_RADIUS, InnerBox, contract, uncontracted_norm
+from neural.contraction import InnerBox, contract, uncontracted_norm
+
+CONTRACTED_RADIUS = 2.0  # 1 + w with mip-NeRF 360's shell, w = 1 (contract's default)
 
 
 def test_points_inside_the_unit_cube_are_unchanged():
