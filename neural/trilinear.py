@@ -2,8 +2,8 @@
 
 `F.grid_sample`'s CPU kernels (forward and backward) parallelize over the batch only, so one grid looked up at
 N points runs on one thread. Here the points are split into one batch entry per thread, with the grid
-expanded (not copied) to match. The backward pass then writes one gradient per thread, summed afterwards;
-where those copies would be large, a lookup that needs the grid's gradient is not split.
+expanded (not copied) to match. The backward pass then writes one gradient per entry, summed afterwards;
+where those copies would be large, a lookup that needs the grid's gradient is split into fewer entries.
 """
 
 from __future__ import annotations
@@ -35,11 +35,13 @@ def trilinear(grid: Tensor, coordinates: Tensor) -> Tensor:
 
 
 def lookup_parts(grid: Tensor) -> int:
-    """How many batch entries a lookup of the grid is split into: one per CPU thread, unless the backward
-    pass would then allocate more than MAX_SPLIT_GRADIENT_BYTES of gradient copies; 1 on other devices."""
+    """How many batch entries a lookup of the grid is split into: one per CPU thread, but where the backward
+    pass makes one gradient copy per entry, no more than MAX_SPLIT_GRADIENT_BYTES of copies (at least 1);
+    1 on other devices."""
     if grid.device.type != "cpu":
         return 1
     threads = torch.get_num_threads()
-    gradient_bytes = threads * grid.numel() * grid.element_size()
-    needs_gradient = grid.requires_grad and torch.is_grad_enabled()
-    return 1 if needs_gradient and gradient_bytes > MAX_SPLIT_GRADIENT_BYTES else threads
+    if not (grid.requires_grad and torch.is_grad_enabled()):
+        return threads
+    copies_that_fit = MAX_SPLIT_GRADIENT_BYTES // (grid.numel() * grid.element_size())
+    return max(1, min(threads, copies_that_fit))

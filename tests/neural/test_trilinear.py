@@ -38,11 +38,15 @@ def test_values_and_grid_gradient_equal_grid_samples_inside_and_outside_the_grid
     assert gradient.abs().sum() > 0  # the points reach the grid (the test can fail)
 
 
-def test_a_lookup_is_split_per_thread_unless_its_gradient_copies_would_be_large(three_threads):
+def test_a_lookup_is_split_per_thread_into_no_more_gradient_copies_than_fit_the_budget(three_threads):
+    def grid_of(num_values: int) -> torch.Tensor:
+        return torch.zeros((1, 1, num_values, 1, 1), requires_grad=True)
+
     values = MAX_SPLIT_GRADIENT_BYTES // 4 // 3  # float32 values whose 3 gradient copies just fit
-    small = torch.zeros((1, 1, values, 1, 1), requires_grad=True)
-    large = torch.zeros((1, 1, values + 1, 1, 1), requires_grad=True)
-    assert lookup_parts(small) == 3 and lookup_parts(large) == 1
+    assert lookup_parts(grid_of(values)) == 3
+    assert lookup_parts(grid_of(values + 1)) == 2
+    assert lookup_parts(grid_of(MAX_SPLIT_GRADIENT_BYTES // 4 + 1)) == 1  # not even one copy fits
+    large = grid_of(values + 1)
     with torch.no_grad():  # no backward pass, no gradient copies
         assert lookup_parts(large) == 3
     assert lookup_parts(large.detach()) == 3
