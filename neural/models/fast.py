@@ -23,7 +23,6 @@ import math
 from typing import Any, ClassVar, Literal
 
 import torch
-import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
@@ -39,6 +38,7 @@ from neural.occupancy import (
 )
 from neural.rendering import packed_distortion
 from neural.sampling import contracted_space_samples
+from neural.trilinear import trilinear
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
 SH_C0 = 0.28209479177387814
@@ -292,15 +292,9 @@ class FastModel(GridSchedule, RadianceModel):
         _, _, x, y, z = self.density.shape
         return int(x), int(y), int(z)
 
-    def _grid_coordinates(self, positions: Tensor) -> Tensor:
-        """grid_sample coordinates (1,1,1,N,3) in [-1,1] of points (N,3), as (z,y,x) for (X,Y,Z) grids."""
-        normalized = (positions - self.box_min) / (self.box_max - self.box_min) * 2.0 - 1.0
-        return normalized.flip(-1).reshape(1, 1, 1, -1, 3)
-
     def _sample_grid(self, grid: Tensor, positions: Tensor) -> Tensor:
-        """Trilinear interpolation of a (1,C,X,Y,Z) grid at grid-space points (N,3); (N,C)."""
-        values = F.grid_sample(grid, self._grid_coordinates(positions), mode="bilinear", align_corners=True)
-        return values.reshape(grid.shape[1], -1).T
+        """Trilinear interpolation of a (1,C,X,Y,Z) grid over the box at grid-space points (N,3); (N,C)."""
+        return trilinear(grid, (positions - self.box_min) / (self.box_max - self.box_min) * 2.0 - 1.0)
 
     def activate_density(self, raw: Tensor) -> Tensor:
         """sigma = exp(min(raw + shift, MAX_LOG_DENSITY)) >= 0."""
