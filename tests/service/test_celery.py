@@ -22,7 +22,7 @@ from service.app import create_app
 from service.celery_app import make_celery
 from service.renders import RenderFailed, RenderQueue, RenderSpec, read_render_error, run_render_task
 from service.settings import ServiceSettings
-from tests.service.conftest import job_pid, make_settings, tiny_nerf_npz, unity_hall_files, wait_for_job
+from tests.service.conftest import endless_nerf_upload, job_pid, make_settings, unity_hall_files, wait_for_job
 from tests.service.servers import free_port
 from tests.service.test_job_machinery import CANCEL_DEADLINE_SECONDS, process_alive
 
@@ -149,9 +149,9 @@ def test_a_reconstruction_runs_on_a_celery_worker(celery_setup, unity):
     assert client.get(f"/v1/reconstructions/{job_id}/points.ply").status_code == 200
 
 
-def test_cancel_kills_the_celery_job_and_the_worker_goes_on(celery_setup, unity):
+def test_cancel_kills_the_celery_job_and_the_worker_goes_on(celery_setup, shared_data):
     client, worker = celery_setup
-    job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
+    job_id = client.post("/v1/nerf", **endless_nerf_upload(shared_data / "lego_tiny.npz")).json()["id"]
     wait_for_job(client, job_id, until=started_in_worker)
     pid = job_pid(client.app.state.settings.data_dir, job_id)
     assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 200
@@ -163,9 +163,9 @@ def test_cancel_kills_the_celery_job_and_the_worker_goes_on(celery_setup, unity)
     assert not process_alive(pid) and worker.poll() is None
 
 
-def test_a_killed_celery_job_process_ends_failed_with_the_reason(celery_setup, unity):
+def test_a_killed_celery_job_process_ends_failed_with_the_reason(celery_setup, shared_data):
     client, worker = celery_setup
-    job_id = client.post("/v1/reconstructions", files=unity).json()["id"]
+    job_id = client.post("/v1/nerf", **endless_nerf_upload(shared_data / "lego_tiny.npz")).json()["id"]
     wait_for_job(client, job_id, until=started_in_worker)
     pid = job_pid(client.app.state.settings.data_dir, job_id)
     os.kill(pid, signal.SIGKILL)
@@ -205,11 +205,9 @@ def test_a_celery_job_over_its_maximum_runtime_fails_with_the_reason(celery_setu
     client, worker = celery_setup
     short = client.app.state.settings.model_copy(update={"max_runtime_nerf_minutes": 0.07})
     with TestClient(create_app(short)) as limited:  # another API on the same database and broker
-        # Ten million steps cannot end within the 4.2 s limit on any machine (a SIFT reconstruction of Unity
-        # Hall, used before, took 3.7 s on a fast one and succeeded).
-        dataset = ("tiny.npz", tiny_nerf_npz(shared_data / "lego_tiny.npz"), "application/octet-stream")
-        never_ending = {"steps": "10000000", "device": "cpu"}
-        job_id = limited.post("/v1/nerf", files={"dataset": dataset}, data=never_ending).json()["id"]
+        # A million steps never end within the 4.2 s limit (a Unity Hall SIFT reconstruction, used before,
+        # took 3.7 s on a fast machine and succeeded).
+        job_id = limited.post("/v1/nerf", **endless_nerf_upload(shared_data / "lego_tiny.npz")).json()["id"]
         job = wait_for_job(limited, job_id)
     assert job["state"] == "failed" and "SFMNERF_MAX_RUNTIME_NERF_MINUTES" in job["error"], job
     assert worker.poll() is None
