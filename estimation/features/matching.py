@@ -3,8 +3,8 @@ a mutual (cross) check.
 
 One image is matched against all its partner images at once: the partners' descriptors are stacked
 into zero-padded (J, F, 128) blocks of partners of similar size (padding at infinite distance), and the
-squared distances
-||a||^2 + ||b||^2 - 2 a.b come from one matrix product per block of query rows, on the CPU or CUDA.
+squared distances ||a||^2 + ||b||^2 - 2 a.b come from one matrix product per block of query rows, on
+the CPU or CUDA.
 """
 
 from __future__ import annotations
