@@ -206,7 +206,10 @@ class MapperConfig(BaseModel):
         1.25, gt=1, description="Global refinement whenever the registered images grew by this factor."
     )
     refinement_max_rounds: int = Field(
-        5, ge=1, description="Rounds of BA, complete/merge, filter, retriangulate."
+        2, ge=1, description="Rounds of BA, complete/merge, filter, retriangulate. 2: on lego (mapper only, "
+        "RANSAC seeds 0 / 1 / 2) 0.382 / 0.369 / 0.369 deg mean rotation error against 0.377 / 0.374 / "
+        "0.374 with 5 rounds, in 10-20 % less mapping CPU (the later rounds trade the same few "
+        "observations back and forth).",
     )
     refinement_min_change: float = Field(
         5e-4, ge=0, description="Refinement stops when fewer than this fraction of observations changed."
