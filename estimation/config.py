@@ -215,7 +215,9 @@ class MapperConfig(BaseModel):
         5e-4, ge=0, description="Refinement stops when fewer than this fraction of observations changed."
     )
     final_relative_error_tol: float = Field(
-        1e-9, gt=0, description="Relative cost decrease at which the final global BA stops (converged)."
+        1e-7, gt=0, description="Relative cost decrease at which the final global BA stops (converged: "
+        "Ceres, started from the result, removes < 0.001 %). 1e-7 instead of 1e-9: on lego (mapper only, "
+        "seeds 0 / 1 / 2) the same poses to 0.001 deg in ~25 % less final-BA time.",
     )
     min_model_images: int = Field(3, ge=2, description="Smaller models are discarded (2 for a 2-image set).")
     max_models: int = Field(10, ge=1, description="Most models started from the images left unregistered.")
