@@ -2,8 +2,9 @@
 a mutual (cross) check.
 
 One image is matched against all its partner images at once: the partners' descriptors are stacked
-into a zero-padded (J, F, 128) block (padding at infinite distance), and the squared distances
-||a||^2 + ||b||^2 - 2 a.b come from one matrix product per block of query rows, on the CPU or CUDA.
+into zero-padded (J, F, 128) blocks of partners of similar size (padding at infinite distance), and the
+squared distances ||a||^2 + ||b||^2 - 2 a.b come from one matrix product per block of query rows, on
+the CPU or CUDA.
 """
 
 from __future__ import annotations
@@ -19,6 +20,10 @@ import torch
 
 DISTANCE_BLOCK_ELEMENTS = 1 << 24
 """Entries of the distance matrix held at once (64 MiB of float32): bounds memory for large images."""
+MAX_PADDING = 0.25
+"""Partners share a zero-padded block only while the largest has at most this share more descriptors
+than the smallest: padding every partner to the largest of all (lego: 146 to 420 keypoints) computed
+and searched ~40 % padding."""
 
 
 class DescriptorMatches(NamedTuple):
@@ -51,24 +56,27 @@ def descriptor_set(descriptors: np.ndarray) -> DescriptorSet:
     return DescriptorSet(descriptors, np.einsum("nd,nd->n", descriptors, descriptors))
 
 
-def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio: float, max_distance: float,
-                      device: torch.device = torch.device("cpu")) -> list[DescriptorMatches]:
-    """Per partner b: nearest neighbours a -> b with d1 < ratio * d2 and d1 < max_distance whose b -> a
-    nearest neighbour is the same a (Euclidean distances d)."""
-    results = [EMPTY_MATCHES] * len(partners)
-    usable = [k for k, b in enumerate(partners) if len(b.descriptors) >= 2]
-    if len(query.descriptors) < 2 or not usable:
-        return results
-    # Padding: zero descriptors at infinite distance (their squared norm is +inf).
-    num_partners, width = len(usable), max(len(partners[k].descriptors) for k in usable)
-    stacked = np.zeros((num_partners, width, query.descriptors.shape[1]), np.float32)
+class BlockNeighbours(NamedTuple):
+    """Each query row's two nearest partner rows per partner of one padded block, and each partner row's
+    nearest query distance (all squared Euclidean, torch tensors)."""
+
+    top_distance: torch.Tensor        # (A, J, 2) d1^2, d2^2
+    top_index: torch.Tensor           # (A, J) row of the nearest in partner j
+    nearest_a_distance: torch.Tensor  # (J, W) per partner row, its nearest query row's d^2
+
+
+def nearest_in_block(a: torch.Tensor, squared_a: torch.Tensor, partners: list[DescriptorSet],
+                     device: torch.device) -> BlockNeighbours:
+    """d^2 = ||a||^2 + ||b||^2 - 2 a.b of the query rows against the partners zero-padded to one block
+    (padding at d^2 = +inf), its top two per partner and its column minima."""
+    num_partners, width = len(partners), max(len(b.descriptors) for b in partners)
+    stacked = np.zeros((num_partners, width, a.shape[1]), np.float32)
     squared_b = np.full((num_partners, width), np.inf, np.float32)
-    for row, k in enumerate(usable):
-        stacked[row, : len(partners[k].descriptors)] = partners[k].descriptors
-        squared_b[row, : len(partners[k].descriptors)] = partners[k].squared_norms
+    for row, b in enumerate(partners):
+        stacked[row, : len(b.descriptors)] = b.descriptors
+        squared_b[row, : len(b.descriptors)] = b.squared_norms
     flat_b = torch.from_numpy(stacked.reshape(num_partners * width, -1)).to(device)
     flat_squared_b = torch.from_numpy(squared_b.reshape(1, -1)).to(device)
-    a, squared_a = (torch.from_numpy(array).to(device) for array in query)
     num_a = len(a)
     top_distance = torch.empty((num_a, num_partners, 2), device=device)
     top_index = torch.empty((num_a, num_partners), dtype=torch.int64, device=device)
@@ -83,17 +91,47 @@ def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio
         top_distance[start:stop] = top.values
         top_index[start:stop] = top.indices[:, :, 0]
         nearest_a_distance = torch.minimum(nearest_a_distance, distance.amin(dim=0))
+    return BlockNeighbours(top_distance, top_index, nearest_a_distance)
 
-    distances = top_distance.clamp_min(0.0).sqrt()
-    ratios = distances[..., 0] / distances[..., 1].clamp_min(torch.finfo(torch.float32).tiny)
-    # Mutual: a is as near to its b as b's nearest a is (the column minimum, far cheaper than its argmin;
-    # only exactly equal distances, i.e. duplicate descriptors in a, could let two a's through).
-    mutual = top_distance[..., 0] <= torch.gather(nearest_a_distance.T, 0, top_index)
-    accepted = (ratios < ratio) & (distances[..., 0] < max_distance) & mutual
-    accepted, top_index, ratios = accepted.cpu().numpy(), top_index.cpu().numpy(), ratios.cpu().numpy()
-    for row, k in enumerate(usable):
-        index_a = np.flatnonzero(accepted[:, row])
-        results[k] = DescriptorMatches(index_a, top_index[index_a, row], ratios[index_a, row].astype(float))
+
+def size_groups(sizes: list[int], max_padding: float) -> list[list[int]]:
+    """Indices of `sizes` in groups, largest first, each group's largest at most (1 + max_padding) times
+    its smallest: a group padded to its largest wastes at most that share of its entries."""
+    order = sorted(range(len(sizes)), key=lambda k: -sizes[k])
+    groups: list[list[int]] = []
+    for k in order:
+        if groups and sizes[groups[-1][0]] <= (1.0 + max_padding) * sizes[k]:
+            groups[-1].append(k)
+        else:
+            groups.append([k])
+    return groups
+
+
+def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio: float, max_distance: float,
+                      device: torch.device = torch.device("cpu")) -> list[DescriptorMatches]:
+    """Per partner b: nearest neighbours a -> b with d1 < ratio * d2 and d1 < max_distance whose b -> a
+    nearest neighbour is the same a (Euclidean distances d). Partners of similar size share a padded
+    block (`size_groups`, MAX_PADDING)."""
+    results = [EMPTY_MATCHES] * len(partners)
+    usable = [k for k, b in enumerate(partners) if len(b.descriptors) >= 2]
+    if len(query.descriptors) < 2 or not usable:
+        return results
+    a, squared_a = (torch.from_numpy(array).to(device) for array in query)
+    for group in size_groups([len(partners[k].descriptors) for k in usable], MAX_PADDING):
+        members = [usable[g] for g in group]
+        top_distance, top_index, nearest_a_distance = nearest_in_block(
+            a, squared_a, [partners[k] for k in members], device)
+        distances = top_distance.clamp_min(0.0).sqrt()
+        ratios = distances[..., 0] / distances[..., 1].clamp_min(torch.finfo(torch.float32).tiny)
+        # Mutual: a is as near to its b as b's nearest a is (the column minimum, far cheaper than its
+        # argmin; only exactly equal distances, i.e. duplicate descriptors in a, could let two a's through).
+        mutual = top_distance[..., 0] <= torch.gather(nearest_a_distance.T, 0, top_index)
+        accepted = (ratios < ratio) & (distances[..., 0] < max_distance) & mutual
+        accepted, top_index, ratios = accepted.cpu().numpy(), top_index.cpu().numpy(), ratios.cpu().numpy()
+        for row, k in enumerate(members):
+            index_a = np.flatnonzero(accepted[:, row])
+            results[k] = DescriptorMatches(index_a, top_index[index_a, row],
+                                           ratios[index_a, row].astype(float))
     return results
 
 

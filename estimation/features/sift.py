@@ -30,8 +30,6 @@ import numpy as np
 
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.features.matching import DescriptorMatches, match_pairs, matching_device
-from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
 from estimation.io.images import ImageSet, load_rgb
 from estimation.parallel import resolve_workers, worker_pool
@@ -121,8 +119,14 @@ def sift_tracks(
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
+        detecting = threads.map(_detect_in_file, images.paths, repeat(config))
+        # Matching and retrieval need torch, whose import takes ~0.8 s of one core: it loads while the
+        # threads detect.
+        from estimation.features.matching import DescriptorMatches, match_pairs, matching_device
+        from estimation.features.pairs import candidate_pairs
+
         detected = []
-        for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):
+        for image_features in detecting:
             detected.append(image_features)
             report("features", DETECTION_SHARE * len(detected) / len(images))
     features, colors = [f for f, _ in detected], [c for _, c in detected]

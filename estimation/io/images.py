@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import NamedTuple
 
@@ -45,8 +46,9 @@ class ImageSet:
     height: int
     ids: dict[int, int] = field(default_factory=dict)    # numeric file stem -> image index
 
-    @property
+    @cached_property
     def names(self) -> list[str]:
+        """File names by image index (computed once: reports look them up per pair)."""
         return [path.name for path in self.paths]
 
     def __len__(self) -> int:

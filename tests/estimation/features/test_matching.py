@@ -10,6 +10,7 @@ from estimation.features.matching import (
     DISTANCE_BLOCK_ELEMENTS,
     match_descriptors,
     match_pairs,
+    size_groups,
     torch_threads,
 )
 
@@ -83,3 +84,13 @@ def test_matching_threads_are_set_inside_the_block_and_restored_after():
     with torch_threads(1):
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
+
+
+def test_partners_are_grouped_by_size_so_that_padding_stays_bounded():
+    sizes = [420, 146, 300, 410, 150, 260, 2, 340]
+    groups = size_groups(sizes, max_padding=0.25)
+    assert sorted(k for group in groups for k in group) == list(range(len(sizes)))   # each partner once
+    for group in groups:
+        assert max(sizes[k] for k in group) <= 1.25 * min(sizes[k] for k in group)
+    assert groups[0] == [0, 3, 7]                                # largest first, greedily joined
+    assert size_groups(sizes, max_padding=10.0) == [[0, 3, 7, 2, 5, 4, 1], [6]]

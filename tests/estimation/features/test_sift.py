@@ -3,6 +3,10 @@ tracks that agree with known geometry."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -136,3 +140,12 @@ def test_images_without_any_common_features_are_an_input_error(tmp_path):
         Image.fromarray(np.full((64, 64, 3), 40 * index, np.uint8)).save(tmp_path / f"{index}.png")
     with pytest.raises(InputError, match="SIFT found no matches between any two images"):
         sift_tracks(list_images(tmp_path), SiftConfig())
+
+
+def test_detection_starts_before_torch_is_loaded():
+    """torch (matching, retrieval) is imported inside sift_tracks, after the detecting threads start, so
+    that its import overlaps the detection: the module itself does not load it."""
+    script = "import sys, estimation.features.sift; print('torch' in sys.modules)"
+    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                            cwd=Path(__file__).resolve().parents[3]).stdout.strip()
+    assert loaded == "False"

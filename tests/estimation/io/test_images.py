@@ -44,6 +44,13 @@ def test_png_and_jpeg_of_any_name_are_images_and_other_files_are_ignored(tmp_pat
     assert (images.width, images.height) == (40, 30)
 
 
+def test_the_names_are_listed_once_not_per_lookup(tmp_path):
+    for name in ["1.png", "2.png"]:
+        save_image(tmp_path / name)
+    images = list_images(tmp_path)
+    assert images.names is images.names        # reports look a name up per image pair
+
+
 def test_images_of_different_sizes_are_an_input_error_naming_the_odd_one(tmp_path):
     save_image(tmp_path / "1.png")
     save_image(tmp_path / "2.png")

@@ -1,6 +1,10 @@
 """E by the 5-point solver (in RANSAC) or E = K^T F K, the four pose candidates and chirality, against
 synthetic ground truth."""
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -135,3 +139,12 @@ def test_without_the_polish_ransac_keeps_its_own_consensus_and_the_polish_does_n
     for result in (raw, polished):
         chosen = choose_relative_pose(result.E, scene.K, uv1[result.inlier_mask], uv2[result.inlier_mask])
         assert rotation_angle_deg(chosen.pose.R, truth.R) < 0.5
+
+
+def test_verifying_pairs_does_not_load_scipys_optimizer():
+    """Each verifying process imports two_view.geometry; only the E polish (not run there) needs scipy's
+    least squares, so its import stays out of every process's start."""
+    script = "import sys, estimation.two_view.geometry; print('scipy.optimize' in sys.modules)"
+    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                            cwd=Path(__file__).resolve().parents[3]).stdout.strip()
+    assert loaded == "False"
