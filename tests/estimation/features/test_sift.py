@@ -3,10 +3,6 @@ tracks that agree with known geometry."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -18,6 +14,7 @@ from estimation.features.sift import detect_features, root_sift, sample_colors, 
 from estimation.io.images import find_calibration, list_images, load_rgb
 from estimation.io.matchfile import load_match_tracks
 from estimation.two_view.geometry import TwoViewGeometryType
+from tests.estimation.imports import import_loads
 
 
 def test_root_sift_is_the_l2_normalized_square_root_of_the_l1_normalized_descriptor():
@@ -145,7 +142,4 @@ def test_images_without_any_common_features_are_an_input_error(tmp_path):
 def test_detection_starts_before_torch_is_loaded():
     """torch (matching, retrieval) is imported inside sift_tracks, after the detecting threads start, so
     that its import overlaps the detection: the module itself does not load it."""
-    script = "import sys, estimation.features.sift; print('torch' in sys.modules)"
-    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
-                            cwd=Path(__file__).resolve().parents[3]).stdout.strip()
-    assert loaded == "False"
+    assert not import_loads("estimation.features.sift", "torch")

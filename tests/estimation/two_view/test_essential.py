@@ -1,9 +1,6 @@
 """E by the 5-point solver (in RANSAC) or E = K^T F K, the four pose candidates and chirality, against
 synthetic ground truth."""
 
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +20,7 @@ from estimation.two_view.essential import (
 )
 from estimation.two_view.fundamental import eight_point, ransac_fundamental
 from estimation.types import CameraPose
+from tests.estimation.imports import import_loads
 
 
 def direction_error_deg(a, b):
@@ -144,7 +142,4 @@ def test_without_the_polish_ransac_keeps_its_own_consensus_and_the_polish_does_n
 def test_verifying_pairs_does_not_load_scipys_optimizer():
     """Each verifying process imports two_view.geometry; only the E polish (not run there) needs scipy's
     least squares, so its import stays out of every process's start."""
-    script = "import sys, estimation.two_view.geometry; print('scipy.optimize' in sys.modules)"
-    loaded = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
-                            cwd=Path(__file__).resolve().parents[3]).stdout.strip()
-    assert loaded == "False"
+    assert not import_loads("estimation.two_view.geometry", "scipy.optimize")
