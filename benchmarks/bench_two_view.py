@@ -9,6 +9,7 @@ inlier mask or counts differ from such a file (written, for instance, on main).
 
     python benchmarks/bench_two_view.py --save /tmp/two_view_main.npz        # on main
     python benchmarks/bench_two_view.py --compare /tmp/two_view_main.npz     # on a branch
+    python benchmarks/bench_two_view.py --compare /tmp/two_view_main.npz --seed 1   # sampling noise
     python benchmarks/bench_two_view.py --repeat 1 --profile 25              # cProfile's top 25
 """
 
@@ -59,11 +60,12 @@ def verification_inputs(work: Path) -> dict[str, np.ndarray]:
     return dict(np.load(cache))
 
 
-def verify_all(inputs: dict[str, np.ndarray]) -> list[TwoViewGeometry]:
-    """`estimate_two_view_geometry` of every cached pair with the default configuration, in order."""
+def verify_all(inputs: dict[str, np.ndarray], seed: int) -> list[TwoViewGeometry]:
+    """`estimate_two_view_geometry` of every cached pair with the default configuration (but the RANSAC
+    seed), in order."""
     K, offsets = inputs["K"], inputs["offsets"]
     return [estimate_two_view_geometry(inputs["uv1"][start:end], inputs["uv2"][start:end], K, K,
-                                       TwoViewConfig(), RansacConfig(), refine_essential=False)
+                                       TwoViewConfig(), RansacConfig(seed=seed), refine_essential=False)
             for start, end in zip(offsets[:-1], offsets[1:], strict=True)]
 
 
@@ -93,18 +95,20 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3, help="timed runs (the minimum is reported)")
     parser.add_argument("--save", type=Path, help="write the decisions (.npz) here")
     parser.add_argument("--compare", type=Path, help="count the differences from decisions saved here")
+    parser.add_argument("--seed", type=int, default=RansacConfig().seed,
+                        help="RANSAC seed: another seed's differences are the sampling's own noise")
     parser.add_argument("--profile", type=int, default=0, help="print cProfile's top N functions of one run")
     args = parser.parse_args()
 
     inputs = verification_inputs(args.work)
     if args.profile:
         profile = cProfile.Profile()
-        profile.runcall(verify_all, inputs)
+        profile.runcall(verify_all, inputs, args.seed)
         pstats.Stats(profile).sort_stats("tottime").print_stats(args.profile)
     seconds = []
     for _ in range(args.repeat):
         started = time.process_time()
-        results = verify_all(inputs)
+        results = verify_all(inputs, args.seed)
         seconds.append(time.process_time() - started)
     print(f"{len(results)} pairs verified; CPU s per run: {' '.join(f'{s:.2f}' for s in seconds)} "
           f"(min {min(seconds):.2f})")
