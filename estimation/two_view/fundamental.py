@@ -60,10 +60,8 @@ def _eight_point_normalized(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 
 
 def _eight_point_minimal(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Batched minimal samples (B, 8, 2): f = null vector of A via eigh(A^T A) (faster than SVD), rank 2."""
-    A = epipolar_rows(x1, x2)
-    f = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)[1][..., :, 0]
-    return _enforce_rank_two(f.reshape(-1, 3, 3))
+    """Batched minimal samples (B, 8, 2): f = the null vector of the 8 x 9 A (`null_vector`), rank 2."""
+    return _enforce_rank_two(null_vector(epipolar_rows(x1, x2)).reshape(-1, 3, 3))
 
 
 def _denormalize(F_n: np.ndarray, T1: np.ndarray, T2: np.ndarray) -> np.ndarray:
