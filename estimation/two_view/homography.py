@@ -49,11 +49,14 @@ def homography_dlt(uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
 
 def transfer_error(H: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndarray:
     """||pi(H x1) - x2|| in pixels; H may be batched (B, 3, 3) -> (B, N); inf where H x1 is at infinity."""
-    mapped = np.hstack([uv1, np.ones((len(uv1), 1))]) @ np.swapaxes(H, -1, -2)
-    w = mapped[..., 2]
-    safe = np.where(np.abs(w) > 1e-12, w, 1.0)
-    error = np.linalg.norm(mapped[..., :2] / safe[..., None] - uv2, axis=-1)
-    return np.where(np.abs(w) > 1e-12, error, np.inf)
+    # H x1 of every model as one matrix product (rows of all models stacked), as in sampson_residual.
+    models = H.shape[:-2]
+    mapped = (H[..., :2].reshape(-1, 2) @ uv1.T + H[..., 2].reshape(-1, 1)).reshape(*models, 3, len(uv1))
+    w = mapped[..., 2, :]
+    finite = np.abs(w) > 1e-12
+    safe = np.where(finite, w, 1.0)
+    du, dv = mapped[..., 0, :] / safe - uv2[:, 0], mapped[..., 1, :] / safe - uv2[:, 1]
+    return np.where(finite, np.sqrt(du * du + dv * dv), np.inf)
 
 
 def ransac_homography(uv1: np.ndarray, uv2: np.ndarray, threshold_px: float, config: RansacConfig
