@@ -57,8 +57,10 @@ LINEAR, QUADRATIC, CUBIC = _monomials(1), _monomials(2), _monomials(3)
 """Monomial orders: LINEAR = (x, y, z, 1); CUBIC = the ten of degree 3, then QUADRATIC (quotient basis)."""
 LINEAR_TIMES_LINEAR = _product_table(LINEAR, LINEAR, QUADRATIC)
 QUADRATIC_TIMES_LINEAR = _product_table(QUADRATIC, LINEAR, CUBIC)
-X_TIMES_BASIS = [CUBIC.index((i + 1, j, k)) for i, j, k in CUBIC[10:]]
+X_TIMES_BASIS = np.array([CUBIC.index((i + 1, j, k)) for i, j, k in CUBIC[10:]])
 """Position in CUBIC of x * b for each basis monomial b = CUBIC[10:]."""
+ACTION_CUBIC_ROWS, ACTION_BASIS_ROWS = np.flatnonzero(X_TIMES_BASIS < 10), np.flatnonzero(X_TIMES_BASIS >= 10)
+"""Rows of the action matrix whose x * b is a cubic monomial (reduced by the constraints) or a basis one."""
 
 
 FIRST_ROW_COFACTOR_SIGNS = np.array([1.0, -1.0, 1.0])
@@ -77,17 +79,19 @@ def _cubic_constraints(E: np.ndarray) -> np.ndarray:
     (B, 3, 3, 4) linear in (x, y, z, 1). Products of coefficient vectors are outer products, summed over
     the matrix index before they are mapped to monomials (LINEAR_TIMES_LINEAR, QUADRATIC_TIMES_LINEAR)."""
     num = len(E)
-    EEt = np.einsum("bika,bjkc->bijac", E, E, optimize=True).reshape(num, 3, 3, 16) @ LINEAR_TIMES_LINEAR
+    # The coefficient products go through the tables as one 2-D matrix product each (a stacked matmul
+    # would loop over the leading axes).
+    EEt = np.einsum("bika,bjkc->bijac", E, E, optimize=True).reshape(-1, 16) @ LINEAR_TIMES_LINEAR
+    EEt = EEt.reshape(num, 3, 3, 10)
     trace = np.einsum("biiq->bq", EEt)
-    EEtE = np.einsum("bikq,bkjc->bijqc", EEt, E, optimize=True)
-    trace_E = trace[:, None, None, :, None] * E[:, :, :, None, :]
+    products = np.empty((num, 10, 10, 4))
+    products[:, :9] = (2.0 * np.einsum("bikq,bkjc->bijqc", EEt, E, optimize=True)
+                       - trace[:, None, None, :, None] * E[:, :, :, None, :]).reshape(num, 9, 10, 4)
     minors = (E[:, 1, [1, 0, 0], :, None] * E[:, 2, [2, 2, 1], None, :]
               - E[:, 1, [2, 2, 1], :, None] * E[:, 2, [1, 0, 0], None, :])
-    minors = minors.reshape(num, 3, 16) @ LINEAR_TIMES_LINEAR
-    determinant = np.einsum("k,bkq,bkc->bqc", FIRST_ROW_COFACTOR_SIGNS, minors, E[:, 0])
-    products = np.concatenate([(2.0 * EEtE - trace_E).reshape(num, 9, 40), determinant.reshape(num, 1, 40)],
-                              axis=1)
-    return products @ QUADRATIC_TIMES_LINEAR
+    minors = (minors.reshape(-1, 16) @ LINEAR_TIMES_LINEAR).reshape(num, 3, 10)
+    products[:, 9] = np.einsum("k,bkq,bkc->bqc", FIRST_ROW_COFACTOR_SIGNS, minors, E[:, 0])
+    return (products.reshape(-1, 40) @ QUADRATIC_TIMES_LINEAR).reshape(num, 10, 20)
 
 
 def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -101,11 +105,8 @@ def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     # Gauss-Jordan on the cubic monomials: cubic_r = -reduced[r] . basis.
     reduced = np.linalg.solve(constraints[:, :, :10], constraints[:, :, 10:])
     action = np.zeros((len(reduced), 10, 10))
-    for row, target in enumerate(X_TIMES_BASIS):
-        if target < 10:
-            action[:, row] = -reduced[:, target]
-        else:
-            action[:, row, target - 10] = 1.0
+    action[:, ACTION_CUBIC_ROWS] = -reduced[:, X_TIMES_BASIS[ACTION_CUBIC_ROWS]]
+    action[:, ACTION_BASIS_ROWS, X_TIMES_BASIS[ACTION_BASIS_ROWS] - 10] = 1.0
     values, vectors = np.linalg.eig(action)
     real = np.abs(values.imag) < REAL_ROOT_TOLERANCE * (1.0 + np.abs(values.real))
     vectors = vectors.real
