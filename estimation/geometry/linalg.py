@@ -20,7 +20,7 @@ def minimal_null_vector(A: np.ndarray) -> np.ndarray:
     """x ~ [-B^-1 a; 1] with A = [B a] (..., n - 1, n) of rank n - 1, scaled to ||x|| = 1: A x = 0.
 
     LU with partial pivoting is backward stable, so x is the exact null vector of a matrix within
-    machine precision of A (as accurate as the SVD's, for a tenth of its cost), however small x's last
+    machine precision of A (as accurate as the SVD's, at a fraction of its cost), however small x's last
     entry. Where B is exactly singular (a sample repeating a correspondence: SIFT puts several
     orientations on one keypoint) the SVD gives a vector of the null space.
     """
