@@ -214,10 +214,22 @@ class MapperConfig(BaseModel):
     refinement_min_change: float = Field(
         5e-4, ge=0, description="Refinement stops when fewer than this fraction of observations changed."
     )
+    refinement_relative_error_tol: float = Field(
+        1e-3, gt=0, description="Relative cost decrease at which each refinement round's global BA stops "
+        "(the local BAs and the final global BA follow). 1e-3 instead of 1e-6: on lego (mapper only, "
+        "seeds 0 / 1 / 2) 2 LM iterations instead of 3-4 per refinement BA, the same poses and points, "
+        "~0.25 s less mapping CPU.",
+    )
     final_relative_error_tol: float = Field(
         1e-7, gt=0, description="Relative cost decrease at which the final global BA stops (converged: "
         "Ceres, started from the result, removes < 0.001 %). 1e-7 instead of 1e-9: on lego (mapper only, "
         "seeds 0 / 1 / 2) the same poses to 0.001 deg in ~25 % less final-BA time.",
+    )
+    final_min_change: float = Field(
+        2e-3, ge=0, description="The final global BA is run again only when its filter removed more than "
+        "this fraction of the observations. 2e-3 instead of 0 (any): on lego (mapper only, seeds 0 / 1 / 2) "
+        "one final BA instead of 3 / 2 / 3 (its filter removes ~0.1 %), 0.1-0.25 s less mapping CPU, "
+        "mean rotation error 0.380 / 0.368 / 0.366 deg against 0.382 / 0.369 / 0.369.",
     )
     min_model_images: int = Field(3, ge=2, description="Smaller models are discarded (2 for a 2-image set).")
     max_models: int = Field(10, ge=1, description="Most models started from the images left unregistered.")

@@ -23,7 +23,7 @@ import numpy as np
 from scipy import sparse
 
 from estimation.bundle_adjustment.factor_graph import IntrinsicsCovariance, IntrinsicsRefinement
-from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
+from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
 from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
@@ -39,7 +39,7 @@ from estimation.mapper.scene import Scene
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
 FINAL_BA_ROUNDS = 3
-"""Converged global BA, filter, and BA again while the filter removed anything."""
+"""Converged global BA, filter, and BA again while the filter removed more than a few observations."""
 
 
 class ReprojectionSummary(NamedTuple):
@@ -354,13 +354,15 @@ class _ModelBuilder:
             candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
         )
 
-    def global_refinement(self, ba_config: BundleAdjustmentConfig) -> float:
-        """Rounds of global BA -> complete and merge tracks -> filter -> re-triangulate, until fewer than
-        refinement_min_change of the observations changed, or until a later round's BA finds the model
-        already at its optimum (relative decrease below relative_error_tol: what the previous round
-        changed did not move it, and the filters would act on the same model again). Returns the last
-        BA's relative cost decrease."""
+    def global_refinement(self) -> float:
+        """Rounds of global BA (to refinement_relative_error_tol) -> complete and merge tracks -> filter ->
+        re-triangulate, until fewer than refinement_min_change of the observations changed, or until a
+        later round's BA finds the model already near its optimum (relative decrease below that
+        tolerance: what the previous round changed did not move it, and the filters would act on the same
+        model again). Returns the last BA's relative cost decrease."""
         scene = self.scene
+        ba_config = self.config.bundle_adjustment.model_copy(
+            update={"relative_error_tol": self.mapper.refinement_relative_error_tol})
         decrease = 0.0
         for round_ in range(self.mapper.refinement_max_rounds):
             before = len(scene.used_observations())
@@ -379,8 +381,8 @@ class _ModelBuilder:
 
     def final_bundle_adjustment(self) -> tuple[float, int, IntrinsicsCovariance | None]:
         """Converged global BA (tight tolerance), filtering and adjusting again while the filter removes
-        observations. Returns (relative cost decrease of the last BA, its iterations, the covariance of
-        the refined shared intrinsics at the measured pixel noise)."""
+        more than final_min_change of the observations. Returns (relative cost decrease of the last BA,
+        its iterations, the covariance of the refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
         final = ba.model_copy(
             update={"relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol)}
@@ -394,7 +396,9 @@ class _ModelBuilder:
             # The BA's covariance is for measurement_sigma_px of noise; scale it to the measured noise.
             noise = self.scene.noise_sigma(self.config.filter.max_reprojection_px) / ba.measurement_sigma_px
             covariance = result.intrinsics_covariance and result.intrinsics_covariance.scaled(noise)
-            if self.scene.filter_points(self.max_error, self.min_angle) == 0:
+            observations = len(self.scene.used_observations())
+            removed = self.scene.filter_points(self.max_error, self.min_angle)
+            if removed <= self.mapper.final_min_change * observations:
                 break
         return decrease, iterations, covariance
 
@@ -448,7 +452,7 @@ class _ModelBuilder:
                 if self.thresholds.relaxed or not (self.available & ~self.scene.registered).any():
                     return
                 with self.timer.stage("global refinement"):
-                    self.global_refinement(self.config.bundle_adjustment)
+                    self.global_refinement()
                 self.thresholds.relax(self.mapper.relaxed_registration_factor)
                 self.trials[:] = 0
                 continue
@@ -458,7 +462,7 @@ class _ModelBuilder:
                 self.local_bundle_adjustment(registered)
             if len(self.scene.order) >= self.mapper.global_ba_growth * last_global:
                 with self.timer.stage("global refinement"):
-                    self.global_refinement(self.config.bundle_adjustment)
+                    self.global_refinement()
                 last_global = len(self.scene.order)
 
 
@@ -592,7 +596,7 @@ def reconstruct_models(
         before = summarize(builder.scene.errors(builder.scene.used_observations()))
         with timer.stage("bundle adjustment"):
             builder.release_principal_point()
-            builder.global_refinement(config.bundle_adjustment)
+            builder.global_refinement()
             decrease, iterations, covariance = builder.final_bundle_adjustment()
             principal_point_test = builder.test_principal_point(covariance)
             if principal_point_test is not None and not principal_point_test.kept:
