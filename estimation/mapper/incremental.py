@@ -23,7 +23,7 @@ import numpy as np
 from scipy import sparse
 
 from estimation.bundle_adjustment.factor_graph import IntrinsicsCovariance, IntrinsicsRefinement
-from estimation.config import ReconstructionConfig
+from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
 from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
@@ -221,8 +221,14 @@ class _ModelBuilder:
         scene.add_points(
             candidate.points[keep], np.concatenate([obs_i, obs_j]), np.concatenate([index, index])
         )
-        scene.bundle_adjust(self.config.bundle_adjustment)
+        scene.bundle_adjust(self.refinement_ba_config())
         scene.filter_points(self.max_error, self.min_angle)
+
+    def refinement_ba_config(self) -> BundleAdjustmentConfig:
+        """The global BA of the initial pair and of each refinement round: it stops at
+        refinement_relative_error_tol (the BAs that follow go on from there)."""
+        return self.config.bundle_adjustment.model_copy(
+            update={"relative_error_tol": self.mapper.refinement_relative_error_tol})
 
     def measure_noise(self) -> None:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
@@ -361,8 +367,7 @@ class _ModelBuilder:
         tolerance: what the previous round changed did not move it, and the filters would act on the same
         model again). Returns the last BA's relative cost decrease."""
         scene = self.scene
-        ba_config = self.config.bundle_adjustment.model_copy(
-            update={"relative_error_tol": self.mapper.refinement_relative_error_tol})
+        ba_config = self.refinement_ba_config()
         decrease = 0.0
         for round_ in range(self.mapper.refinement_max_rounds):
             before = len(scene.used_observations())

@@ -419,3 +419,10 @@ def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_m
 
     assert final_adjustments(0.0) == FINAL_BA_ROUNDS
     assert final_adjustments(1e-3) == 1
+
+
+def test_the_initial_pair_ba_stops_at_the_refinement_tolerance(monkeypatch, noisy_scene):
+    config = ReconstructionConfig(mapper={"refinement_relative_error_tol": 3e-4})
+    calls = record_bundle_adjustments(monkeypatch)
+    reconstruct(noisy_scene.tracks, noisy_scene, config)
+    assert calls[0] == ("initial", 3e-4)
