@@ -5,10 +5,11 @@ with the best visibility pyramid score (`next_image`) registered by P3P in LO-RA
 (`geometry.absolute_pose`); after each registration its tracks are continued or triangulated, a local BA
 adjusts the image and its best-connected neighbours, and the touched points are completed, merged and
 filtered. Whenever the model grew by `global_ba_growth`, and at the end, global refinement runs in rounds
-(BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change;
-the last step is a converged global BA. When registration stalls the thresholds are relaxed once; when a
-model cannot grow, another is started from the images no model holds. Orchestration only: the state and
-its operations live in `scene.Scene`, the geometry in `geometry/` and `two_view/`.
+(BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change
+(while the model grows, `growth_refinement_rounds`); the last step is a converged global BA. When
+registration stalls the thresholds are relaxed once; when a model cannot grow, another is started from
+the images no model holds. Orchestration only: the state and its operations live in `scene.Scene`, the
+geometry in `geometry/` and `two_view/`.
 """
 
 from __future__ import annotations
@@ -360,16 +361,16 @@ class _ModelBuilder:
             candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
         )
 
-    def global_refinement(self) -> float:
-        """Rounds of global BA (to refinement_relative_error_tol) -> complete and merge tracks -> filter ->
-        re-triangulate, until fewer than refinement_min_change of the observations changed, or until a
-        later round's BA finds the model already near its optimum (relative decrease below that
-        tolerance: what the previous round changed did not move it, and the filters would act on the same
-        model again). Returns the last BA's relative cost decrease."""
+    def global_refinement(self, max_rounds: int) -> float:
+        """Up to max_rounds rounds of global BA (to refinement_relative_error_tol) -> complete and merge
+        tracks -> filter -> re-triangulate, until fewer than refinement_min_change of the observations
+        changed, or until a later round's BA finds the model already near its optimum (relative decrease
+        below that tolerance: what the previous round changed did not move it, and the filters would act
+        on the same model again). Returns the last BA's relative cost decrease."""
         scene = self.scene
         ba_config = self.refinement_ba_config()
         decrease = 0.0
-        for round_ in range(self.mapper.refinement_max_rounds):
+        for round_ in range(max_rounds):
             before = len(scene.used_observations())
             result = scene.bundle_adjust(ba_config)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
@@ -457,7 +458,7 @@ class _ModelBuilder:
                 if self.thresholds.relaxed or not (self.available & ~self.scene.registered).any():
                     return
                 with self.timer.stage("global refinement"):
-                    self.global_refinement()
+                    self.global_refinement(self.mapper.growth_refinement_rounds)
                 self.thresholds.relax(self.mapper.relaxed_registration_factor)
                 self.trials[:] = 0
                 continue
@@ -467,7 +468,7 @@ class _ModelBuilder:
                 self.local_bundle_adjustment(registered)
             if len(self.scene.order) >= self.mapper.global_ba_growth * last_global:
                 with self.timer.stage("global refinement"):
-                    self.global_refinement()
+                    self.global_refinement(self.mapper.growth_refinement_rounds)
                 last_global = len(self.scene.order)
 
 
@@ -601,7 +602,7 @@ def reconstruct_models(
         before = summarize(builder.scene.errors(builder.scene.used_observations()))
         with timer.stage("bundle adjustment"):
             builder.release_principal_point()
-            builder.global_refinement()
+            builder.global_refinement(mapper.refinement_max_rounds)
             decrease, iterations, covariance = builder.final_bundle_adjustment()
             principal_point_test = builder.test_principal_point(covariance)
             if principal_point_test is not None and not principal_point_test.kept:

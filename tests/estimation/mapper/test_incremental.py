@@ -426,3 +426,19 @@ def test_the_initial_pair_ba_stops_at_the_refinement_tolerance(monkeypatch, nois
     calls = record_bundle_adjustments(monkeypatch)
     reconstruct(noisy_scene.tracks, noisy_scene, config)
     assert calls[0] == ("initial", 3e-4)
+
+
+def test_while_the_model_grows_each_refinement_adjusts_at_most_growth_refinement_rounds_times(
+        monkeypatch, noisy_scene):
+    calls = record_bundle_adjustments(monkeypatch)
+
+    def most_consecutive_global_bas_while_growing(rounds: int) -> int:
+        calls.clear()
+        reconstruct(noisy_scene.tracks, noisy_scene,
+                    ReconstructionConfig(mapper={"growth_refinement_rounds": rounds}))
+        kinds = "".join(kind[0] for kind, _ in calls)   # initial, local, global, final
+        growing = kinds[:kinds.rindex("l")]             # up to the last registration's local BA
+        return max(len(run) for run in growing.replace("i", "l").split("l"))
+
+    assert most_consecutive_global_bas_while_growing(2) == 2
+    assert most_consecutive_global_bas_while_growing(1) == 1
