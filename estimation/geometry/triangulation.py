@@ -121,11 +121,16 @@ def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, po
     order = np.argsort(obs_point_index, kind="stable")
     rays, owner = rays[order], obs_point_index[order]
     min_cosine = np.ones(len(points))
-    # Observations of a point are contiguous after sorting: compare each with the ones `offset` after it.
-    for offset in range(1, int(np.bincount(owner).max(initial=1))):
-        same = owner[:-offset] == owner[offset:]
-        cosine = (rays[:-offset][same] * rays[offset:][same]).sum(axis=1)
-        np.minimum.at(min_cosine, owner[:-offset][same], cosine)
+    # Observations of a point are contiguous after sorting: compare each with the one `offset` after it.
+    # An observation with no partner at this offset has none further on, so the pairs only shrink.
+    first = np.arange(len(owner))
+    offset = 1
+    while len(first):
+        first = first[first + offset < len(owner)]
+        first = first[owner[first + offset] == owner[first]]
+        cosine = np.einsum("oi,oi->o", rays[first], rays[first + offset])
+        np.minimum.at(min_cosine, owner[first], cosine)
+        offset += 1
     return np.degrees(np.arccos(np.clip(min_cosine, -1.0, 1.0)))
 
 

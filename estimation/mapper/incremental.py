@@ -5,10 +5,11 @@ with the best visibility pyramid score (`next_image`) registered by P3P in LO-RA
 (`geometry.absolute_pose`); after each registration its tracks are continued or triangulated, a local BA
 adjusts the image and its best-connected neighbours, and the touched points are completed, merged and
 filtered. Whenever the model grew by `global_ba_growth`, and at the end, global refinement runs in rounds
-(BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change;
-the last step is a converged global BA. When registration stalls the thresholds are relaxed once; when a
-model cannot grow, another is started from the images no model holds. Orchestration only: the state and
-its operations live in `scene.Scene`, the geometry in `geometry/` and `two_view/`.
+(BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change
+(while the model grows, `growth_refinement_rounds`); the last step is a converged global BA. When
+registration stalls the thresholds are relaxed once; when a model cannot grow, another is started from
+the images no model holds. Orchestration only: the state and its operations live in `scene.Scene`, the
+geometry in `geometry/` and `two_view/`.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from estimation.mapper.scene import Scene
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
 FINAL_BA_ROUNDS = 3
-"""Converged global BA, filter, and BA again while the filter removed anything."""
+"""Converged global BA, filter, and BA again while the filter removed more than a few observations."""
 
 
 class ReprojectionSummary(NamedTuple):
@@ -221,8 +222,14 @@ class _ModelBuilder:
         scene.add_points(
             candidate.points[keep], np.concatenate([obs_i, obs_j]), np.concatenate([index, index])
         )
-        scene.bundle_adjust(self.config.bundle_adjustment)
+        scene.bundle_adjust(self.refinement_ba_config())
         scene.filter_points(self.max_error, self.min_angle)
+
+    def refinement_ba_config(self) -> BundleAdjustmentConfig:
+        """The global BA of the initial pair and of each refinement round: it stops at
+        refinement_relative_error_tol (the BAs that follow go on from there)."""
+        return self.config.bundle_adjustment.model_copy(
+            update={"relative_error_tol": self.mapper.refinement_relative_error_tol})
 
     def measure_noise(self) -> None:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
@@ -354,15 +361,16 @@ class _ModelBuilder:
             candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
         )
 
-    def global_refinement(self, ba_config: BundleAdjustmentConfig) -> float:
-        """Rounds of global BA -> complete and merge tracks -> filter -> re-triangulate, until fewer than
-        refinement_min_change of the observations changed, or until a later round's BA finds the model
-        already at its optimum (relative decrease below relative_error_tol: what the previous round
-        changed did not move it, and the filters would act on the same model again). Returns the last
-        BA's relative cost decrease."""
+    def global_refinement(self, max_rounds: int) -> float:
+        """Up to max_rounds rounds of global BA (to refinement_relative_error_tol) -> complete and merge
+        tracks -> filter -> re-triangulate, until fewer than refinement_min_change of the observations
+        changed, or until a later round's BA finds the model already near its optimum (relative decrease
+        below that tolerance: what the previous round changed did not move it, and the filters would act
+        on the same model again). Returns the last BA's relative cost decrease."""
         scene = self.scene
+        ba_config = self.refinement_ba_config()
         decrease = 0.0
-        for round_ in range(self.mapper.refinement_max_rounds):
+        for round_ in range(max_rounds):
             before = len(scene.used_observations())
             result = scene.bundle_adjust(ba_config)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
@@ -379,8 +387,8 @@ class _ModelBuilder:
 
     def final_bundle_adjustment(self) -> tuple[float, int, IntrinsicsCovariance | None]:
         """Converged global BA (tight tolerance), filtering and adjusting again while the filter removes
-        observations. Returns (relative cost decrease of the last BA, its iterations, the covariance of
-        the refined shared intrinsics at the measured pixel noise)."""
+        more than final_min_change of the observations. Returns (relative cost decrease of the last BA,
+        its iterations, the covariance of the refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
         final = ba.model_copy(
             update={"relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol)}
@@ -394,7 +402,9 @@ class _ModelBuilder:
             # The BA's covariance is for measurement_sigma_px of noise; scale it to the measured noise.
             noise = self.scene.noise_sigma(self.config.filter.max_reprojection_px) / ba.measurement_sigma_px
             covariance = result.intrinsics_covariance and result.intrinsics_covariance.scaled(noise)
-            if self.scene.filter_points(self.max_error, self.min_angle) == 0:
+            observations = len(self.scene.used_observations())
+            removed = self.scene.filter_points(self.max_error, self.min_angle)
+            if removed <= self.mapper.final_min_change * observations:
                 break
         return decrease, iterations, covariance
 
@@ -448,7 +458,7 @@ class _ModelBuilder:
                 if self.thresholds.relaxed or not (self.available & ~self.scene.registered).any():
                     return
                 with self.timer.stage("global refinement"):
-                    self.global_refinement(self.config.bundle_adjustment)
+                    self.global_refinement(self.mapper.growth_refinement_rounds)
                 self.thresholds.relax(self.mapper.relaxed_registration_factor)
                 self.trials[:] = 0
                 continue
@@ -458,7 +468,7 @@ class _ModelBuilder:
                 self.local_bundle_adjustment(registered)
             if len(self.scene.order) >= self.mapper.global_ba_growth * last_global:
                 with self.timer.stage("global refinement"):
-                    self.global_refinement(self.config.bundle_adjustment)
+                    self.global_refinement(self.mapper.growth_refinement_rounds)
                 last_global = len(self.scene.order)
 
 
@@ -592,7 +602,7 @@ def reconstruct_models(
         before = summarize(builder.scene.errors(builder.scene.used_observations()))
         with timer.stage("bundle adjustment"):
             builder.release_principal_point()
-            builder.global_refinement(config.bundle_adjustment)
+            builder.global_refinement(mapper.refinement_max_rounds)
             decrease, iterations, covariance = builder.final_bundle_adjustment()
             principal_point_test = builder.test_principal_point(covariance)
             if principal_point_test is not None and not principal_point_test.kept:

@@ -10,7 +10,13 @@ from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.alignment import align_similarity, aligned_pose_errors
 from estimation.geometry.projection import Camera
-from estimation.mapper.incremental import SparseModel, reconstruct_models, run_incremental
+from estimation.mapper.incremental import (
+    FINAL_BA_ROUNDS,
+    SparseModel,
+    reconstruct_models,
+    run_incremental,
+)
+from estimation.mapper.scene import Scene
 from estimation.synthetic import make_object_scene, make_scene, observe, rotation_about_axis
 from estimation.types import CameraPose, Tracks
 
@@ -370,3 +376,69 @@ def test_the_error_limit_follows_the_measured_noise_and_drops_near_outliers_a_fi
     assert len(adaptive.obs_point) > 0.9 * (len(uv) - len(moved))          # the true observations stay
     rotation = pose_errors(adaptive, scene).rotation_deg.mean()
     assert rotation < 0.5 * pose_errors(fixed, scene).rotation_deg.mean()
+
+
+def record_bundle_adjustments(monkeypatch) -> list[tuple[str, float]]:
+    """(kind, relative_error_tol) of every Scene.bundle_adjust call: initial, local, global or final."""
+    calls = []
+    adjust = Scene.bundle_adjust
+
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+        kind = ("final" if intrinsics_covariance else "local" if variable_images is not None
+                else "initial" if len(scene.order) == 2 and not calls else "global")
+        calls.append((kind, config.relative_error_tol))
+        return adjust(scene, config, variable_images, intrinsics_covariance)
+
+    monkeypatch.setattr(Scene, "bundle_adjust", recording)
+    return calls
+
+
+def test_each_refinement_round_adjusts_to_the_refinement_tolerance_and_the_last_ba_converges(
+        monkeypatch, noisy_scene):
+    config = ReconstructionConfig(mapper={"refinement_relative_error_tol": 3e-4})
+    calls = record_bundle_adjustments(monkeypatch)
+    reconstruct(noisy_scene.tracks, noisy_scene, config)
+    refinement = [tol for kind, tol in calls if kind == "global"]
+    final = [tol for kind, tol in calls if kind == "final"]
+    assert refinement and set(refinement) == {3e-4}
+    assert final and set(final) == {config.mapper.final_relative_error_tol}
+
+
+def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_min_change(
+        monkeypatch, noisy_scene):
+    calls = record_bundle_adjustments(monkeypatch)
+    filter_points = Scene.filter_points
+    # Every filter reports one observation more than it removed: a few, out of thousands.
+    monkeypatch.setattr(Scene, "filter_points", lambda scene, *args: filter_points(scene, *args) + 1)
+
+    def final_adjustments(final_min_change: float) -> int:
+        calls.clear()
+        reconstruct(noisy_scene.tracks, noisy_scene,
+                    ReconstructionConfig(mapper={"final_min_change": final_min_change}))
+        return sum(kind == "final" for kind, _ in calls)
+
+    assert final_adjustments(0.0) == FINAL_BA_ROUNDS
+    assert final_adjustments(1e-3) == 1
+
+
+def test_the_initial_pair_ba_stops_at_the_refinement_tolerance(monkeypatch, noisy_scene):
+    config = ReconstructionConfig(mapper={"refinement_relative_error_tol": 3e-4})
+    calls = record_bundle_adjustments(monkeypatch)
+    reconstruct(noisy_scene.tracks, noisy_scene, config)
+    assert calls[0] == ("initial", 3e-4)
+
+
+def test_while_the_model_grows_each_refinement_adjusts_at_most_growth_refinement_rounds_times(
+        monkeypatch, noisy_scene):
+    calls = record_bundle_adjustments(monkeypatch)
+
+    def most_consecutive_global_bas_while_growing(rounds: int) -> int:
+        calls.clear()
+        reconstruct(noisy_scene.tracks, noisy_scene,
+                    ReconstructionConfig(mapper={"growth_refinement_rounds": rounds}))
+        kinds = "".join(kind[0] for kind, _ in calls)   # initial, local, global, final
+        growing = kinds[:kinds.rindex("l")]             # up to the last registration's local BA
+        return max(len(run) for run in growing.replace("i", "l").split("l"))
+
+    assert most_consecutive_global_bas_while_growing(2) == 2
+    assert most_consecutive_global_bas_while_growing(1) == 1
