@@ -8,6 +8,7 @@ from estimation.geometry.triangulation import (
     mean_reprojection_px,
     observations_for_pair,
     reprojection_residuals,
+    sum_per_point,
     triangulate_linear,
     triangulate_nonlinear,
     triangulation_angle_deg,
@@ -85,6 +86,14 @@ def test_triangulation_angle_is_the_largest_angle_between_viewing_rays():
     angles = triangulation_angle_deg(centers, point_index, points)
     assert angles[0] == pytest.approx(90.0)
     assert angles[1] == pytest.approx(np.degrees(0.5e-6), rel=1e-3)
+
+
+def test_sum_per_point_adds_each_observations_block_to_its_point_and_zero_to_unobserved_ones():
+    values = np.arange(24.0).reshape(4, 2, 3)
+    sums = sum_per_point(values, np.array([2, 0, 2, 0]), num_points=4)
+    np.testing.assert_array_equal(sums[0], values[1] + values[3])
+    np.testing.assert_array_equal(sums[2], values[0] + values[2])
+    np.testing.assert_array_equal(sums[[1, 3]], np.zeros((2, 2, 3)))
 
 
 def test_observations_for_pair_lists_both_cameras_per_point():
