@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import cv2
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
@@ -140,39 +139,17 @@ def pnp_ransac(K: np.ndarray, points: np.ndarray, uv: np.ndarray, config: Ransac
     return PnPResult(pose=CameraPose(R=R, t=t), inlier_mask=inlier_mask, iterations=iterations)
 
 
-JACOBIAN_STEP = 1e-8
-"""Relative forward-difference step of pnp_nonlinear's Jacobian (scipy's default for 2-point)."""
-
-
 def pnp_nonlinear(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: CameraPose) -> PnPRefinement:
-    """min_{w, t} sum ||pi(K (exp([w]x) R0 X + t)) - uv||^2 over a rotation vector w (Levenberg-Marquardt).
-    The Jacobian's six forward differences are projected as one batch of seven poses (one numpy pass)."""
+    """min_{R, t} sum ||pi(K (R X + t)) - uv||^2 from `initial`: OpenCV's Levenberg-Marquardt
+    (solvePnPRefineLM, analytic Jacobian over a rotation vector)."""
     _require(len(points))
-    points = np.asarray(points, float)
-    camera = as_camera(K)
+    points, uv = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
+    rvec, tvec = cv2.solvePnPRefineLM(points, uv, np.asarray(K, np.float64), None,
+                                      cv2.Rodrigues(initial.R)[0], np.reshape(initial.t, (3, 1)).copy())
+    pose = CameraPose(R=cv2.Rodrigues(rvec)[0], t=tvec.ravel())
 
-    def pose_of(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return Rotation.from_rotvec(params[:3]).as_matrix() @ initial.R, params[3:]
+    def rms(start: CameraPose) -> float:
+        residuals = project(as_camera(K), start.R, start.t, points).uv - uv
+        return float(np.sqrt(np.mean(residuals**2) * 2))
 
-    def residuals(params: np.ndarray) -> np.ndarray:
-        R, t = pose_of(params)
-        return (project(camera, R, t, points).uv - uv).ravel()
-
-    def jacobian(params: np.ndarray) -> np.ndarray:
-        steps = JACOBIAN_STEP * np.maximum(1.0, np.abs(params))
-        shifted = params + np.vstack([np.zeros(6), np.diag(steps)])           # (7, 6)
-        R = Rotation.from_rotvec(shifted[:, :3]).as_matrix() @ initial.R        # (7, 3, 3)
-        num = len(points)
-        projected = project(camera, np.repeat(R, num, axis=0), np.repeat(shifted[:, 3:], num, axis=0),
-                            np.tile(points, (7, 1))).uv.reshape(7, -1)
-        return ((projected[1:] - projected[0]) / steps[:, None]).T
-
-    start = np.concatenate([np.zeros(3), initial.t])
-    solution = least_squares(residuals, start, jac=jacobian, method="lm", x_scale="jac")
-    R, t = pose_of(solution.x)
-
-    def rms(r: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
-
-    return PnPRefinement(pose=CameraPose(R=R, t=t), initial_rms_px=rms(residuals(start)),
-                         final_rms_px=rms(solution.fun))
+    return PnPRefinement(pose=pose, initial_rms_px=rms(initial), final_rms_px=rms(pose))
