@@ -10,7 +10,7 @@ import numpy as np
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.linalg import null_vector
-from estimation.geometry.projection import as_camera, normalized_to_pixel, project
+from estimation.geometry.projection import as_camera, project
 from estimation.geometry.ransac import random_samples, required_iterations
 from estimation.types import CameraPose
 
@@ -86,12 +86,16 @@ def pnp_linear(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> CameraPose:
 
 
 def projection_errors(K: np.ndarray, P: np.ndarray, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """||pi(K P [X; 1]) - uv|| per point (pixels), inf behind the camera; P (..., 3, 4) -> (..., N)."""
-    x_cam = points @ np.swapaxes(P[..., :3], -1, -2) + P[..., None, :, 3]
-    depth = x_cam[..., 2]
+    """||pi(K P [X; 1]) - uv|| per point (pixels), inf behind the camera; P (..., 3, 4) -> (..., N).
+
+    K P is formed first, so each hypothesis costs one product with the points (K's last row is [0 0 1]:
+    the third coordinate is the depth)."""
+    KP = K @ P
+    homogeneous = points @ np.swapaxes(KP[..., :3], -1, -2) + KP[..., None, :, 3]
+    depth = homogeneous[..., 2]
     safe_depth = np.where(depth > 0, depth, 1.0)
-    projected = normalized_to_pixel(as_camera(K), x_cam[..., :2] / safe_depth[..., None])
-    return np.where(depth > 0, np.linalg.norm(projected - uv, axis=-1), np.inf)
+    error = np.hypot(homogeneous[..., 0] / safe_depth - uv[:, 0], homogeneous[..., 1] / safe_depth - uv[:, 1])
+    return np.where(depth > 0, error, np.inf)
 
 
 def reprojection_errors(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray
