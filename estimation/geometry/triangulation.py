@@ -166,34 +166,26 @@ class RobustTriangulation(NamedTuple):
 
 
 def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, min_angle_deg: float,
-                       hypotheses_per_point: int, rng: np.random.Generator) -> RobustTriangulation:
+                       hypotheses_per_point: int) -> RobustTriangulation:
     """Per point, argmax over pairs (a, b) of its observations of #{o : ||r_o(DLT(a, b))|| < max_error_px}
     (pairs under min_angle_deg or behind a camera score nothing), then non-linear on the consensus.
 
-    All points at once: `hypotheses_per_point` observation pairs per point (every pair when there are no
-    more than that, random ones otherwise), scored against all of the point's observations in one
+    All points at once: the point's first `hypotheses_per_point` observation pairs in triangular order
+    (every pair when there are no more), scored against all of the point's observations in one
     vectorized pass.
     """
     order = np.argsort(obs.point_index, kind="stable")
     counts = np.bincount(obs.point_index, minlength=obs.num_points)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    H = hypotheses_per_point
-    # Pair h of point p: observations a and b != a among the point's (sorted) observations; every pair in
-    # turn while h < n (n - 1) / 2 (h -> (a, b), b < a, in triangular order), random pairs beyond.
-    count_ph = np.repeat(np.maximum(counts, 2), H)
-    h = np.tile(np.arange(H), obs.num_points)
-    a_listed = np.floor((1 + np.sqrt(1 + 8 * h)) / 2).astype(np.int64)
-    b_listed = h - a_listed * (a_listed - 1) // 2
-    a_random = np.floor(rng.random(obs.num_points * H) * count_ph).astype(np.int64)
-    b_random = (a_random + 1 + np.floor(rng.random(obs.num_points * H) * (count_ph - 1)).astype(np.int64)
-                ) % count_ph
-    listed = h < count_ph * (count_ph - 1) // 2
-    a_offset = np.where(listed, a_listed, a_random)
-    b_offset = np.where(listed, b_listed, b_random)
-    start_ph = np.repeat(starts, H)
-    usable = np.repeat(counts >= 2, H)
-    pair_obs = order[np.stack([start_ph + a_offset, start_ph + b_offset]) * usable]      # (2, P*H)
-    num_hypotheses = obs.num_points * H
+    # Hypothesis h of point p pairs its (sorted) observations a and b < a in triangular order: h -> (a, b)
+    # = (1, 0), (2, 0), (2, 1), (3, 0), ...; a point with fewer pairs has fewer hypotheses (no repeats).
+    per_point = np.minimum(counts * (counts - 1) // 2, hypotheses_per_point)
+    owner = np.repeat(np.arange(obs.num_points), per_point)                 # hypothesis -> its point
+    first_of_point = np.cumsum(per_point) - per_point
+    h = np.arange(len(owner)) - first_of_point[owner]
+    a = np.floor((1 + np.sqrt(1 + 8 * h)) / 2).astype(np.int64)
+    pair_obs = order[starts[owner] + np.stack([a, h - a * (a - 1) // 2])]   # (2, hypotheses)
+    num_hypotheses = len(owner)
     hypothesis_obs = Observations(
         R=obs.R[pair_obs.ravel()], t=obs.t[pair_obs.ravel()], uv=obs.uv[pair_obs.ravel()],
         point_index=np.tile(np.arange(num_hypotheses), 2), num_points=num_hypotheses)
@@ -201,22 +193,29 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     centers = -np.einsum("oji,oj->oi", hypothesis_obs.R, hypothesis_obs.t)
     pair_angle = triangulation_angle_deg(centers, hypothesis_obs.point_index, candidates)
 
-    # Score hypothesis (p, h) on every observation of p: observation o is repeated for each h.
-    scored_obs = np.repeat(np.arange(len(obs.uv)), H)
-    scored_hypothesis = obs.point_index[scored_obs] * H + np.tile(np.arange(H), len(obs.uv))
+    # Score each hypothesis of p on every observation of p: observation o is repeated per hypothesis.
+    scored_per_obs = per_point[obs.point_index]
+    scored_obs = np.repeat(np.arange(len(obs.uv)), scored_per_obs)
+    scored_hypothesis = (first_of_point[obs.point_index[scored_obs]] + np.arange(len(scored_obs))
+                         - np.repeat(np.cumsum(scored_per_obs) - scored_per_obs, scored_per_obs))
     expanded = Observations(R=obs.R[scored_obs], t=obs.t[scored_obs], uv=obs.uv[scored_obs],
                             point_index=scored_hypothesis, num_points=num_hypotheses)
     agrees = observation_errors(K, expanded, candidates) < max_error_px
     support = np.bincount(scored_hypothesis, weights=agrees, minlength=num_hypotheses)
-    support[~(usable & (pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
-    best = np.argmax(support.reshape(obs.num_points, H), axis=1)
-    best_hypothesis = np.arange(obs.num_points) * H + best
-    inliers = agrees.reshape(len(obs.uv), H)[np.arange(len(obs.uv)), best[obs.point_index]]
-    inliers &= support[best_hypothesis][obs.point_index] >= 2
+    support[~((pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
+    # Best hypothesis per point: the first of the largest support (the order of the listed pairs).
+    ranked = np.lexsort((h, -support, owner))
+    leaders = ranked[np.unique(owner[ranked], return_index=True)[1]]
+    best_hypothesis = np.full(obs.num_points, -1, np.int64)
+    best_hypothesis[owner[leaders]] = leaders
+    best_of_obs = best_hypothesis[obs.point_index]
+    inliers = np.zeros(len(obs.uv), bool)
+    inliers[scored_obs[agrees & (scored_hypothesis == best_of_obs[scored_obs])]] = True
+    inliers &= (best_of_obs >= 0) & (support[best_of_obs] >= 2)
 
     subset = Observations(obs.R[inliers], obs.t[inliers], obs.uv[inliers], obs.point_index[inliers],
                           obs.num_points)
-    points = candidates[best_hypothesis]
+    points = np.where((best_hypothesis >= 0)[:, None], candidates[best_hypothesis], np.nan)
     if inliers.any():
         points = triangulate_nonlinear(K, subset, points).points
     inliers = observation_errors(K, obs, points) < max_error_px
