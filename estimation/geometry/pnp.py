@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import cv2
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.linalg import null_vector
-from estimation.geometry.projection import as_camera, normalized_to_pixel, project
+from estimation.geometry.projection import as_camera, project
 from estimation.geometry.ransac import random_samples, required_iterations
 from estimation.types import CameraPose
 
@@ -87,12 +86,16 @@ def pnp_linear(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> CameraPose:
 
 
 def projection_errors(K: np.ndarray, P: np.ndarray, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """||pi(K P [X; 1]) - uv|| per point (pixels), inf behind the camera; P (..., 3, 4) -> (..., N)."""
-    x_cam = points @ np.swapaxes(P[..., :3], -1, -2) + P[..., None, :, 3]
-    depth = x_cam[..., 2]
+    """||pi(K P [X; 1]) - uv|| per point (pixels), inf behind the camera; P (..., 3, 4) -> (..., N).
+
+    K P is formed first, so each hypothesis costs one product with the points (K's last row is [0 0 1]:
+    the third coordinate is the depth)."""
+    KP = K @ P
+    homogeneous = points @ np.swapaxes(KP[..., :3], -1, -2) + KP[..., None, :, 3]
+    depth = homogeneous[..., 2]
     safe_depth = np.where(depth > 0, depth, 1.0)
-    projected = normalized_to_pixel(as_camera(K), x_cam[..., :2] / safe_depth[..., None])
-    return np.where(depth > 0, np.linalg.norm(projected - uv, axis=-1), np.inf)
+    error = np.hypot(homogeneous[..., 0] / safe_depth - uv[:, 0], homogeneous[..., 1] / safe_depth - uv[:, 1])
+    return np.where(depth > 0, error, np.inf)
 
 
 def reprojection_errors(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray
@@ -140,39 +143,17 @@ def pnp_ransac(K: np.ndarray, points: np.ndarray, uv: np.ndarray, config: Ransac
     return PnPResult(pose=CameraPose(R=R, t=t), inlier_mask=inlier_mask, iterations=iterations)
 
 
-JACOBIAN_STEP = 1e-8
-"""Relative forward-difference step of pnp_nonlinear's Jacobian (scipy's default for 2-point)."""
-
-
 def pnp_nonlinear(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: CameraPose) -> PnPRefinement:
-    """min_{w, t} sum ||pi(K (exp([w]x) R0 X + t)) - uv||^2 over a rotation vector w (Levenberg-Marquardt).
-    The Jacobian's six forward differences are projected as one batch of seven poses (one numpy pass)."""
+    """min_{R, t} sum ||pi(K (R X + t)) - uv||^2 from `initial`: OpenCV's Levenberg-Marquardt
+    (solvePnPRefineLM, analytic Jacobian over a rotation vector)."""
     _require(len(points))
-    points = np.asarray(points, float)
-    camera = as_camera(K)
+    points, uv = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
+    rvec, tvec = cv2.solvePnPRefineLM(points, uv, np.asarray(K, np.float64), None,
+                                      cv2.Rodrigues(initial.R)[0], np.reshape(initial.t, (3, 1)).copy())
+    pose = CameraPose(R=cv2.Rodrigues(rvec)[0], t=tvec.ravel())
 
-    def pose_of(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return Rotation.from_rotvec(params[:3]).as_matrix() @ initial.R, params[3:]
+    def rms(start: CameraPose) -> float:
+        residuals = project(as_camera(K), start.R, start.t, points).uv - uv
+        return float(np.sqrt(np.mean(residuals**2) * 2))
 
-    def residuals(params: np.ndarray) -> np.ndarray:
-        R, t = pose_of(params)
-        return (project(camera, R, t, points).uv - uv).ravel()
-
-    def jacobian(params: np.ndarray) -> np.ndarray:
-        steps = JACOBIAN_STEP * np.maximum(1.0, np.abs(params))
-        shifted = params + np.vstack([np.zeros(6), np.diag(steps)])           # (7, 6)
-        R = Rotation.from_rotvec(shifted[:, :3]).as_matrix() @ initial.R        # (7, 3, 3)
-        num = len(points)
-        projected = project(camera, np.repeat(R, num, axis=0), np.repeat(shifted[:, 3:], num, axis=0),
-                            np.tile(points, (7, 1))).uv.reshape(7, -1)
-        return ((projected[1:] - projected[0]) / steps[:, None]).T
-
-    start = np.concatenate([np.zeros(3), initial.t])
-    solution = least_squares(residuals, start, jac=jacobian, method="lm", x_scale="jac")
-    R, t = pose_of(solution.x)
-
-    def rms(r: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(r.reshape(-1, 2) ** 2) * 2))
-
-    return PnPRefinement(pose=CameraPose(R=R, t=t), initial_rms_px=rms(residuals(start)),
-                         final_rms_px=rms(solution.fun))
+    return PnPRefinement(pose=pose, initial_rms_px=rms(initial), final_rms_px=rms(pose))

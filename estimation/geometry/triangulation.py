@@ -15,6 +15,9 @@ from estimation.geometry.projection import reprojection_residuals
 
 NONLINEAR_ITERATIONS = 10
 INITIAL_DAMPING = 1e-3
+STEP_TOLERANCE = 1e-8
+"""Levenberg-Marquardt stops once every proposed step is below this fraction of its point's norm (scipy's
+default xtol): on the mapper's points further steps move them by less than 1e-8 relative."""
 
 
 class Observations(NamedTuple):
@@ -46,6 +49,17 @@ def observations_for_pair(R1, t1, R2, t2, uv1: np.ndarray, uv2: np.ndarray) -> O
     )
 
 
+def sum_per_point(values: np.ndarray, point_index: np.ndarray, num_points: int) -> np.ndarray:
+    """S_p = sum_{o : point_index[o] = p} values_o for values (O, ...) -> (P, ...).
+
+    One bincount over the flattened entries (np.add.at's unbuffered scatter costs several times more)."""
+    shape = values.shape[1:]
+    width = int(np.prod(shape))
+    bins = (point_index[:, None] * width + np.arange(width)).ravel()
+    sums = np.bincount(bins, weights=values.reshape(-1), minlength=num_points * width)
+    return sums.reshape((num_points, *shape))
+
+
 def mean_reprojection_px(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """Mean over each point's observations of ||r_o|| (pixels), (P,)."""
     error = np.linalg.norm(reprojection_residuals(K, obs, points), axis=1)
@@ -61,8 +75,7 @@ def triangulate_linear(K: np.ndarray, obs: Observations) -> Triangulation:
     rows = np.stack([x[:, 0:1] * P[:, 2] - P[:, 0], x[:, 1:2] * P[:, 2] - P[:, 1]], axis=1)  # (O, 2, 4)
     rows /= np.linalg.norm(rows, axis=2, keepdims=True)
     normal = np.einsum("oki,okj->oij", rows, rows)                           # (O, 4, 4) per-observation A^T A
-    AtA = np.zeros((obs.num_points, 4, 4))
-    np.add.at(AtA, obs.point_index, normal)
+    AtA = sum_per_point(normal, obs.point_index, obs.num_points)
     homogeneous = np.linalg.eigh(AtA)[1][:, :, 0]        # eigenvector of the smallest eigenvalue
     w = homogeneous[:, 3]
     w = np.where(np.abs(w) < 1e-15, 1e-15, w)
@@ -82,29 +95,32 @@ def _projection_jacobian(K: np.ndarray, obs: Observations, points: np.ndarray) -
 
 def triangulate_nonlinear(K: np.ndarray, obs: Observations, initial: np.ndarray,
                           iterations: int = NONLINEAR_ITERATIONS) -> Triangulation:
-    """X_p = argmin sum_o ||pi(K (R_o X_p + t_o)) - uv_o||^2 per point: batched Levenberg-Marquardt."""
+    """X_p = argmin sum_o ||pi(K (R_o X_p + t_o)) - uv_o||^2 per point: batched Levenberg-Marquardt, until
+    every step is below STEP_TOLERANCE relative or after `iterations`."""
     points = np.array(initial, float)
     damping = np.full(obs.num_points, INITIAL_DAMPING)
 
-    def cost(candidate: np.ndarray) -> np.ndarray:
-        squared = (reprojection_residuals(K, obs, candidate) ** 2).sum(axis=1)
-        return np.bincount(obs.point_index, weights=squared, minlength=obs.num_points)
+    def cost(residuals: np.ndarray) -> np.ndarray:
+        return np.bincount(obs.point_index, weights=(residuals**2).sum(axis=1), minlength=obs.num_points)
 
-    current = cost(points)
+    residuals = reprojection_residuals(K, obs, points)
+    current = cost(residuals)
     for _ in range(iterations):
-        residuals = reprojection_residuals(K, obs, points)
         J = _projection_jacobian(K, obs, points)
-        JtJ = np.zeros((obs.num_points, 3, 3))
-        Jtr = np.zeros((obs.num_points, 3))
-        np.add.at(JtJ, obs.point_index, np.einsum("oki,okj->oij", J, J))
-        np.add.at(Jtr, obs.point_index, np.einsum("oki,ok->oi", J, residuals))
+        JtJ = sum_per_point(np.einsum("oki,okj->oij", J, J), obs.point_index, obs.num_points)
+        Jtr = sum_per_point(np.einsum("oki,ok->oi", J, residuals), obs.point_index, obs.num_points)
         diagonal = np.einsum("pii->pi", JtJ)
         system = JtJ + (damping[:, None] * diagonal)[:, :, None] * np.eye(3)
         step = np.linalg.solve(system + 1e-12 * np.eye(3), -Jtr[:, :, None])[:, :, 0]
+        if np.all(np.linalg.norm(step, axis=1) <= STEP_TOLERANCE * (np.linalg.norm(points, axis=1)
+                                                                    + STEP_TOLERANCE)):
+            break
         candidate = points + step
-        trial = cost(candidate)
+        trial_residuals = reprojection_residuals(K, obs, candidate)
+        trial = cost(trial_residuals)
         better = trial < current
         points[better] = candidate[better]
+        residuals = np.where(better[obs.point_index, None], trial_residuals, residuals)
         current = np.where(better, trial, current)
         damping = np.where(better, damping / 10.0, damping * 10.0)
     return Triangulation(points=points, reprojection_px=mean_reprojection_px(K, obs, points))
@@ -150,34 +166,26 @@ class RobustTriangulation(NamedTuple):
 
 
 def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, min_angle_deg: float,
-                       hypotheses_per_point: int, rng: np.random.Generator) -> RobustTriangulation:
+                       hypotheses_per_point: int) -> RobustTriangulation:
     """Per point, argmax over pairs (a, b) of its observations of #{o : ||r_o(DLT(a, b))|| < max_error_px}
     (pairs under min_angle_deg or behind a camera score nothing), then non-linear on the consensus.
 
-    All points at once: `hypotheses_per_point` observation pairs per point (every pair when there are no
-    more than that, random ones otherwise), scored against all of the point's observations in one
+    All points at once: the point's first `hypotheses_per_point` observation pairs in triangular order
+    (every pair when there are no more), scored against all of the point's observations in one
     vectorized pass.
     """
     order = np.argsort(obs.point_index, kind="stable")
     counts = np.bincount(obs.point_index, minlength=obs.num_points)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    H = hypotheses_per_point
-    # Pair h of point p: observations a and b != a among the point's (sorted) observations; every pair in
-    # turn while h < n (n - 1) / 2 (h -> (a, b), b < a, in triangular order), random pairs beyond.
-    count_ph = np.repeat(np.maximum(counts, 2), H)
-    h = np.tile(np.arange(H), obs.num_points)
-    a_listed = np.floor((1 + np.sqrt(1 + 8 * h)) / 2).astype(np.int64)
-    b_listed = h - a_listed * (a_listed - 1) // 2
-    a_random = np.floor(rng.random(obs.num_points * H) * count_ph).astype(np.int64)
-    b_random = (a_random + 1 + np.floor(rng.random(obs.num_points * H) * (count_ph - 1)).astype(np.int64)
-                ) % count_ph
-    listed = h < count_ph * (count_ph - 1) // 2
-    a_offset = np.where(listed, a_listed, a_random)
-    b_offset = np.where(listed, b_listed, b_random)
-    start_ph = np.repeat(starts, H)
-    usable = np.repeat(counts >= 2, H)
-    pair_obs = order[np.stack([start_ph + a_offset, start_ph + b_offset]) * usable]      # (2, P*H)
-    num_hypotheses = obs.num_points * H
+    # Hypothesis h of point p pairs its (sorted) observations a and b < a in triangular order: h -> (a, b)
+    # = (1, 0), (2, 0), (2, 1), (3, 0), ...; a point with fewer pairs has fewer hypotheses (no repeats).
+    per_point = np.minimum(counts * (counts - 1) // 2, hypotheses_per_point)
+    owner = np.repeat(np.arange(obs.num_points), per_point)                 # hypothesis -> its point
+    first_of_point = np.cumsum(per_point) - per_point
+    h = np.arange(len(owner)) - first_of_point[owner]
+    a = np.floor((1 + np.sqrt(1 + 8 * h)) / 2).astype(np.int64)
+    pair_obs = order[starts[owner] + np.stack([a, h - a * (a - 1) // 2])]   # (2, hypotheses)
+    num_hypotheses = len(owner)
     hypothesis_obs = Observations(
         R=obs.R[pair_obs.ravel()], t=obs.t[pair_obs.ravel()], uv=obs.uv[pair_obs.ravel()],
         point_index=np.tile(np.arange(num_hypotheses), 2), num_points=num_hypotheses)
@@ -185,22 +193,29 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     centers = -np.einsum("oji,oj->oi", hypothesis_obs.R, hypothesis_obs.t)
     pair_angle = triangulation_angle_deg(centers, hypothesis_obs.point_index, candidates)
 
-    # Score hypothesis (p, h) on every observation of p: observation o is repeated for each h.
-    scored_obs = np.repeat(np.arange(len(obs.uv)), H)
-    scored_hypothesis = obs.point_index[scored_obs] * H + np.tile(np.arange(H), len(obs.uv))
+    # Score each hypothesis of p on every observation of p: observation o is repeated per hypothesis.
+    scored_per_obs = per_point[obs.point_index]
+    scored_obs = np.repeat(np.arange(len(obs.uv)), scored_per_obs)
+    scored_hypothesis = (first_of_point[obs.point_index[scored_obs]] + np.arange(len(scored_obs))
+                         - np.repeat(np.cumsum(scored_per_obs) - scored_per_obs, scored_per_obs))
     expanded = Observations(R=obs.R[scored_obs], t=obs.t[scored_obs], uv=obs.uv[scored_obs],
                             point_index=scored_hypothesis, num_points=num_hypotheses)
     agrees = observation_errors(K, expanded, candidates) < max_error_px
     support = np.bincount(scored_hypothesis, weights=agrees, minlength=num_hypotheses)
-    support[~(usable & (pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
-    best = np.argmax(support.reshape(obs.num_points, H), axis=1)
-    best_hypothesis = np.arange(obs.num_points) * H + best
-    inliers = agrees.reshape(len(obs.uv), H)[np.arange(len(obs.uv)), best[obs.point_index]]
-    inliers &= support[best_hypothesis][obs.point_index] >= 2
+    support[~((pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
+    # Best hypothesis per point: the first of the largest support (the order of the listed pairs).
+    ranked = np.lexsort((h, -support, owner))
+    leaders = ranked[np.unique(owner[ranked], return_index=True)[1]]
+    best_hypothesis = np.full(obs.num_points, -1, np.int64)
+    best_hypothesis[owner[leaders]] = leaders
+    best_of_obs = best_hypothesis[obs.point_index]
+    inliers = np.zeros(len(obs.uv), bool)
+    inliers[scored_obs[agrees & (scored_hypothesis == best_of_obs[scored_obs])]] = True
+    inliers &= (best_of_obs >= 0) & (support[best_of_obs] >= 2)
 
     subset = Observations(obs.R[inliers], obs.t[inliers], obs.uv[inliers], obs.point_index[inliers],
                           obs.num_points)
-    points = candidates[best_hypothesis]
+    points = np.where((best_hypothesis >= 0)[:, None], candidates[best_hypothesis], np.nan)
     if inliers.any():
         points = triangulate_nonlinear(K, subset, points).points
     inliers = observation_errors(K, obs, points) < max_error_px

@@ -183,7 +183,6 @@ class _ModelBuilder:
                            replace(refine, principal_point=refine.principal_point and not staged))
         self.available = available  # images no earlier model holds
         self.timer, self.progress = timer, progress
-        self.rng = np.random.default_rng(config.ransac.seed)
         self.trials = np.zeros(len(tracks.image_names), np.int64)
         self.failures: dict[int, str] = {}
         self.thresholds = _Thresholds(
@@ -302,7 +301,7 @@ class _ModelBuilder:
         tracks = self.tracks
         image_tracks = tracks.track_index[tracks.image_index == image]
         self.scene.triangulate_tracks(
-            image_tracks, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
+            image_tracks, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses
         )
         self.scene.complete_tracks(self.max_error)
 
@@ -358,7 +357,7 @@ class _ModelBuilder:
         hits = visibility.multiply(visibility @ sparse.csr_matrix(under.astype(float))).sum(axis=1)
         candidates = np.flatnonzero(np.asarray(hits).ravel() > 0)
         return scene.triangulate_tracks(
-            candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses, self.rng
+            candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses
         )
 
     def global_refinement(self, max_rounds: int) -> float:

@@ -260,7 +260,6 @@ class Scene:
         max_error_px: float,
         min_angle_deg: float,
         hypotheses_per_point: int,
-        rng: np.random.Generator,
     ) -> int:
         """New points for the given tracks that have none yet, from their free observations in registered
         images (robust two-view hypotheses, `triangulate_ransac`). Returns the number of points added."""
@@ -283,7 +282,6 @@ class Scene:
             max_error_px,
             min_angle_deg,
             hypotheses_per_point,
-            rng,
         )
         keep = result.inlier_mask
         new_index = np.cumsum(result.valid) - 1

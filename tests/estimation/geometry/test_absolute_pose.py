@@ -1,11 +1,15 @@
 """P3P and the P3P LO-RANSAC absolute pose against synthetic ground truth with outliers."""
 
+import warnings
+
+import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.absolute_pose import absolute_pose_ransac, epnp, p3p
+from estimation.geometry.absolute_pose import absolute_pose_ransac, epnp, p3p, p3p_batch
 from estimation.geometry.alignment import rotation_angle_deg
 from estimation.synthetic import make_scene
 
@@ -25,6 +29,54 @@ def test_one_of_the_p3p_solutions_is_the_true_pose():
     best = min(solutions, key=lambda pose: rotation_angle_deg(pose.R, truth.R))
     np.testing.assert_allclose(best.R, truth.R, atol=1e-8)
     np.testing.assert_allclose(best.t, truth.t, atol=1e-8)
+
+
+def random_samples_in_front(num_samples, seed):
+    """Samples of three points 2 to 6 units in front of random cameras: (K, points, uv, true [R | t])."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[300.0, 0, 100], [0, 300, 100], [0, 0, 1]])
+    R = Rotation.random(num_samples, random_state=seed).as_matrix()
+    t = rng.normal(size=(num_samples, 3))
+    in_camera = np.concatenate(
+        [rng.uniform(-1, 1, (num_samples, 3, 2)), rng.uniform(2, 6, (num_samples, 3, 1))], axis=2)
+    uv = (in_camera[..., :2] / in_camera[..., 2:]) * 300.0 + 100.0
+    points = np.einsum("bji,bkj->bki", R, in_camera - t[:, None])             # X = R^T (x_cam - t)
+    return K, points, uv, np.concatenate([R, t[:, :, None]], axis=2)
+
+
+def test_batched_p3p_recovers_every_true_pose_exactly_with_the_points_in_front():
+    K, points, uv, truth = random_samples_in_front(500, seed=4)
+    solutions = p3p_batch(K, points, uv)
+    assert set(solutions.sample_index) == set(range(500))
+    closest = np.full(500, np.inf)
+    np.minimum.at(closest, solutions.sample_index,
+                  np.abs(solutions.poses - truth[solutions.sample_index]).max(axis=(1, 2)))
+    assert closest.max() < 1e-8
+    R, t = solutions.poses[:, :, :3], solutions.poses[:, :, 3]
+    depths = np.einsum("mj,mkj->mk", R[:, 2], points[solutions.sample_index]) + t[:, 2:3]
+    assert np.all(depths > 0)
+
+
+def test_batched_p3p_finds_the_same_poses_as_opencv():
+    K, points, uv, _ = random_samples_in_front(300, seed=5)
+    solutions = p3p_batch(K, points, uv)
+    for sample in range(300):
+        _, rvecs, tvecs = cv2.solveP3P(points[sample], np.ascontiguousarray(uv[sample]), K, None,
+                                       flags=cv2.SOLVEPNP_P3P)
+        ours = solutions.poses[solutions.sample_index == sample]
+        assert len(ours) == len(rvecs)
+        for rvec, tvec in zip(rvecs, tvecs, strict=True):
+            theirs = np.concatenate([cv2.Rodrigues(rvec)[0], tvec.reshape(3, 1)], axis=1)
+            assert np.abs(ours - theirs).max(axis=(1, 2)).min() < 1e-6
+
+
+def test_batched_p3p_gives_no_pose_for_a_sample_repeating_a_point():
+    K, points, uv, _ = random_samples_in_front(2, seed=6)
+    points[1, 2], uv[1, 2] = points[1, 1], uv[1, 1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solutions = p3p_batch(K, points, uv)
+    assert set(solutions.sample_index) == {0}
 
 
 def test_p3p_takes_exactly_three_correspondences():

@@ -6,7 +6,13 @@ import pytest
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.alignment import rotation_angle_deg
-from estimation.geometry.pnp import pnp_linear, pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.pnp import (
+    pnp_linear,
+    pnp_nonlinear,
+    pnp_ransac,
+    projection_errors,
+    reprojection_errors,
+)
 from estimation.synthetic import make_scene, rotation_about_axis
 from estimation.types import CameraPose
 
@@ -83,3 +89,16 @@ def test_reprojection_errors_are_infinite_behind_the_camera():
                                  np.zeros((2, 2)))
     assert errors[0] == 0.0
     assert errors[1] == np.inf
+
+
+def test_projection_errors_score_every_hypothesis_like_the_single_pose_reprojection_error():
+    scene = make_scene(num_points=50, noise_px=0.5, seed=7)
+    points, uv, _ = correspondences(scene, 1)
+    poses = [scene.poses[1], scene.poses[2]]
+    P = np.array([np.concatenate([pose.R, pose.t[:, None]], axis=1) for pose in poses])
+    errors = projection_errors(scene.K, P, points, uv)
+    assert errors.shape == (2, len(points))
+    for pose, row in zip(poses, errors, strict=True):
+        np.testing.assert_allclose(row, reprojection_errors(scene.K, pose.R, pose.t, points, uv), rtol=1e-12)
+    behind = projection_errors(np.eye(3), np.eye(3, 4)[None], np.array([[0.0, 0, -2]]), np.zeros((1, 2)))
+    assert behind[0, 0] == np.inf

@@ -8,8 +8,10 @@ from estimation.geometry.triangulation import (
     mean_reprojection_px,
     observations_for_pair,
     reprojection_residuals,
+    sum_per_point,
     triangulate_linear,
     triangulate_nonlinear,
+    triangulate_ransac,
     triangulation_angle_deg,
 )
 from estimation.synthetic import make_scene
@@ -85,6 +87,37 @@ def test_triangulation_angle_is_the_largest_angle_between_viewing_rays():
     angles = triangulation_angle_deg(centers, point_index, points)
     assert angles[0] == pytest.approx(90.0)
     assert angles[1] == pytest.approx(np.degrees(0.5e-6), rel=1e-3)
+
+
+def test_robust_triangulation_rejects_the_outlier_observation_of_each_point_even_in_its_first_pair():
+    scene = make_scene(num_points=100, seed=8)
+    obs = all_view_observations(scene)
+    first_of_point = np.unique(obs.point_index, return_index=True)[1]
+    corrupted = np.zeros(len(obs.uv), bool)
+    corrupted[first_of_point] = True
+    obs = obs._replace(uv=obs.uv + 30.0 * corrupted[:, None])
+    result = triangulate_ransac(scene.K, obs, max_error_px=2.0, min_angle_deg=1.0, hypotheses_per_point=8)
+    assert result.valid.all()
+    np.testing.assert_array_equal(result.inlier_mask, ~corrupted)
+    np.testing.assert_allclose(result.points, scene.points, atol=1e-7)
+
+
+def test_robust_triangulation_of_two_observations_is_their_two_view_point():
+    scene = make_scene(num_points=50, seed=9)
+    ids, uv1, uv2 = scene.tracks.pair_correspondences(0, 1)
+    a, b = scene.poses[0], scene.poses[1]
+    result = triangulate_ransac(scene.K, observations_for_pair(a.R, a.t, b.R, b.t, uv1, uv2),
+                                max_error_px=2.0, min_angle_deg=1.0, hypotheses_per_point=8)
+    assert result.valid.all() and result.inlier_mask.all()
+    np.testing.assert_allclose(result.points, scene.points[ids], atol=1e-7)
+
+
+def test_sum_per_point_adds_each_observations_block_to_its_point_and_zero_to_unobserved_ones():
+    values = np.arange(24.0).reshape(4, 2, 3)
+    sums = sum_per_point(values, np.array([2, 0, 2, 0]), num_points=4)
+    np.testing.assert_array_equal(sums[0], values[1] + values[3])
+    np.testing.assert_array_equal(sums[2], values[0] + values[2])
+    np.testing.assert_array_equal(sums[[1, 3]], np.zeros((2, 2, 3)))
 
 
 def test_observations_for_pair_lists_both_cameras_per_point():

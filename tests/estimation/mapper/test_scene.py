@@ -93,7 +93,7 @@ def test_triangulate_tracks_keeps_the_consistent_observations_of_tracks_with_out
     for m, pose in enumerate(truth.poses):
         scene.register_image(m, pose)
     added = scene.triangulate_tracks(np.arange(200), max_error_px=2.0, min_angle_deg=1.0,
-                                     hypotheses_per_point=8, rng=np.random.default_rng(0))
+                                     hypotheses_per_point=8)
     assert added >= 195
     used = scene.used_observations()
     assert np.mean(truth.inlier_mask[used]) > 0.99
