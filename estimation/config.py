@@ -197,7 +197,8 @@ class MapperConfig(BaseModel):
         "only). A threshold far above the noise lets a wrong pose gather as many loose inliers as the true "
         "one: lego (mapper only, RANSAC seeds 0-9) registered r_25.png (50 correspondences, a third of them "
         "right) 12 deg off on seed 4 with a fixed 4 px (~17 sigma), 18 deg off on seed 5 with 3 px; with 2 x "
-        "the limit (~2.3 px) no image is over 2.3 deg off on seeds 0-19 (1.5 and 3 x, seeds 0-9: 3.6 and 4.4). "
+        "the limit (~2.3 px) no image is over 2.3 deg off on seeds 0-19 (1.5 and 3 x, seeds 0-9: 3.6 and "
+        "4.4). "
         "Herz-Jesus-P8 pays 0.0985 -> 0.106 deg mean rotation error.",
     )
     relaxed_registration_factor: float = Field(
