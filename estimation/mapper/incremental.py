@@ -159,13 +159,22 @@ class _Thresholds:
     min_inliers: float
     min_inlier_ratio: float
     pnp_threshold_px: float
+    pnp_noise_factor: float  # 0: the fixed pnp_threshold_px only
     relaxed: bool = False
 
     def relax(self, factor: float) -> None:
         self.min_inliers *= factor
         self.min_inlier_ratio *= factor
         self.pnp_threshold_px /= factor
+        self.pnp_noise_factor /= factor
         self.relaxed = True
+
+    def pnp_threshold(self, noise_limit_px: float) -> float:
+        """threshold = min(pnp_threshold_px, pnp_noise_factor x noise_limit_px): inliers near the measured
+        accuracy, so that a wrong pose cannot collect loose ones as easily as the true pose its own."""
+        if self.pnp_noise_factor <= 0:
+            return self.pnp_threshold_px
+        return min(self.pnp_threshold_px, self.pnp_noise_factor * noise_limit_px)
 
 
 class _ModelBuilder:
@@ -186,7 +195,8 @@ class _ModelBuilder:
         self.trials = np.zeros(len(tracks.image_names), np.int64)
         self.failures: dict[int, str] = {}
         self.thresholds = _Thresholds(
-            self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio, config.ransac.pnp_threshold_px
+            self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio, config.ransac.pnp_threshold_px,
+            self.mapper.pnp_threshold_noise_factor,
         )
         self.refinement_rounds = 0
         self.error_limit = config.filter.max_reprojection_px
@@ -273,7 +283,8 @@ class _ModelBuilder:
         scene = self.scene
         obs_ids, point_ids = scene.correspondences_2d3d(image)
         points, uv = scene.point_xyz[point_ids], self.tracks.uv[obs_ids]
-        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.thresholds.pnp_threshold_px})
+        threshold = self.thresholds.pnp_threshold(self.error_limit)
+        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": threshold})
         try:
             if self.mapper.absolute_pose == "p3p":
                 result = absolute_pose_ransac(scene.K, points, uv, ransac)

@@ -8,7 +8,7 @@ import pytest
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
-from estimation.geometry.alignment import align_similarity, aligned_pose_errors
+from estimation.geometry.alignment import align_similarity, aligned_pose_errors, rotation_angle_deg
 from estimation.geometry.projection import Camera
 from estimation.mapper.incremental import (
     FINAL_BA_ROUNDS,
@@ -17,7 +17,7 @@ from estimation.mapper.incremental import (
     run_incremental,
 )
 from estimation.mapper.scene import Scene
-from estimation.synthetic import make_object_scene, make_scene, observe, rotation_about_axis
+from estimation.synthetic import make_object_scene, make_scene, observe, project, rotation_about_axis
 from estimation.types import CameraPose, Tracks
 
 CONFIG = ReconstructionConfig()
@@ -372,10 +372,44 @@ def test_the_error_limit_follows_the_measured_noise_and_drops_near_outliers_a_fi
     assert 0.2 < adaptive.stats.noise_sigma_px < 0.3           # the near outliers lift the median a little
     assert adaptive.stats.reprojection_limit_px == pytest.approx(5 * adaptive.stats.noise_sigma_px)
     assert fixed.stats.reprojection_limit_px == 4.0
-    assert share_of_moved_kept(adaptive) < 0.2 < 0.8 < share_of_moved_kept(fixed)
+    # Measured: 0.15 with a fixed 4 px PnP threshold, 0.21 with the noise-following one (same rotation error).
+    assert share_of_moved_kept(adaptive) < 0.25 < 0.8 < share_of_moved_kept(fixed)
     assert len(adaptive.obs_point) > 0.9 * (len(uv) - len(moved))          # the true observations stay
     rotation = pose_errors(adaptive, scene).rotation_deg.mean()
     assert rotation < 0.5 * pose_errors(fixed, scene).rotation_deg.mean()
+
+
+def test_an_image_whose_few_correspondences_fit_a_wrong_pose_loosely_is_registered_at_its_true_pose():
+    # The last image sees 44 points: 14 right matches (0.2 px noise) and 30 wrong ones lying 2.5-3.5 px
+    # from where a camera turned 12 deg about the scene would see them (lego's r_25.png: a third right).
+    scene = make_scene(num_cameras=6, num_points=300, noise_px=0.2, seed=0)
+    weak = 5
+    turn = rotation_about_axis(np.array([0.0, 1.0, 0.2]), np.radians(12.0))
+    truth = scene.poses[weak]
+    wrong = CameraPose.from_center(truth.R @ turn.T, turn @ truth.center)
+    tracks = scene.tracks
+    in_weak = np.flatnonzero(tracks.image_index == weak)
+    loose = in_weak[14:44]
+    rng = np.random.default_rng(1)
+    angle = rng.uniform(0, 2 * np.pi, len(loose))
+    uv = tracks.uv.copy()
+    uv[loose] = project(scene.K, wrong, scene.points[tracks.track_index[loose]]) + rng.uniform(
+        2.5, 3.5, len(loose))[:, None] * np.stack([np.cos(angle), np.sin(angle)], 1)
+    keep = np.ones(len(uv), bool)
+    keep[in_weak[44:]] = False
+    tracks = dataclasses.replace(tracks, track_index=tracks.track_index[keep],
+                                 image_index=tracks.image_index[keep], uv=uv[keep])
+
+    def weak_rotation_error_deg(config: ReconstructionConfig) -> float:
+        """The weak image's rotation relative to the first image's, against the truth's."""
+        model = run_incremental(tracks, scene.K, config)
+        assert model.registration_order[-1] == weak
+        estimated = model.poses[weak].R @ model.poses[0].R.T
+        return rotation_angle_deg(estimated, truth.R @ scene.poses[0].R.T)
+
+    # A fixed 4 px counts the loose matches (~15 sigma of the noise) as inliers: the wrong pose wins 30 to 14.
+    assert weak_rotation_error_deg(ReconstructionConfig(mapper={"pnp_threshold_noise_factor": 0})) > 5.0
+    assert weak_rotation_error_deg(CONFIG) < 0.2
 
 
 def record_bundle_adjustments(monkeypatch) -> list[tuple[str, float]]:
