@@ -21,6 +21,7 @@ Sets (../shared/data):
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py                 # every set
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --no-pycolmap
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets fountain --max-reprojection-sigmas 0
+    python benchmarks/bench_sfm.py --sets lego --no-pycolmap --seeds 0,1,2,3,4,5,6,7,8,9   # RANSAC seeds
 """
 
 from __future__ import annotations
@@ -110,9 +111,10 @@ def strecha_set(name: str) -> BenchSet:
 
 
 def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None, workers: int = 0,
-             estimator: str | None = None) -> Outcome:
+             estimator: str | None = None, seed: int = 0) -> Outcome:
     limit = {} if max_reprojection_sigmas is None else {"max_reprojection_sigmas": max_reprojection_sigmas}
     config = ReconstructionConfig(features=bench.features, write_figures=False, filter=limit,
+                                  ransac={"seed": seed},
                                   sift={"workers": workers},
                                   two_view={} if estimator is None else {"estimator": estimator})
     start = time.perf_counter()
@@ -202,6 +204,8 @@ def main() -> None:
                         help="ours: SIFT detection threads and verification processes (0: one per core)")
     parser.add_argument("--estimator", choices=["numpy", "opencv"], default=None,
                         help="ours: whose RANSAC verifies the pairs (default: TwoViewConfig's)")
+    parser.add_argument("--seeds", default="0",
+                        help="ours: comma-separated RANSAC seeds, a run and a row each (pycolmap runs once)")
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()}")
     header = ("| set | method | registered | rot mean deg | rot max deg | centre mean | centre max | points "
@@ -223,25 +227,27 @@ def main() -> None:
             else:
                 raise SystemExit(f"unknown set {key!r}")
             total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-            ours = run_ours(bench, work / f"ours_{key}", args.max_reprojection_sigmas, args.workers,
-                            args.estimator)
+            seeds = [int(seed) for seed in args.seeds.split(",")]
+            runs = {seed: run_ours(bench, work / f"ours_{key}_{seed}", args.max_reprojection_sigmas,
+                                   args.workers, args.estimator, seed) for seed in seeds}
             skip_colmap = args.no_pycolmap or key == "unity"
             theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
-            ratio = f"{ours.seconds / theirs.seconds:.2f}" if theirs else "-"
-            rows.append(f"| {bench.name} | ours | {len(ours.poses)}/{total} | "
-                        + " | ".join(pose_error_cells(ours, bench.truth))
-                        + f" | {ours.points} | {ours.mean_track_length:.2f} | {ours.rms_px:.3f} | "
-                        f"{100 * ours.ceres_left:.3f} % | {ours.seconds:.1f} | {ratio} |")
+            for seed, ours in runs.items():
+                ratio = f"{ours.seconds / theirs.seconds:.2f}" if theirs else "-"
+                method = "ours" if len(seeds) == 1 else f"ours (seed {seed})"
+                rows.append(f"| {bench.name} | {method} | {len(ours.poses)}/{total} | "
+                            + " | ".join(pose_error_cells(ours, bench.truth))
+                            + f" | {ours.points} | {ours.mean_track_length:.2f} | {ours.rms_px:.3f} | "
+                            f"{100 * ours.ceres_left:.3f} % | {ours.seconds:.1f} | {ratio} |")
+                print(rows[-1], flush=True)
+                stages = ", ".join(f"{stage} {value:.1f}" for stage, value in ours.stage_seconds.items())
+                print(f"ours, seconds per stage (detection, matching, verification: inside features): "
+                      f"{stages}", flush=True)
             if theirs:
                 rows.append(f"| {bench.name} | pycolmap | {len(theirs.poses)}/{total} | "
                             + " | ".join(pose_error_cells(theirs, bench.truth))
                             + f" | {theirs.points} | {theirs.mean_track_length:.2f} | - | - | "
                             f"{theirs.seconds:.1f} | |")
-            print(rows[-2 if theirs else -1], flush=True)
-            stages = ", ".join(f"{stage} {value:.1f}" for stage, value in ours.stage_seconds.items())
-            print(f"ours, seconds per stage (detection, matching, verification: inside features): {stages}",
-                  flush=True)
-            if theirs:
                 print(rows[-1], flush=True)
     print(f"load average after: {os.getloadavg()}")
     print("\n".join(rows))
