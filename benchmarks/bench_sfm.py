@@ -22,6 +22,7 @@ Sets (../shared/data):
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --no-pycolmap
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets fountain --max-reprojection-sigmas 0
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap --seeds 0,1,2,3,4,5,6,7,8,9   # RANSAC seeds
+    python benchmarks/bench_sfm.py --sets lego --no-pycolmap --mapper '{"relaxed_registration_factor": 0.9}'
 """
 
 from __future__ import annotations
@@ -111,10 +112,10 @@ def strecha_set(name: str) -> BenchSet:
 
 
 def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None, workers: int = 0,
-             estimator: str | None = None, seed: int = 0) -> Outcome:
+             estimator: str | None = None, seed: int = 0, mapper: dict | None = None) -> Outcome:
     limit = {} if max_reprojection_sigmas is None else {"max_reprojection_sigmas": max_reprojection_sigmas}
     config = ReconstructionConfig(features=bench.features, write_figures=False, filter=limit,
-                                  ransac={"seed": seed},
+                                  ransac={"seed": seed}, mapper=mapper or {},
                                   sift={"workers": workers},
                                   two_view={} if estimator is None else {"estimator": estimator})
     start = time.perf_counter()
@@ -206,6 +207,8 @@ def main() -> None:
                         help="ours: whose RANSAC verifies the pairs (default: TwoViewConfig's)")
     parser.add_argument("--seeds", default="0",
                         help="ours: comma-separated RANSAC seeds, a run and a row each (pycolmap runs once)")
+    parser.add_argument("--mapper", type=json.loads, default=None,
+                        help="ours: MapperConfig fields as JSON (example in the docstring)")
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()}")
     header = ("| set | method | registered | rot mean deg | rot max deg | centre mean | centre max | points "
@@ -229,7 +232,7 @@ def main() -> None:
             total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             seeds = [int(seed) for seed in args.seeds.split(",")]
             runs = {seed: run_ours(bench, work / f"ours_{key}_{seed}", args.max_reprojection_sigmas,
-                                   args.workers, args.estimator, seed) for seed in seeds}
+                                   args.workers, args.estimator, seed, args.mapper) for seed in seeds}
             skip_colmap = args.no_pycolmap or key == "unity"
             theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
             for seed, ours in runs.items():

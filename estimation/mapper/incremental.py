@@ -154,7 +154,9 @@ class _Timer:
 
 @dataclass
 class _Thresholds:
-    """Registration thresholds of one model; `relax` loosens them once when registration stalls."""
+    """Registration thresholds of one model; `relax` lowers the inlier minimums once when registration
+    stalls. The PnP inlier threshold is never relaxed: the images left at a stall are the weakly seen ones,
+    on which a looser threshold lets a wrong pose tie the true one (see relaxed_registration_factor)."""
 
     min_inliers: float
     min_inlier_ratio: float
@@ -165,8 +167,6 @@ class _Thresholds:
     def relax(self, factor: float) -> None:
         self.min_inliers *= factor
         self.min_inlier_ratio *= factor
-        self.pnp_threshold_px /= factor
-        self.pnp_noise_factor /= factor
         self.relaxed = True
 
     def pnp_threshold(self, noise_limit_px: float) -> float:
