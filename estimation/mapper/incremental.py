@@ -160,21 +160,12 @@ class _Thresholds:
 
     min_inliers: float
     min_inlier_ratio: float
-    pnp_threshold_px: float
-    pnp_noise_factor: float  # 0: the fixed pnp_threshold_px only
     relaxed: bool = False
 
     def relax(self, factor: float) -> None:
         self.min_inliers *= factor
         self.min_inlier_ratio *= factor
         self.relaxed = True
-
-    def pnp_threshold(self, noise_limit_px: float) -> float:
-        """threshold = min(pnp_threshold_px, pnp_noise_factor x noise_limit_px): inliers near the measured
-        accuracy, so that a wrong pose cannot collect loose ones as easily as the true pose its own."""
-        if self.pnp_noise_factor <= 0:
-            return self.pnp_threshold_px
-        return min(self.pnp_threshold_px, self.pnp_noise_factor * noise_limit_px)
 
 
 class _ModelBuilder:
@@ -194,10 +185,7 @@ class _ModelBuilder:
         self.timer, self.progress = timer, progress
         self.trials = np.zeros(len(tracks.image_names), np.int64)
         self.failures: dict[int, str] = {}
-        self.thresholds = _Thresholds(
-            self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio, config.ransac.pnp_threshold_px,
-            self.mapper.pnp_threshold_noise_factor,
-        )
+        self.thresholds = _Thresholds(self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio)
         self.refinement_rounds = 0
         self.error_limit = config.filter.max_reprojection_px
         # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
@@ -212,6 +200,14 @@ class _ModelBuilder:
     def max_error(self) -> float:
         """Reprojection limit of triangulation, track completion and filtering (see `measure_noise`)."""
         return self.error_limit
+
+    @property
+    def pnp_threshold(self) -> float:
+        """min(pnp_threshold_px, pnp_threshold_noise_factor x the reprojection limit): inliers near the
+        measured accuracy, so that a wrong pose cannot collect loose ones as easily as the true pose its
+        own (factor 0: the fixed pnp_threshold_px only)."""
+        fixed, factor = self.config.ransac.pnp_threshold_px, self.mapper.pnp_threshold_noise_factor
+        return fixed if factor <= 0 else min(fixed, factor * self.error_limit)
 
     @property
     def min_angle(self) -> float:
@@ -283,8 +279,7 @@ class _ModelBuilder:
         scene = self.scene
         obs_ids, point_ids = scene.correspondences_2d3d(image)
         points, uv = scene.point_xyz[point_ids], self.tracks.uv[obs_ids]
-        threshold = self.thresholds.pnp_threshold(self.error_limit)
-        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": threshold})
+        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.pnp_threshold})
         try:
             if self.mapper.absolute_pose == "p3p":
                 result = absolute_pose_ransac(scene.K, points, uv, ransac)
