@@ -1,0 +1,21 @@
+"""ReconstructionConfig: a value out of range is refused with the field's full name (what the CLI and the
+REST service show the user)."""
+
+import pydantic
+import pytest
+
+from estimation.config import ReconstructionConfig
+
+
+@pytest.mark.parametrize(("section", "field", "value"), [
+    ("mapper", "refinement_relative_error_tol", 0.0),
+    ("mapper", "final_min_change", -0.1),
+    ("mapper", "growth_refinement_rounds", 0),
+    ("mapper", "pnp_threshold_noise_factor", -1.0),
+    ("mapper", "relaxed_registration_factor", 1.5),
+])
+def test_an_out_of_range_mapper_setting_is_refused_naming_its_field(section, field, value):
+    with pytest.raises(pydantic.ValidationError) as refused:
+        ReconstructionConfig(**{section: {field: value}})
+    assert [error["loc"] for error in refused.value.errors()] == [(section, field)]
+
