@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+
+LM_MAX_ITERATIONS = 100
+"""Most iterations of `levenberg_marquardt` (its tolerances stop a converging problem long before)."""
+LM_INITIAL_DAMPING = 1e-3
+"""Starting lambda of `levenberg_marquardt` (near Gauss-Newton; raised at once if a step fails)."""
+LM_DIAGONAL_FLOOR = 1e-12
+"""Smallest diagonal entry of J^T J that `levenberg_marquardt`'s damping scales."""
 
 
 def null_vector(A: np.ndarray) -> np.ndarray:
@@ -32,3 +41,55 @@ def minimal_null_vector(A: np.ndarray) -> np.ndarray:
     x[~regular] = np.linalg.svd(systems[~regular])[2][:, -1, :]
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     return x.reshape(*A.shape[:-2], A.shape[-1])
+
+
+def rotation_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
+    """Rodrigues: R = I + sinc(theta) [w]x + (1 - cos theta) / theta^2 [w]x^2, theta = ||w||; (..., 3) ->
+    (..., 3, 3).
+
+    (1 - cos theta) / theta^2 is written 0.5 sinc(theta / 2)^2, which has no cancellation near theta = 0.
+    """
+    w = np.asarray(rotvec, float)
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    zero = np.zeros_like(w[..., 0])
+    cross = np.stack([np.stack([zero, -w[..., 2], w[..., 1]], axis=-1),
+                      np.stack([w[..., 2], zero, -w[..., 0]], axis=-1),
+                      np.stack([-w[..., 1], w[..., 0], zero], axis=-1)], axis=-2)
+    # numpy's sinc is the normalized sin(pi x) / (pi x).
+    return (np.eye(3) + np.sinc(theta / np.pi) * cross
+            + 0.5 * np.sinc(theta / (2 * np.pi)) ** 2 * (cross @ cross))
+
+
+def levenberg_marquardt(residuals: Callable[[np.ndarray], np.ndarray],
+                        jacobian: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, ftol: float,
+                        xtol: float, max_iterations: int = LM_MAX_ITERATIONS) -> np.ndarray:
+    """x = argmin ||r(x)||^2 from x0 by steps (J^T J + lambda diag(J^T J)) dx = -J^T r, lambda / 10 after a
+    step that lowers the cost and x 10 after one that does not. Stops once an accepted step lowers the cost
+    by at most ftol relative, or a step is at most xtol (||x|| + xtol) long (MINPACK's criteria).
+
+    For small dense problems (a few parameters) where scipy.optimize's import would cost more than the solve.
+    """
+    x = np.array(x0, float)
+    r = residuals(x)
+    cost = float(r @ r)
+    damping = LM_INITIAL_DAMPING
+    J = jacobian(x)
+    for _ in range(max_iterations):
+        normal = J.T @ J
+        # A tiny floor keeps directions the residuals ignore (a gauge, e.g. a scale) solvable.
+        system = normal + damping * np.diag(np.maximum(np.diag(normal), LM_DIAGONAL_FLOOR))
+        step = np.linalg.solve(system, -(J.T @ r))
+        if np.linalg.norm(step) <= xtol * (np.linalg.norm(x) + xtol):
+            break
+        trial = residuals(x + step)
+        trial_cost = float(trial @ trial)
+        if trial_cost >= cost:
+            damping *= 10.0
+            continue
+        decrease = (cost - trial_cost) / max(cost, np.finfo(float).tiny)
+        x, r, cost = x + step, trial, trial_cost
+        damping /= 10.0
+        if decrease <= ftol:
+            break
+        J = jacobian(x)
+    return x

@@ -16,6 +16,7 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.linalg import levenberg_marquardt, rotation_from_rotvec
 from estimation.geometry.ransac import ransac
 from estimation.geometry.triangulation import observations_for_pair, triangulate_linear
 from estimation.two_view.fundamental import eight_point, epipolar_rows, sampson_distance, sampson_residual
@@ -196,19 +197,15 @@ def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.nda
                      ) -> np.ndarray:
     """min over E = [t]x exp([w]x) R0 of sum r_i^2, r_i the Sampson residual of F = K2^-T E K1^-1 in pixels
     (Levenberg-Marquardt on w and t, ||t|| fixed by normalization inside the residual). The Jacobian's
-    six forward differences are evaluated as one batch of seven E (one numpy pass per LM iteration)."""
-    # scipy's optimizer loads only where E is polished: the processes verifying pairs never polish, and
-    # its import was 0.3 s of each one's start.
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
+    six forward differences are evaluated as one batch of seven E (one numpy pass per LM iteration).
+    numpy's own LM: importing scipy.optimize for this 6-parameter problem cost ~0.2 s CPU, 20x the solve."""
     start = pose_candidates(E)[0]          # any of the four factorizations E ~ [t]x R
     K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
 
     def essentials_of(params: np.ndarray) -> np.ndarray:
         """E for parameter rows (B, 6) -> (B, 3, 3)."""
         t = params[:, 3:] / np.linalg.norm(params[:, 3:], axis=1, keepdims=True)
-        return skew(t) @ Rotation.from_rotvec(params[:, :3]).as_matrix() @ start.R
+        return skew(t) @ rotation_from_rotvec(params[:, :3]) @ start.R
 
     def residuals_of(params: np.ndarray) -> np.ndarray:
         return sampson_residual(K2_inv_T @ essentials_of(params) @ K1_inv, uv1, uv2)
@@ -219,10 +216,9 @@ def refine_essential(E: np.ndarray, uv1: np.ndarray, uv2: np.ndarray, K1: np.nda
         return ((values[1:] - values[0]) / JACOBIAN_STEP).T
 
     # A relative cost change of 1e-4 moves the pose by far less than the pixel noise: stop there.
-    solution = least_squares(lambda params: residuals_of(params[None])[0],
-                             np.concatenate([np.zeros(3), start.t]), jac=jacobian, method="lm", ftol=1e-4,
-                             xtol=1e-4)
-    return essentials_of(solution.x[None])[0]
+    solution = levenberg_marquardt(lambda params: residuals_of(params[None])[0], jacobian,
+                                   np.concatenate([np.zeros(3), start.t]), ftol=1e-4, xtol=1e-4)
+    return essentials_of(solution[None])[0]
 
 
 def polish_essential(estimate: EssentialResult, uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray,

@@ -1,9 +1,12 @@
 """Null vectors of minimal systems (one row fewer than unknowns) by LU: as the SVD's, also where the
-leading block is singular or the null vector's last entry is tiny."""
+leading block is singular or the null vector's last entry is tiny. Rotation vectors to matrices, and a
+small dense Levenberg-Marquardt reaching the minimum scipy's finds."""
 
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
-from estimation.geometry.linalg import minimal_null_vector
+from estimation.geometry.linalg import levenberg_marquardt, minimal_null_vector, rotation_from_rotvec
 
 
 def assert_unit_null_vectors(A: np.ndarray, x: np.ndarray) -> None:
@@ -44,3 +47,48 @@ def test_a_null_vector_with_a_tiny_last_entry_is_accurate():
     x = minimal_null_vector(A)
     np.testing.assert_allclose(np.abs(x @ truth), 1.0, atol=1e-12)
 
+
+
+def test_rotation_from_rotvec_is_scipys_rotation_at_every_angle_including_zero():
+    rng = np.random.default_rng(4)
+    axes = rng.standard_normal((6, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    angles = np.array([0.0, 1e-9, 1e-7, 0.3, 2.0, 3.1])          # zero and the Jacobian's steps too
+    rotvecs = axes * angles[:, None]
+    np.testing.assert_allclose(rotation_from_rotvec(rotvecs), Rotation.from_rotvec(rotvecs).as_matrix(),
+                               atol=1e-15)
+    np.testing.assert_array_equal(rotation_from_rotvec(np.zeros(3)), np.eye(3))
+
+
+def exponential_fit_problem():
+    """Residuals r_i = a exp(b s_i) + c - y_i of a noisy exponential, and their analytic Jacobian."""
+    s = np.linspace(0.0, 2.0, 40)
+    y = 2.0 * np.exp(-1.3 * s) + 0.5 + 0.01 * np.random.default_rng(5).standard_normal(40)
+
+    def residuals(x):
+        return x[0] * np.exp(x[1] * s) + x[2] - y
+
+    def jacobian(x):
+        return np.stack([np.exp(x[1] * s), x[0] * s * np.exp(x[1] * s), np.ones_like(s)], axis=1)
+
+    return residuals, jacobian
+
+
+def test_levenberg_marquardt_reaches_the_minimum_scipys_least_squares_finds():
+    residuals, jacobian = exponential_fit_problem()
+    start = np.array([1.0, 0.0, 0.0])
+    ours = levenberg_marquardt(residuals, jacobian, start, ftol=1e-10, xtol=1e-10)
+    theirs = least_squares(residuals, start, jac=jacobian, method="lm", ftol=1e-10, xtol=1e-10).x
+    np.testing.assert_allclose(ours, theirs, rtol=1e-6)
+    cost = residuals(ours) @ residuals(ours)
+    assert cost < residuals(start) @ residuals(start) / 100
+
+
+def test_levenberg_marquardt_stops_at_ftol_near_the_minimum():
+    residuals, jacobian = exponential_fit_problem()
+    start = np.array([1.0, 0.0, 0.0])
+    loose = levenberg_marquardt(residuals, jacobian, start, ftol=1e-2, xtol=1e-12)
+    tight = levenberg_marquardt(residuals, jacobian, start, ftol=1e-12, xtol=1e-12)
+    cost_loose, cost_tight = (residuals(x) @ residuals(x) for x in (loose, tight))
+    assert cost_tight <= cost_loose < 1.5 * cost_tight
+    assert not np.allclose(loose, tight, rtol=1e-9, atol=0)     # it did stop early
