@@ -13,6 +13,15 @@ PYRAMID_LEVELS = 6
 """COLMAP's default number of levels (64 x 64 cells at the finest)."""
 
 
+def z_order(x: np.ndarray, y: np.ndarray, bits: int) -> np.ndarray:
+    """Morton code: bit b of x at bit 2b, bit b of y at bit 2b + 1 (x, y < 2^bits), so that the cell of
+    the grid 2^k times coarser is code >> 2k."""
+    code = np.zeros_like(x)
+    for bit in range(bits):
+        code |= ((x >> bit) & 1) << (2 * bit) | ((y >> bit) & 1) << (2 * bit + 1)
+    return code
+
+
 def visibility_pyramid_scores(
     image_index: np.ndarray,
     uv: np.ndarray,
@@ -22,16 +31,19 @@ def visibility_pyramid_scores(
     levels: int = PYRAMID_LEVELS,
 ) -> np.ndarray:
     """score_m = sum_{l=1..L} (2^l)^2 #{occupied cells of the 2^l x 2^l grid} for the points uv (O, 2)
-    seen in image image_index (O,); (num_images,) float."""
+    seen in image image_index (O,); (num_images,) float.
+
+    One sort for all levels: the finest cells of the points as sorted (image, Z-order code) keys, whose prefix
+    key >> 2 (L - l) is the cell of level l and keeps each level's cells sorted too."""
     scores = np.zeros(num_images)
     if len(uv) == 0:
         return scores
     relative = np.clip(np.asarray(uv, float) / [width, height], 0.0, 1.0 - 1e-9)
-    image_index = np.asarray(image_index, np.int64)
+    cell = np.floor(relative * (1 << levels)).astype(np.int64)
+    code = z_order(cell[:, 0], cell[:, 1], levels)
+    keys = np.sort((np.asarray(image_index, np.int64) << (2 * levels)) | code)
     for level in range(1, levels + 1):
-        dim = 1 << level
-        cell = np.floor(relative * dim).astype(np.int64)
-        key = (image_index * dim + cell[:, 1]) * dim + cell[:, 0]
-        occupied_images = np.unique(key) // (dim * dim)
-        scores += dim * dim * np.bincount(occupied_images, minlength=num_images)
+        cells = keys >> (2 * (levels - level))
+        first = np.concatenate([[True], cells[1:] != cells[:-1]])
+        scores += 4**level * np.bincount(cells[first] >> (2 * level), minlength=num_images)
     return scores
