@@ -144,8 +144,14 @@ class Camera:
         if len(models) != 1:
             raise ValueError(f"cameras of different models cannot be stacked: {sorted(models)}")
         index = np.asarray(index, np.int64)
-        arrays = {f.name: np.array([float(getattr(c, f.name)) for c in cameras])[index]
-                  for f in fields(Camera) if f.name != "model"}
+        names = [f.name for f in fields(Camera) if f.name != "model"]
+        first = cameras[0]
+        if all(camera is first for camera in cameras):
+            # One camera object for every image (fixed intrinsics, the common case): filled, not gathered
+            # from a per-image table (24 instead of 70 us a call with lego's 90 images).
+            arrays = {name: np.full(index.shape, float(getattr(first, name))) for name in names}
+        else:
+            arrays = {name: np.array([float(getattr(c, name)) for c in cameras])[index] for name in names}
         return Camera(model=models.pop(), **arrays)
 
 

@@ -76,6 +76,14 @@ def test_per_point_cameras_project_each_point_with_its_own_intrinsics():
         np.testing.assert_allclose(together[index == c], project(camera, R, t, points[index == c]).uv)
 
 
+def test_taking_one_shared_camera_gives_per_point_arrays_of_its_values():
+    camera = CAMERAS["opencv"]
+    taken = Camera.take([camera] * 4, np.array([3, 0, 0, 2, 1]))
+    for field in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "skew"):
+        np.testing.assert_array_equal(getattr(taken, field), np.full(5, getattr(camera, field)))
+    assert taken.model == "opencv"
+
+
 def test_reprojection_residuals_accept_a_3x3_K_as_the_pinhole_camera():
     camera = CAMERAS["pinhole"]
     R, t, points = random_scene(seed=5, num=20)
