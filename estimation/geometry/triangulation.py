@@ -150,6 +150,32 @@ def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, po
     return np.degrees(np.arccos(np.clip(min_cosine, -1.0, 1.0)))
 
 
+def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray, points: np.ndarray,
+                                min_angle_deg: float) -> np.ndarray:
+    """Per point, whether the largest angle between two of its viewing rays X - C_o reaches min_angle_deg,
+    (P,) bool; `centers` (O, 3) is the camera centre of each observation.
+
+    With a_o the angle of ray o to one reference ray of its point, max a_o <= largest angle <= 2 max a_o
+    (the triangle inequality of angles): one pass over the observations decides every point but those
+    with max a_o in [min_angle_deg / 2, min_angle_deg), whose `triangulation_angle_deg` is computed.
+    """
+    rays = points[obs_point_index] - centers
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    reference = np.zeros(len(points), np.int64)
+    reference[obs_point_index] = np.arange(len(obs_point_index))   # any one observation of each point
+    min_cosine = np.ones(len(points))
+    np.minimum.at(min_cosine, obs_point_index, np.einsum("oi,oi->o", rays, rays[reference[obs_point_index]]))
+    spread = np.degrees(np.arccos(np.clip(min_cosine, -1.0, 1.0)))
+    reaches = spread >= min_angle_deg
+    undecided = ~reaches & (2 * spread >= min_angle_deg)
+    if undecided.any():
+        subset = undecided[obs_point_index]
+        compact = np.cumsum(undecided) - 1
+        reaches[undecided] = triangulation_angle_deg(
+            centers[subset], compact[obs_point_index[subset]], points[undecided]) >= min_angle_deg
+    return reaches
+
+
 def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """||r_o|| in pixels, inf where the point is behind the observing camera or not finite, (O,)."""
     x_cam_z = np.einsum("oj,oj->o", obs.R[:, 2], points[obs.point_index]) + obs.t[:, 2]
@@ -220,9 +246,7 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
         points = triangulate_nonlinear(K, subset, points).points
     inliers = observation_errors(K, obs, points) < max_error_px
     inlier_counts = np.bincount(obs.point_index[inliers], minlength=obs.num_points)
-    all_centers = -np.einsum("oji,oj->oi", obs.R, obs.t)
-    angles = np.zeros(obs.num_points)
-    if inliers.any():
-        angles = triangulation_angle_deg(all_centers[inliers], obs.point_index[inliers], points)
-    valid = (inlier_counts >= 2) & (angles >= min_angle_deg)
+    all_centers = -np.einsum("oji,oj->oi", obs.R[inliers], obs.t[inliers])
+    wide = triangulation_angle_reaches(all_centers, obs.point_index[inliers], points, min_angle_deg)
+    valid = (inlier_counts >= 2) & wide
     return RobustTriangulation(points=points, inlier_mask=inliers & valid[obs.point_index], valid=valid)

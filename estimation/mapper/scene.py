@@ -28,7 +28,7 @@ from estimation.geometry.triangulation import (
     observation_errors,
     triangulate_nonlinear,
     triangulate_ransac,
-    triangulation_angle_deg,
+    triangulation_angle_reaches,
 )
 from estimation.types import CameraPose, Tracks
 
@@ -215,15 +215,16 @@ class Scene:
         within = errors < max_error_px
         return pixel_noise_sigma(errors[within], factors[within])
 
-    def triangulation_angles(self, point_ids: np.ndarray) -> np.ndarray:
-        """Largest angle (deg) between two viewing rays of each given point (point_ids sorted, unique)."""
+    def seen_wide(self, point_ids: np.ndarray, min_angle_deg: float) -> np.ndarray:
+        """Whether two viewing rays of each given point (point_ids sorted, unique) are min_angle_deg or
+        more apart (`triangulation_angle_reaches`)."""
         point_ids = np.asarray(point_ids, np.int64)
         used = self.used_observations()
         used = used[np.isin(self.obs_point[used], point_ids)]
         compact = np.searchsorted(point_ids, self.obs_point[used]) if len(point_ids) else used
         images = self.tracks.image_index[used]
         centers = -np.einsum("oji,oj->oi", self.R[images], self.t[images])
-        return triangulation_angle_deg(centers, compact, self.point_xyz[point_ids])
+        return triangulation_angle_reaches(centers, compact, self.point_xyz[point_ids], min_angle_deg)
 
     def visible_uv(self, image: int) -> np.ndarray:
         """Pixels of the image's observations whose track has a live point (its 2D-3D candidates)."""
@@ -375,7 +376,7 @@ class Scene:
         candidates = np.flatnonzero(self.point_alive)
         if point_ids is not None:
             candidates = np.intersect1d(candidates, point_ids)
-        self.delete_points(candidates[self.triangulation_angles(candidates) < min_angle_deg])
+        self.delete_points(candidates[~self.seen_wide(candidates, min_angle_deg)])
         return before - len(self.used_observations())
 
     # ------------------------------------------------------------------------------------------ BA

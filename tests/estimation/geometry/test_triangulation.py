@@ -13,6 +13,7 @@ from estimation.geometry.triangulation import (
     triangulate_nonlinear,
     triangulate_ransac,
     triangulation_angle_deg,
+    triangulation_angle_reaches,
 )
 from estimation.synthetic import make_scene
 from estimation.types import CameraPose
@@ -87,6 +88,39 @@ def test_triangulation_angle_is_the_largest_angle_between_viewing_rays():
     angles = triangulation_angle_deg(centers, point_index, points)
     assert angles[0] == pytest.approx(90.0)
     assert angles[1] == pytest.approx(np.degrees(0.5e-6), rel=1e-3)
+
+
+def rays_at_angles(angles_deg: np.ndarray, point_index: np.ndarray, num_points: int):
+    """Centres on the unit circle around each point at the origin-relative angles, (centres, points)."""
+    points = np.arange(num_points)[:, None] * [10.0, 0.0, 0.0]
+    angles = np.radians(angles_deg)
+    centers = points[point_index] - np.stack([np.sin(angles), np.zeros_like(angles), np.cos(angles)], axis=1)
+    return centers, points
+
+
+def test_the_angle_test_decides_a_middle_reference_ray_by_the_exact_largest_angle():
+    # Rays at -1, +1, 0 deg: 1 deg from the middle one, 2 deg apart; 0, 0.5, 1 deg: never 1.5 apart. The
+    # answer holds whichever ray is the reference (the two orders give the first point different ones).
+    angles = np.array([-1.0, 1.0, 0.0, 0.0, 1.0, 0.5, 0.0, 1.5])
+    point_index = np.array([0, 0, 0, 1, 1, 1, 2, 2])
+    centers, points = rays_at_angles(angles, point_index, 3)
+    for order in (np.arange(8), np.array([1, 2, 0, 5, 4, 3, 7, 6])):
+        reaches = triangulation_angle_reaches(centers[order], point_index[order], points, 1.5 - 1e-9)
+        np.testing.assert_array_equal(reaches, [True, False, True])
+
+
+def test_the_angle_test_agrees_with_the_largest_angle_on_random_rays_near_the_limit():
+    rng = np.random.default_rng(9)
+    point_index = np.sort(rng.integers(0, 400, 2000))
+    angles = rng.uniform(-1.2, 1.2, 2000) + rng.normal(0.0, 0.3, 400)[point_index]
+    centers, points = rays_at_angles(angles, point_index, 400)
+    largest = triangulation_angle_deg(centers, point_index, points)
+    assert 50 < (largest >= 1.5).sum() < 350                     # many on either side of the limit
+    for min_angle in (0.5, 1.5, 2.0):
+        np.testing.assert_array_equal(triangulation_angle_reaches(centers, point_index, points, min_angle),
+                                      largest >= min_angle)
+    no_rays = triangulation_angle_reaches(centers[:0], point_index[:0], points, 1.5)
+    np.testing.assert_array_equal(no_rays, False)
 
 
 def test_robust_triangulation_rejects_the_outlier_observation_of_each_point_even_in_its_first_pair():
