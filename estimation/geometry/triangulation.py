@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from estimation.geometry.projection import reprojection_residuals
+from estimation.geometry.projection import project, reprojection_residuals
 
 NONLINEAR_ITERATIONS = 10
 INITIAL_DAMPING = 1e-3
@@ -178,9 +178,9 @@ def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray
 
 def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """||r_o|| in pixels, inf where the point is behind the observing camera or not finite, (O,)."""
-    x_cam_z = np.einsum("oj,oj->o", obs.R[:, 2], points[obs.point_index]) + obs.t[:, 2]
-    error = np.linalg.norm(reprojection_residuals(K, obs, points), axis=1)
-    return np.where((x_cam_z > 0) & np.isfinite(error), error, np.inf)
+    projection = project(K, obs.R, obs.t, np.asarray(points, float)[obs.point_index])
+    error = np.linalg.norm(projection.uv - obs.uv, axis=1)
+    return np.where((projection.depth > 0) & np.isfinite(error), error, np.inf)
 
 
 class RobustTriangulation(NamedTuple):
