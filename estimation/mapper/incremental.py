@@ -303,13 +303,15 @@ class _ModelBuilder:
         return None
 
     def triangulate_image(self, image: int) -> None:
-        """New points for the image's tracks without one; continue existing points into it."""
+        """New points for the image's tracks without one. Existing points need no completion here: the
+        registration added the image's observations within the PnP threshold (at least the reprojection
+        limit) to them, and the local BA's completion follows (a completion of every track here added 0-1
+        observations per lego mapping, for 60 ms)."""
         tracks = self.tracks
         image_tracks = tracks.track_index[tracks.image_index == image]
         self.scene.triangulate_tracks(
             image_tracks, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses
         )
-        self.scene.complete_tracks(self.max_error)
 
     def local_bundle_adjustment(self, image: int) -> None:
         """BA of `image` and the local_window - 1 images sharing most points with it; then complete, merge
