@@ -153,21 +153,25 @@ def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, po
 def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray, points: np.ndarray,
                                 min_angle_deg: float) -> np.ndarray:
     """Per point, whether the largest angle between two of its viewing rays X - C_o reaches min_angle_deg,
-    (P,) bool; `centers` (O, 3) is the camera centre of each observation.
+    (P,) bool, False for a point without rays; `centers` (O, 3) is the camera centre of each observation.
 
     With a_o the angle of ray o to one reference ray of its point, max a_o <= largest angle <= 2 max a_o
     (the triangle inequality of angles): one pass over the observations decides every point but those
     with max a_o in [min_angle_deg / 2, min_angle_deg), whose `triangulation_angle_deg` is computed.
     """
     rays = points[obs_point_index] - centers
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rays /= np.sqrt(np.einsum("oi,oi->o", rays, rays))[:, None]
     reference = np.zeros(len(points), np.int64)
     reference[obs_point_index] = np.arange(len(obs_point_index))   # any one observation of each point
-    min_cosine = np.ones(len(points))
-    np.minimum.at(min_cosine, obs_point_index, np.einsum("oi,oi->o", rays, rays[reference[obs_point_index]]))
-    spread = np.degrees(np.arccos(np.clip(min_cosine, -1.0, 1.0)))
-    reaches = spread >= min_angle_deg
-    undecided = ~reaches & (2 * spread >= min_angle_deg)
+    cosine = np.einsum("oi,oi->o", rays, rays[reference[obs_point_index]])
+    angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+    def some_ray_beyond(angle_deg: float) -> np.ndarray:
+        """Per point: a_o >= angle_deg for some o (a count per point: no unbuffered ufunc.at)."""
+        return np.bincount(obs_point_index, weights=angle >= angle_deg, minlength=len(points)) > 0
+
+    reaches = some_ray_beyond(min_angle_deg)
+    undecided = ~reaches & some_ray_beyond(min_angle_deg / 2)
     if undecided.any():
         subset = undecided[obs_point_index]
         compact = np.cumsum(undecided) - 1
