@@ -216,15 +216,15 @@ class Scene:
         return pixel_noise_sigma(errors[within], factors[within])
 
     def seen_wide(self, point_ids: np.ndarray, min_angle_deg: float) -> np.ndarray:
-        """Whether two viewing rays of each given point (point_ids sorted, unique) are min_angle_deg or
-        more apart (`triangulation_angle_reaches`)."""
+        """Whether two viewing rays of each given live point (point_ids sorted, unique) are min_angle_deg
+        or more apart (`triangulation_angle_reaches`)."""
         point_ids = np.asarray(point_ids, np.int64)
         used = self.used_observations()
-        used = used[np.isin(self.obs_point[used], point_ids)]
-        compact = np.searchsorted(point_ids, self.obs_point[used]) if len(point_ids) else used
-        images = self.tracks.image_index[used]
-        centers = -np.einsum("oji,oj->oi", self.R[images], self.t[images])
-        return triangulation_angle_reaches(centers, compact, self.point_xyz[point_ids], min_angle_deg)
+        used = used[self._live_points(point_ids)[self.obs_point[used]]]
+        compact = np.searchsorted(point_ids, self.obs_point[used])
+        centers = -np.einsum("mji,mj->mi", self.R, self.t)        # per image: C = -R^T t
+        return triangulation_angle_reaches(centers[self.tracks.image_index[used]], compact,
+                                           self.point_xyz[point_ids], min_angle_deg)
 
     def visible_uv(self, image: int) -> np.ndarray:
         """Pixels of the image's observations whose track has a live point (its 2D-3D candidates)."""
@@ -238,6 +238,15 @@ class Scene:
         point_of_track = self._main_point_of_track()
         points = point_of_track[self.tracks.track_index[in_image]]
         return in_image[points >= 0], points[points >= 0]
+
+    def _live_points(self, point_ids: np.ndarray | None = None) -> np.ndarray:
+        """(points,) bool: the live points, only those among point_ids when given (a mask: cheaper than
+        set operations on the ids)."""
+        if point_ids is None:
+            return self.point_alive.copy()
+        selected = np.zeros(len(self.point_alive), bool)
+        selected[np.asarray(point_ids, np.int64)] = True
+        return selected & self.point_alive
 
     def _track_has_point(self) -> np.ndarray:
         has = np.zeros(self.tracks.num_tracks, bool)
@@ -306,9 +315,7 @@ class Scene:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(observations, point, error): each observation of obs_ids whose track has a live point (among
         point_ids when given) with the point of its track it reprojects closest to."""
-        alive = np.flatnonzero(self.point_alive)
-        if point_ids is not None:
-            alive = np.intersect1d(alive, point_ids)
+        alive = np.flatnonzero(self._live_points(point_ids))
         alive = alive[np.argsort(self.point_track[alive], kind="stable")]
         tracks_sorted = self.point_track[alive]
         track_of_obs = self.tracks.track_index[obs_ids]
@@ -366,16 +373,14 @@ class Scene:
         """Drop observations reprojecting beyond max_error_px (two-view points: TWO_VIEW_ERROR_FACTOR times
         that) or behind their camera, then points with fewer than two observations or a triangulation
         angle below min_angle_deg. Returns the number of observations removed."""
+        selected = self._live_points(point_ids)
         used = self.used_observations()
-        if point_ids is not None:
-            used = used[np.isin(self.obs_point[used], point_ids)]
-        before = len(self.used_observations())
+        before = len(used)
+        used = used[selected[self.obs_point[used]]]
         two_view = self.point_observation_counts()[self.obs_point[used]] == 2
         limit = np.where(two_view, TWO_VIEW_ERROR_FACTOR * max_error_px, max_error_px)
         self.remove_observations(used[self.errors(used) > limit])
-        candidates = np.flatnonzero(self.point_alive)
-        if point_ids is not None:
-            candidates = np.intersect1d(candidates, point_ids)
+        candidates = np.flatnonzero(selected & self.point_alive)
         self.delete_points(candidates[~self.seen_wide(candidates, min_angle_deg)])
         return before - len(self.used_observations())
 
