@@ -31,10 +31,9 @@ class Observations(NamedTuple):
 
 
 class Triangulation(NamedTuple):
-    """Points and their mean reprojection error over their observations."""
+    """Triangulated points (their reprojection errors: `observation_errors`, where a caller needs them)."""
 
     points: np.ndarray            # (P, 3)
-    reprojection_px: np.ndarray   # (P,) mean over the point's observations
 
 
 def observations_for_pair(R1, t1, R2, t2, uv1: np.ndarray, uv2: np.ndarray) -> Observations:
@@ -60,13 +59,6 @@ def sum_per_point(values: np.ndarray, point_index: np.ndarray, num_points: int) 
     return sums.reshape((num_points, *shape))
 
 
-def mean_reprojection_px(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
-    """Mean over each point's observations of ||r_o|| (pixels), (P,)."""
-    error = np.linalg.norm(reprojection_residuals(K, obs, points), axis=1)
-    counts = np.bincount(obs.point_index, minlength=obs.num_points)
-    return np.bincount(obs.point_index, weights=error, minlength=obs.num_points) / np.maximum(counts, 1)
-
-
 def triangulate_linear(K: np.ndarray, obs: Observations) -> Triangulation:
     """DLT: X = argmin ||A X||, ||X|| = 1, rows x_o x (R_o|t_o) X = 0 on normalized x_o = K^-1 [u v 1]."""
     uv1 = np.hstack([obs.uv, np.ones((len(obs.uv), 1))])
@@ -80,7 +72,7 @@ def triangulate_linear(K: np.ndarray, obs: Observations) -> Triangulation:
     w = homogeneous[:, 3]
     w = np.where(np.abs(w) < 1e-15, 1e-15, w)
     points = homogeneous[:, :3] / w[:, None]
-    return Triangulation(points=points, reprojection_px=mean_reprojection_px(K, obs, points))
+    return Triangulation(points=points)
 
 
 def _projection_jacobian(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
@@ -123,7 +115,7 @@ def triangulate_nonlinear(K: np.ndarray, obs: Observations, initial: np.ndarray,
         residuals = np.where(better[obs.point_index, None], trial_residuals, residuals)
         current = np.where(better, trial, current)
         damping = np.where(better, damping / 10.0, damping * 10.0)
-    return Triangulation(points=points, reprojection_px=mean_reprojection_px(K, obs, points))
+    return Triangulation(points=points)
 
 
 def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, points: np.ndarray

@@ -5,7 +5,7 @@ import pytest
 
 from estimation.geometry.triangulation import (
     Observations,
-    mean_reprojection_px,
+    observation_errors,
     observations_for_pair,
     reprojection_residuals,
     sum_per_point,
@@ -32,9 +32,10 @@ def test_linear_triangulation_is_exact_without_noise_for_two_views():
     scene = make_scene(num_points=200)
     ids, uv1, uv2 = scene.tracks.pair_correspondences(0, 1)
     a, b = scene.poses[0], scene.poses[1]
-    result = triangulate_linear(scene.K, observations_for_pair(a.R, a.t, b.R, b.t, uv1, uv2))
+    obs = observations_for_pair(a.R, a.t, b.R, b.t, uv1, uv2)
+    result = triangulate_linear(scene.K, obs)
     np.testing.assert_allclose(result.points, scene.points[ids], atol=1e-9)
-    assert result.reprojection_px.max() < 1e-8
+    assert observation_errors(scene.K, obs, result.points).max() < 1e-8
 
 
 def test_linear_triangulation_uses_every_view_of_a_multi_view_track():
@@ -69,7 +70,6 @@ def test_nonlinear_triangulation_converges_from_a_poor_start():
     start = scene.points + np.random.default_rng(0).normal(0, 0.2, scene.points.shape)
     result = triangulate_nonlinear(scene.K, obs, start)
     np.testing.assert_allclose(result.points, scene.points, atol=1e-7)
-    np.testing.assert_allclose(result.reprojection_px, mean_reprojection_px(scene.K, obs, result.points))
 
 
 def test_noisy_triangulation_error_is_small_relative_to_the_scene():
@@ -77,7 +77,7 @@ def test_noisy_triangulation_error_is_small_relative_to_the_scene():
     obs = all_view_observations(scene)
     result = triangulate_nonlinear(scene.K, obs, triangulate_linear(scene.K, obs).points)
     assert np.median(np.linalg.norm(result.points - scene.points, axis=1)) < 0.001 * scene.scene_size
-    assert np.median(result.reprojection_px) == pytest.approx(0.5, rel=0.5)
+    assert np.median(observation_errors(scene.K, obs, result.points)) == pytest.approx(0.5, rel=0.5)
 
 
 def test_triangulation_angle_is_the_largest_angle_between_viewing_rays():
