@@ -76,13 +76,12 @@ def triangulate_linear(K: np.ndarray, obs: Observations) -> Triangulation:
 
 
 def _projection_jacobian(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
-    """d pi(K (R X + t)) / dX = d pi / dx_cam @ R, (O, 2, 3)."""
+    """d pi(K (R X + t)) / dX = A (R_12 - p r_3^T) / z, (O, 2, 3): A = K[:2, :2], p = x_cam[:2] / z the
+    normalized point, R_12 and r_3 the first two rows and the last row of R."""
     x_cam = np.einsum("oij,oj->oi", obs.R, points[obs.point_index]) + obs.t
     z = np.where(np.abs(x_cam[:, 2]) < 1e-12, 1e-12, x_cam[:, 2])
-    du_dx = np.stack([np.full_like(z, K[0, 0]) / z, np.full_like(z, K[0, 1]) / z,
-                      -(K[0, 0] * x_cam[:, 0] + K[0, 1] * x_cam[:, 1]) / z**2], axis=1)
-    dv_dx = np.stack([np.zeros_like(z), K[1, 1] / z, -K[1, 1] * x_cam[:, 1] / z**2], axis=1)
-    return np.stack([du_dx, dv_dx], axis=1) @ obs.R
+    d_normalized = (obs.R[:, :2] - (x_cam[:, :2] / z[:, None])[:, :, None] * obs.R[:, 2:3]) / z[:, None, None]
+    return np.einsum("ij,ojk->oik", K[:2, :2], d_normalized)
 
 
 def triangulate_nonlinear(K: np.ndarray, obs: Observations, initial: np.ndarray,

@@ -5,6 +5,7 @@ import pytest
 
 from estimation.geometry.triangulation import (
     Observations,
+    _projection_jacobian,
     observation_errors,
     observations_for_pair,
     reprojection_residuals,
@@ -62,6 +63,17 @@ def test_nonlinear_triangulation_lowers_the_squared_reprojection_error_of_every_
     error_linear = np.linalg.norm(linear.points - scene.points, axis=1).mean()
     error_nonlinear = np.linalg.norm(nonlinear.points - scene.points, axis=1).mean()
     assert error_nonlinear < error_linear
+
+
+def test_the_projection_jacobian_is_the_derivative_of_the_residuals_with_a_skewed_K():
+    scene = make_scene(num_points=50, seed=5)
+    obs = all_view_observations(scene)
+    K = scene.K + np.array([[0.0, 3.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    step = 1e-6
+    numeric = np.stack([(reprojection_residuals(K, obs, scene.points + step * np.eye(3)[k])
+                         - reprojection_residuals(K, obs, scene.points - step * np.eye(3)[k])) / (2 * step)
+                        for k in range(3)], axis=2)
+    np.testing.assert_allclose(_projection_jacobian(K, obs, scene.points), numeric, rtol=1e-5, atol=1e-6)
 
 
 def test_nonlinear_triangulation_converges_from_a_poor_start():
