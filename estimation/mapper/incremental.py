@@ -236,16 +236,18 @@ class _ModelBuilder:
         return self.config.bundle_adjustment.model_copy(
             update={"relative_error_tol": self.mapper.refinement_relative_error_tol})
 
-    def measure_noise(self) -> None:
+    def measure_noise(self) -> float:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
         residuals, within [min_reprojection_px, max_reprojection_px], so the filters follow the measurements'
-        own accuracy (a fixed limit of a few pixels keeps the mismatches of small images)."""
+        own accuracy (a fixed limit of a few pixels keeps the mismatches of small images). Returns the
+        measured noise sigma (px)."""
         limits = self.config.filter
         sigma = self.scene.noise_sigma(limits.max_reprojection_px)
         self.error_limit = limits.max_reprojection_px
         if limits.max_reprojection_sigmas > 0 and np.isfinite(sigma):
             self.error_limit = float(np.clip(limits.max_reprojection_sigmas * sigma,
                                              limits.min_reprojection_px, limits.max_reprojection_px))
+        return sigma
 
     def _observations_of(self, image: int, track_ids: np.ndarray) -> np.ndarray:
         """Observation id of each given track in `image` (every track must be seen there)."""
@@ -405,9 +407,9 @@ class _ModelBuilder:
             result = self.scene.bundle_adjust(final, intrinsics_covariance=True)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
             iterations = result.iterations
-            self.measure_noise()
-            # The BA's covariance is for measurement_sigma_px of noise; scale it to the measured noise.
-            noise = self.scene.noise_sigma(self.config.filter.max_reprojection_px) / ba.measurement_sigma_px
+            # The filter's limit follows the measured noise; so does the BA's covariance, which is for
+            # measurement_sigma_px of noise.
+            noise = self.measure_noise() / ba.measurement_sigma_px
             covariance = result.intrinsics_covariance and result.intrinsics_covariance.scaled(noise)
             observations = len(self.scene.used_observations())
             removed = self.scene.filter_points(self.max_error, self.min_angle)
