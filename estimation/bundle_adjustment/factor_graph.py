@@ -2,7 +2,8 @@
 
 Solves  argmin_{R_c, t_c, X_p[, intrinsics]}  sum_o huber_k( ||pi(camera_c, R_c X_p + t_c) - uv_o|| / sigma )
 with huber_k(x) = x^2 / 2 for |x| <= k, k |x| - k^2 / 2 beyond (k = huber_threshold_px / sigma), as a
-GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt; pi is `geometry.projection`'s camera model.
+GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt, or by Gauss-Newton falling back to it when a
+step raises the cost (`BundleAdjustmentConfig.optimizer`); pi is `geometry.projection`'s camera model.
 - Intrinsics fixed: the observations are first mapped to the ideal pixels of each camera's pinhole K
   (`projection.ideal_pixels`, exact for pinhole cameras; for distorted ones the residual is measured
   in the undistorted image) and each becomes a GenericProjectionFactorCal3_S2 (vectorized insertion).
@@ -107,7 +108,7 @@ class BundleAdjustmentResult:
     points: np.ndarray  # (N, 3); points without observations are returned unchanged
     initial_rms_px: float  # RMS over all observations (outliers included) of the pixel residual norm
     final_rms_px: float
-    iterations: int  # Levenberg-Marquardt iterations
+    iterations: int  # of the optimizer run that gave the result (a failed Gauss-Newton's not counted)
     seconds: float  # wall time of the whole call (graph construction included)
     initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
     final_cost: float
@@ -451,23 +452,19 @@ def _elimination_ordering(
 
 
 IterationHook = Callable[[int, float], None]
-"""Called after each Levenberg-Marquardt iteration with (iterations done, GTSAM's graph error after it)."""
+"""Called after each optimizer iteration with (iterations done, GTSAM's graph error after it)."""
 
 
 def _optimizer_params(
-    config: BundleAdjustmentConfig, ordering: gtsam.Ordering | None, on_iteration: IterationHook | None
-) -> gtsam.LevenbergMarquardtParams:
-    params = gtsam.LevenbergMarquardtParams()
-    if on_iteration is not None:
-        params.iterationHook = lambda iteration, _error_before, error_after: on_iteration(
-            int(iteration), float(error_after)
-        )
+    params: gtsam.NonlinearOptimizerParams, config: BundleAdjustmentConfig, ordering: gtsam.Ordering | None,
+    on_iteration: Callable[[int, float, float], None],
+) -> gtsam.NonlinearOptimizerParams:
+    """`params` (of any GTSAM optimizer) with the stopping rule, linear solver and ordering of `config`;
+    on_iteration(iteration, error before, error after) is GTSAM's iteration hook."""
+    params.iterationHook = on_iteration
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
     params.setAbsoluteErrorTol(config.absolute_error_tol)
-    params.setlambdaInitial(config.lambda_initial)
-    params.setlambdaFactor(config.lambda_factor)
-    params.setDiagonalDamping(config.diagonal_damping)
     params.setLinearSolverType(_LINEAR_SOLVERS[config.linear_solver])
     if config.linear_solver == "pcg_block_jacobi":
         pcg = gtsam.PCGSolverParameters()
@@ -478,6 +475,58 @@ def _optimizer_params(
     else:
         params.setOrdering(ordering)
     return params
+
+
+def _levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, config: BundleAdjustmentConfig,
+    ordering: gtsam.Ordering | None, on_iteration: IterationHook | None,
+) -> tuple[gtsam.Values, int]:
+    """GTSAM's Levenberg-Marquardt from `initial`: (values, iterations)."""
+    def hook(iteration: int, _error_before: float, error_after: float) -> None:
+        if on_iteration is not None:
+            on_iteration(int(iteration), float(error_after))
+
+    params = _optimizer_params(gtsam.LevenbergMarquardtParams(), config, ordering, hook)
+    params.setlambdaInitial(config.lambda_initial)
+    params.setlambdaFactor(config.lambda_factor)
+    params.setDiagonalDamping(config.diagonal_damping)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    return optimizer.optimize(), int(optimizer.iterations())
+
+
+def _gauss_newton(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, config: BundleAdjustmentConfig,
+    ordering: gtsam.Ordering | None,
+) -> tuple[gtsam.Values, list[tuple[int, float]]] | None:
+    """GTSAM's Gauss-Newton from `initial`: (values, (iteration, error after) of each iteration); None
+    when a step raised the cost (GTSAM's Gauss-Newton would return that step) or the undamped system was
+    indeterminate."""
+    trace: list[tuple[int, float, float]] = []
+    params = _optimizer_params(gtsam.GaussNewtonParams(), config, ordering,
+                               lambda *iteration: trace.append(iteration))
+    try:
+        values = gtsam.GaussNewtonOptimizer(graph, initial, params).optimize()
+    except RuntimeError:   # IndeterminantLinearSystemException: LM's damping makes the system determinate
+        return None
+    if any(after > before for _, before, after in trace):
+        return None
+    return values, [(int(iteration), float(after)) for iteration, _, after in trace]
+
+
+def _optimize(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, config: BundleAdjustmentConfig,
+    ordering: gtsam.Ordering | None, on_iteration: IterationHook | None,
+) -> tuple[gtsam.Values, int]:
+    """config.optimizer from `initial`: (values, iterations of the run that gave them); Gauss-Newton
+    falls back to Levenberg-Marquardt from `initial` when it fails (on_iteration then sees LM's only)."""
+    if config.optimizer == "gauss_newton":
+        result = _gauss_newton(graph, initial, config, ordering)
+        if result is not None:
+            values, trace = result
+            for iteration, error in trace if on_iteration is not None else []:
+                on_iteration(iteration, error)
+            return values, len(trace)
+    return _levenberg_marquardt(graph, initial, config, ordering, on_iteration)
 
 
 def bundle_adjust(
@@ -503,7 +552,7 @@ def bundle_adjust(
     `refine` says which intrinsics are variables (shared by all cameras unless `refine.per_image`);
     the result's `cameras` carry them.
     Cameras and points without observations (and not fixed) are returned unchanged.
-    `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
+    `on_iteration(iterations_done, graph_error)` is called after every iteration (progress, traces);
     graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
     `intrinsics_covariance`: also the marginal covariance of a shared refined camera's intrinsics
     (how well the views determine them; one more elimination of the graph).
@@ -552,9 +601,7 @@ def bundle_adjust(
         initial.insert(key, camera_to_gtsam(cameras[first], refine.principal_point))
 
     ordering = _elimination_ordering(config, camera_keys, point_keys, calibration_keys)
-    params = _optimizer_params(config, ordering, on_iteration)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-    values = optimizer.optimize()
+    values, iterations = _optimize(graph, initial, config, ordering, on_iteration)
 
     adjusted_poses = list(poses)
     for c in camera_keys.tolist():
@@ -585,7 +632,7 @@ def bundle_adjust(
         points=adjusted_points,
         initial_rms_px=rms(initial_residuals),
         final_rms_px=rms(final_residuals),
-        iterations=int(optimizer.iterations()),
+        iterations=iterations,
         seconds=time.perf_counter() - start,
         initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),

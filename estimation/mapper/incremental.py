@@ -326,7 +326,8 @@ class _ModelBuilder:
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
         ba = self.config.bundle_adjustment
         local_config = ba.model_copy(update={"max_iterations": ba.local_max_iterations,
-                                             "relative_error_tol": ba.local_relative_error_tol})
+                                             "relative_error_tol": ba.local_relative_error_tol,
+                                             "optimizer": ba.local_optimizer})
         scene.bundle_adjust(local_config, variable_images=window)
         used = scene.used_observations()
         touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
