@@ -148,14 +148,22 @@ def reprojection_residuals(
     uv: np.ndarray,
 ) -> np.ndarray:
     """r_o = pi(camera_c, R_c X_p + t_c) - uv_o for every observation, (O, 2) pixels."""
+    observed = Camera.take(per_pose_cameras(camera, len(poses)), camera_index)
+    return _observed_residuals(observed, poses, points, camera_index, point_index, uv)
+
+
+def _observed_residuals(
+    observed: Camera, poses: Sequence[CameraPose], points: np.ndarray, camera_index: np.ndarray,
+    point_index: np.ndarray, uv: np.ndarray,
+) -> np.ndarray:
+    """r_o = pi(observed_o, R_c X_p + t_c) - uv_o, observed_o the camera of observation o (Camera.take)."""
     rotations = np.stack([pose.R for pose in poses])
     translations = np.stack([pose.t for pose in poses])
     observations = Observations(
         R=rotations[camera_index], t=translations[camera_index], uv=uv,
         point_index=point_index, num_points=len(points),
     )
-    return observation_residuals(Camera.take(per_pose_cameras(camera, len(poses)), camera_index),
-                                 observations, points)
+    return observation_residuals(observed, observations, points)
 
 
 def huber_cost(residuals: np.ndarray, huber_threshold_px: float, sigma_px: float = 1.0) -> float:
@@ -181,9 +189,9 @@ def _validate(
     scale_reference: int | None,
 ) -> None:
     """Raise InputError naming the argument that does not fit the others."""
-    for c, camera in enumerate(cameras):
+    for camera in {id(camera): camera for camera in cameras}.values():   # a shared camera once
         if not (np.all(np.isfinite(camera.K)) and np.all(np.isfinite(camera.distortion))):
-            raise InputError(f"bundle_adjust: camera {c}'s intrinsics must be finite")
+            raise InputError(f"bundle_adjust: camera {cameras.index(camera)}'s intrinsics must be finite")
     if len({camera.model for camera in cameras}) > 1:
         raise InputError("bundle_adjust: every camera must have the same camera model")
     if points.ndim != 2 or points.shape[1] != 3:
@@ -230,17 +238,17 @@ def _projection_factors(
     cameras: Sequence[Camera],
     camera_index: np.ndarray,
     point_index: np.ndarray,
-    uv: np.ndarray,
+    ideal: np.ndarray,
     config: BundleAdjustmentConfig,
     constant_poses: dict[int, gtsam.Pose3],
 ) -> gtsam.NonlinearFactorGraph:
     """Fixed intrinsics: one GenericProjectionFactorCal3_S2 per observation on its ideal pixel
-    (K_c undistorted), Huber-robust, keys camera c and point N_c + p; observations of a camera in
-    `constant_poses` are TriangulationFactorCal3_S2 on the point alone (the pose is no variable)."""
+    (`projection.ideal_pixels`: K_c undistorted), Huber-robust, keys camera c and point N_c + p;
+    observations of a camera in `constant_poses` are TriangulationFactorCal3_S2 on the point alone (the
+    pose is no variable)."""
     graph = gtsam.NonlinearFactorGraph()
     num_cameras = len(cameras)
     pixel_noise = _pixel_noise(config)
-    ideal = ideal_pixels(Camera.take(cameras, camera_index), uv) if len(uv) else uv
     # One vectorized call per variable camera instead of one Python call per observation.
     by_camera = np.argsort(camera_index, kind="stable")
     bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
@@ -566,6 +574,7 @@ def bundle_adjust(
     fixed_cameras = [int(c) for c in fixed_cameras]
     _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
+    observed = Camera.take(cameras, camera_index)   # the camera of each observation, read once
 
     num_cameras = len(poses)
     refines = refine.refines(cameras[0].model) and len(uv) > 0
@@ -587,7 +596,8 @@ def bundle_adjust(
                                     point_index, uv, refine, config)
     else:
         constant_poses = {c: camera_pose_to_gtsam(poses[c]) for c in constant_cameras}
-        graph = _projection_factors(cameras, camera_index, point_index, uv, config, constant_poses)
+        ideal = ideal_pixels(observed, uv) if len(uv) else uv
+        graph = _projection_factors(cameras, camera_index, point_index, ideal, config, constant_poses)
     gtsam_poses = {c: camera_pose_to_gtsam(poses[c]) for c in camera_keys.tolist()}
     graph.push_back(_gauge_factors(gtsam_poses, [c for c in fixed_cameras if c not in constant_cameras],
                                    scale_reference if use_scale_prior else None, config))
@@ -623,9 +633,10 @@ def bundle_adjust(
         covariance = _intrinsics_covariance(graph, values, int(calibration_keys[0]), num_cameras,
                                             fixed_cameras, cameras[0].model, refine)
 
-    initial_residuals = reprojection_residuals(cameras, poses, points, camera_index, point_index, uv)
-    final_residuals = reprojection_residuals(
-        adjusted_cameras, adjusted_poses, adjusted_points, camera_index, point_index, uv
+    initial_residuals = _observed_residuals(observed, poses, points, camera_index, point_index, uv)
+    adjusted_observed = Camera.take(adjusted_cameras, camera_index) if refines else observed
+    final_residuals = _observed_residuals(
+        adjusted_observed, adjusted_poses, adjusted_points, camera_index, point_index, uv
     )
     return BundleAdjustmentResult(
         poses=adjusted_poses,
