@@ -453,10 +453,7 @@ def _elimination_ordering(
     None: let GTSAM choose."""
     if config.ordering != "points_first":
         return None
-    ordering = gtsam.Ordering()
-    for key in (*point_keys.tolist(), *camera_keys.tolist(), *calibration_keys.tolist()):
-        ordering.push_back(key)
-    return ordering
+    return gtsam.Ordering([*point_keys.tolist(), *camera_keys.tolist(), *calibration_keys.tolist()])
 
 
 IterationHook = Callable[[int, float], None]
