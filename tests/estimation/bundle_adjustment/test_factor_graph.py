@@ -169,6 +169,20 @@ def test_gauss_newton_whose_step_raises_the_cost_falls_back_to_levenberg_marquar
     assert result.iterations == marquardt.iterations
 
 
+def test_gauss_newton_on_an_indeterminate_system_falls_back_to_levenberg_marquardt():
+    # Point 0 seen by one camera only: its depth is free, the undamped system singular; LM's damping
+    # holds it.
+    scene = make_scene(num_cameras=4, num_points=50, noise_px=0.5, seed=0)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(0))
+    camera_index, point_index, uv = observations(scene)
+    seen = ~((point_index == 0) & (camera_index != 1))
+    args = (scene.K, poses, points, camera_index[seen], point_index[seen], uv[seen])
+    marquardt = bundle_adjust(*args, BundleAdjustmentConfig())
+    newton = bundle_adjust(*args, BundleAdjustmentConfig(optimizer="gauss_newton"))
+    assert newton.final_cost == pytest.approx(marquardt.final_cost, rel=1e-12)
+    np.testing.assert_allclose(newton.points, marquardt.points, atol=1e-12)
+
+
 def test_iteration_hook_sees_every_iteration_with_a_falling_error():
     scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
     poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
