@@ -44,9 +44,10 @@ class BundleAdjustmentConfig(BaseModel):
         "build and eliminate: ~20 % less CPU per iteration on lego's local BAs) and falls back to "
         "levenberg_marquardt from the start when a step raises the cost or the system is indeterminate.",
     )
-    local_optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
-        "gauss_newton", description="optimizer of each local BA (started from poses and points one "
-        "registration away from their optimum, where Gauss-Newton's steps are the ones LM takes).",
+    mapper_optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
+        "gauss_newton", description="optimizer of the incremental mapper's BAs (local, refinement, "
+        "final): each starts near its optimum, where Gauss-Newton's steps are the ones LM takes (lego, "
+        "RANSAC seed 0: BA_FIGURES).",
     )
     ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
         "points_first",
