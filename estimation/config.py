@@ -47,7 +47,7 @@ class BundleAdjustmentConfig(BaseModel):
     mapper_optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
         "gauss_newton", description="optimizer of the incremental mapper's BAs (local, refinement, "
         "final): each starts near its optimum, where Gauss-Newton's steps are the ones LM takes (lego, "
-        "RANSAC seed 0: BA_FIGURES).",
+        "RANSAC seed 0: its 106 BAs replayed, 1.56 -> 1.26 CPU s; one 4-image refinement falls back to LM).",
     )
     ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
         "points_first",
