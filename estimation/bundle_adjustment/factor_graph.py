@@ -548,7 +548,7 @@ def bundle_adjust(
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     intrinsics_covariance: bool = False,
 ) -> BundleAdjustmentResult:
-    """Minimize the Huber-robust reprojection error over all observed cameras and points (GTSAM LM).
+    """Minimize the Huber-robust reprojection error over all observed cameras and points (config.optimizer).
 
     `camera` is a 3x3 K or Camera shared by every pose, or one Camera per pose. Observation o says
     camera `camera_index[o]` sees point `point_index[o]` at pixel `uv[o]`.
