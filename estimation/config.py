@@ -38,6 +38,17 @@ class BundleAdjustmentConfig(BaseModel):
         1e-4, gt=0, description="relative_error_tol of each local BA: on lego's 88 local BAs, 1e-4 instead "
         "of 1e-6 halves the iterations and leaves 0.003 % more cost, which the next BAs remove anyway.",
     )
+    optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
+        "levenberg_marquardt",
+        description="GTSAM's nonlinear optimizer. gauss_newton takes undamped steps (no damping factors to "
+        "build and eliminate: ~20 % less CPU per iteration on lego's local BAs) and falls back to "
+        "levenberg_marquardt from the start when a step raises the cost or the system is indeterminate.",
+    )
+    mapper_optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
+        "gauss_newton", description="optimizer of the incremental mapper's BAs (local, refinement, "
+        "final): each starts near its optimum, where Gauss-Newton's steps are the ones LM takes (lego, "
+        "RANSAC seed 0: its 106 BAs replayed, 1.56 -> 1.26 CPU s; one 4-image refinement falls back to LM).",
+    )
     ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
         "points_first",
         description="Elimination order: points_first eliminates every point before any camera (the Schur "

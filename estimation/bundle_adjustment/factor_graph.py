@@ -2,7 +2,8 @@
 
 Solves  argmin_{R_c, t_c, X_p[, intrinsics]}  sum_o huber_k( ||pi(camera_c, R_c X_p + t_c) - uv_o|| / sigma )
 with huber_k(x) = x^2 / 2 for |x| <= k, k |x| - k^2 / 2 beyond (k = huber_threshold_px / sigma), as a
-GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt; pi is `geometry.projection`'s camera model.
+GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt, or by Gauss-Newton falling back to it when a
+step raises the cost (`BundleAdjustmentConfig.optimizer`); pi is `geometry.projection`'s camera model.
 - Intrinsics fixed: the observations are first mapped to the ideal pixels of each camera's pinhole K
   (`projection.ideal_pixels`, exact for pinhole cameras; for distorted ones the residual is measured
   in the undistorted image) and each becomes a GenericProjectionFactorCal3_S2 (vectorized insertion).
@@ -107,7 +108,7 @@ class BundleAdjustmentResult:
     points: np.ndarray  # (N, 3); points without observations are returned unchanged
     initial_rms_px: float  # RMS over all observations (outliers included) of the pixel residual norm
     final_rms_px: float
-    iterations: int  # Levenberg-Marquardt iterations
+    iterations: int  # of the optimizer run that gave the result (a failed Gauss-Newton's not counted)
     seconds: float  # wall time of the whole call (graph construction included)
     initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
     final_cost: float
@@ -147,14 +148,22 @@ def reprojection_residuals(
     uv: np.ndarray,
 ) -> np.ndarray:
     """r_o = pi(camera_c, R_c X_p + t_c) - uv_o for every observation, (O, 2) pixels."""
+    observed = Camera.take(per_pose_cameras(camera, len(poses)), camera_index)
+    return _observed_residuals(observed, poses, points, camera_index, point_index, uv)
+
+
+def _observed_residuals(
+    observed: Camera, poses: Sequence[CameraPose], points: np.ndarray, camera_index: np.ndarray,
+    point_index: np.ndarray, uv: np.ndarray,
+) -> np.ndarray:
+    """r_o = pi(observed_o, R_c X_p + t_c) - uv_o, observed_o the camera of observation o (Camera.take)."""
     rotations = np.stack([pose.R for pose in poses])
     translations = np.stack([pose.t for pose in poses])
     observations = Observations(
         R=rotations[camera_index], t=translations[camera_index], uv=uv,
         point_index=point_index, num_points=len(points),
     )
-    return observation_residuals(Camera.take(per_pose_cameras(camera, len(poses)), camera_index),
-                                 observations, points)
+    return observation_residuals(observed, observations, points)
 
 
 def huber_cost(residuals: np.ndarray, huber_threshold_px: float, sigma_px: float = 1.0) -> float:
@@ -180,9 +189,9 @@ def _validate(
     scale_reference: int | None,
 ) -> None:
     """Raise InputError naming the argument that does not fit the others."""
-    for c, camera in enumerate(cameras):
+    for camera in {id(camera): camera for camera in cameras}.values():   # a shared camera once
         if not (np.all(np.isfinite(camera.K)) and np.all(np.isfinite(camera.distortion))):
-            raise InputError(f"bundle_adjust: camera {c}'s intrinsics must be finite")
+            raise InputError(f"bundle_adjust: camera {cameras.index(camera)}'s intrinsics must be finite")
     if len({camera.model for camera in cameras}) > 1:
         raise InputError("bundle_adjust: every camera must have the same camera model")
     if points.ndim != 2 or points.shape[1] != 3:
@@ -229,17 +238,17 @@ def _projection_factors(
     cameras: Sequence[Camera],
     camera_index: np.ndarray,
     point_index: np.ndarray,
-    uv: np.ndarray,
+    ideal: np.ndarray,
     config: BundleAdjustmentConfig,
     constant_poses: dict[int, gtsam.Pose3],
 ) -> gtsam.NonlinearFactorGraph:
     """Fixed intrinsics: one GenericProjectionFactorCal3_S2 per observation on its ideal pixel
-    (K_c undistorted), Huber-robust, keys camera c and point N_c + p; observations of a camera in
-    `constant_poses` are TriangulationFactorCal3_S2 on the point alone (the pose is no variable)."""
+    (`projection.ideal_pixels`: K_c undistorted), Huber-robust, keys camera c and point N_c + p;
+    observations of a camera in `constant_poses` are TriangulationFactorCal3_S2 on the point alone (the
+    pose is no variable)."""
     graph = gtsam.NonlinearFactorGraph()
     num_cameras = len(cameras)
     pixel_noise = _pixel_noise(config)
-    ideal = ideal_pixels(Camera.take(cameras, camera_index), uv) if len(uv) else uv
     # One vectorized call per variable camera instead of one Python call per observation.
     by_camera = np.argsort(camera_index, kind="stable")
     bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
@@ -444,30 +453,23 @@ def _elimination_ordering(
     None: let GTSAM choose."""
     if config.ordering != "points_first":
         return None
-    ordering = gtsam.Ordering()
-    for key in (*point_keys.tolist(), *camera_keys.tolist(), *calibration_keys.tolist()):
-        ordering.push_back(key)
-    return ordering
+    return gtsam.Ordering([*point_keys.tolist(), *camera_keys.tolist(), *calibration_keys.tolist()])
 
 
 IterationHook = Callable[[int, float], None]
-"""Called after each Levenberg-Marquardt iteration with (iterations done, GTSAM's graph error after it)."""
+"""Called after each optimizer iteration with (iterations done, GTSAM's graph error after it)."""
 
 
 def _optimizer_params(
-    config: BundleAdjustmentConfig, ordering: gtsam.Ordering | None, on_iteration: IterationHook | None
-) -> gtsam.LevenbergMarquardtParams:
-    params = gtsam.LevenbergMarquardtParams()
-    if on_iteration is not None:
-        params.iterationHook = lambda iteration, _error_before, error_after: on_iteration(
-            int(iteration), float(error_after)
-        )
+    params: gtsam.NonlinearOptimizerParams, config: BundleAdjustmentConfig, ordering: gtsam.Ordering | None,
+    on_iteration: Callable[[int, float, float], None],
+) -> gtsam.NonlinearOptimizerParams:
+    """`params` (of any GTSAM optimizer) with the stopping rule, linear solver and ordering of `config`;
+    on_iteration(iteration, error before, error after) is GTSAM's iteration hook."""
+    params.iterationHook = on_iteration
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
     params.setAbsoluteErrorTol(config.absolute_error_tol)
-    params.setlambdaInitial(config.lambda_initial)
-    params.setlambdaFactor(config.lambda_factor)
-    params.setDiagonalDamping(config.diagonal_damping)
     params.setLinearSolverType(_LINEAR_SOLVERS[config.linear_solver])
     if config.linear_solver == "pcg_block_jacobi":
         pcg = gtsam.PCGSolverParameters()
@@ -478,6 +480,58 @@ def _optimizer_params(
     else:
         params.setOrdering(ordering)
     return params
+
+
+def _levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, config: BundleAdjustmentConfig,
+    ordering: gtsam.Ordering | None, on_iteration: IterationHook | None,
+) -> tuple[gtsam.Values, int]:
+    """GTSAM's Levenberg-Marquardt from `initial`: (values, iterations)."""
+    def hook(iteration: int, _error_before: float, error_after: float) -> None:
+        if on_iteration is not None:
+            on_iteration(int(iteration), float(error_after))
+
+    params = _optimizer_params(gtsam.LevenbergMarquardtParams(), config, ordering, hook)
+    params.setlambdaInitial(config.lambda_initial)
+    params.setlambdaFactor(config.lambda_factor)
+    params.setDiagonalDamping(config.diagonal_damping)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    return optimizer.optimize(), int(optimizer.iterations())
+
+
+def _gauss_newton(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, config: BundleAdjustmentConfig,
+    ordering: gtsam.Ordering | None,
+) -> tuple[gtsam.Values, list[tuple[int, float]]] | None:
+    """GTSAM's Gauss-Newton from `initial`: (values, (iteration, error after) of each iteration); None
+    when a step raised the cost (GTSAM's Gauss-Newton would return that step) or the undamped system was
+    indeterminate."""
+    trace: list[tuple[int, float, float]] = []
+    params = _optimizer_params(gtsam.GaussNewtonParams(), config, ordering,
+                               lambda *iteration: trace.append(iteration))
+    try:
+        values = gtsam.GaussNewtonOptimizer(graph, initial, params).optimize()
+    except RuntimeError:   # IndeterminantLinearSystemException: LM's damping makes the system determinate
+        return None
+    if any(after > before for _, before, after in trace):
+        return None
+    return values, [(int(iteration), float(after)) for iteration, _, after in trace]
+
+
+def _optimize(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, config: BundleAdjustmentConfig,
+    ordering: gtsam.Ordering | None, on_iteration: IterationHook | None,
+) -> tuple[gtsam.Values, int]:
+    """config.optimizer from `initial`: (values, iterations of the run that gave them); Gauss-Newton
+    falls back to Levenberg-Marquardt from `initial` when it fails (on_iteration then sees LM's only)."""
+    if config.optimizer == "gauss_newton":
+        result = _gauss_newton(graph, initial, config, ordering)
+        if result is not None:
+            values, trace = result
+            for iteration, error in trace if on_iteration is not None else []:
+                on_iteration(iteration, error)
+            return values, len(trace)
+    return _levenberg_marquardt(graph, initial, config, ordering, on_iteration)
 
 
 def bundle_adjust(
@@ -494,7 +548,7 @@ def bundle_adjust(
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     intrinsics_covariance: bool = False,
 ) -> BundleAdjustmentResult:
-    """Minimize the Huber-robust reprojection error over all observed cameras and points (GTSAM LM).
+    """Minimize the Huber-robust reprojection error over all observed cameras and points (config.optimizer).
 
     `camera` is a 3x3 K or Camera shared by every pose, or one Camera per pose. Observation o says
     camera `camera_index[o]` sees point `point_index[o]` at pixel `uv[o]`.
@@ -503,7 +557,7 @@ def bundle_adjust(
     `refine` says which intrinsics are variables (shared by all cameras unless `refine.per_image`);
     the result's `cameras` carry them.
     Cameras and points without observations (and not fixed) are returned unchanged.
-    `on_iteration(iterations_done, graph_error)` is called after every LM iteration (progress, traces);
+    `on_iteration(iterations_done, graph_error)` is called after every iteration (progress, traces);
     graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
     `intrinsics_covariance`: also the marginal covariance of a shared refined camera's intrinsics
     (how well the views determine them; one more elimination of the graph).
@@ -517,6 +571,7 @@ def bundle_adjust(
     fixed_cameras = [int(c) for c in fixed_cameras]
     _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
+    observed = Camera.take(cameras, camera_index)   # the camera of each observation, read once
 
     num_cameras = len(poses)
     refines = refine.refines(cameras[0].model) and len(uv) > 0
@@ -538,7 +593,8 @@ def bundle_adjust(
                                     point_index, uv, refine, config)
     else:
         constant_poses = {c: camera_pose_to_gtsam(poses[c]) for c in constant_cameras}
-        graph = _projection_factors(cameras, camera_index, point_index, uv, config, constant_poses)
+        ideal = ideal_pixels(observed, uv) if len(uv) else uv
+        graph = _projection_factors(cameras, camera_index, point_index, ideal, config, constant_poses)
     gtsam_poses = {c: camera_pose_to_gtsam(poses[c]) for c in camera_keys.tolist()}
     graph.push_back(_gauge_factors(gtsam_poses, [c for c in fixed_cameras if c not in constant_cameras],
                                    scale_reference if use_scale_prior else None, config))
@@ -552,9 +608,7 @@ def bundle_adjust(
         initial.insert(key, camera_to_gtsam(cameras[first], refine.principal_point))
 
     ordering = _elimination_ordering(config, camera_keys, point_keys, calibration_keys)
-    params = _optimizer_params(config, ordering, on_iteration)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-    values = optimizer.optimize()
+    values, iterations = _optimize(graph, initial, config, ordering, on_iteration)
 
     adjusted_poses = list(poses)
     for c in camera_keys.tolist():
@@ -576,16 +630,17 @@ def bundle_adjust(
         covariance = _intrinsics_covariance(graph, values, int(calibration_keys[0]), num_cameras,
                                             fixed_cameras, cameras[0].model, refine)
 
-    initial_residuals = reprojection_residuals(cameras, poses, points, camera_index, point_index, uv)
-    final_residuals = reprojection_residuals(
-        adjusted_cameras, adjusted_poses, adjusted_points, camera_index, point_index, uv
+    initial_residuals = _observed_residuals(observed, poses, points, camera_index, point_index, uv)
+    adjusted_observed = Camera.take(adjusted_cameras, camera_index) if refines else observed
+    final_residuals = _observed_residuals(
+        adjusted_observed, adjusted_poses, adjusted_points, camera_index, point_index, uv
     )
     return BundleAdjustmentResult(
         poses=adjusted_poses,
         points=adjusted_points,
         initial_rms_px=rms(initial_residuals),
         final_rms_px=rms(final_residuals),
-        iterations=int(optimizer.iterations()),
+        iterations=iterations,
         seconds=time.perf_counter() - start,
         initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),

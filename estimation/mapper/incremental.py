@@ -233,8 +233,9 @@ class _ModelBuilder:
     def refinement_ba_config(self) -> BundleAdjustmentConfig:
         """The global BA of the initial pair and of each refinement round: it stops at
         refinement_relative_error_tol (the BAs that follow go on from there)."""
-        return self.config.bundle_adjustment.model_copy(
-            update={"relative_error_tol": self.mapper.refinement_relative_error_tol})
+        ba = self.config.bundle_adjustment
+        return ba.model_copy(update={"relative_error_tol": self.mapper.refinement_relative_error_tol,
+                                     "optimizer": ba.mapper_optimizer})
 
     def measure_noise(self) -> float:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
@@ -330,7 +331,8 @@ class _ModelBuilder:
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
         ba = self.config.bundle_adjustment
         local_config = ba.model_copy(update={"max_iterations": ba.local_max_iterations,
-                                             "relative_error_tol": ba.local_relative_error_tol})
+                                             "relative_error_tol": ba.local_relative_error_tol,
+                                             "optimizer": ba.mapper_optimizer})
         scene.bundle_adjust(local_config, variable_images=window)
         used = scene.used_observations()
         touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
@@ -399,9 +401,10 @@ class _ModelBuilder:
         more than final_min_change of the observations. Returns (relative cost decrease of the last BA,
         its iterations, the covariance of the refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
-        final = ba.model_copy(
-            update={"relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol)}
-        )
+        final = ba.model_copy(update={
+            "relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol),
+            "optimizer": ba.mapper_optimizer,
+        })
         decrease, iterations, covariance = 0.0, 0, None
         for _ in range(FINAL_BA_ROUNDS):
             result = self.scene.bundle_adjust(final, intrinsics_covariance=True)

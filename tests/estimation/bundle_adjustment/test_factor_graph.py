@@ -143,6 +143,46 @@ def test_block_jacobi_pcg_reaches_the_direct_solvers_cost_within_a_thousandth():
     assert iterative.final_cost == pytest.approx(direct.final_cost, rel=1e-3)
 
 
+def test_gauss_newton_reaches_levenberg_marquardts_optimum_from_a_near_start():
+    scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    marquardt = run(scene, poses, points, BundleAdjustmentConfig(relative_error_tol=1e-10))
+    newton = run(scene, poses, points,
+                 BundleAdjustmentConfig(relative_error_tol=1e-10, optimizer="gauss_newton"))
+    assert newton.final_cost == pytest.approx(marquardt.final_cost, rel=1e-9)
+    np.testing.assert_allclose(newton.points, marquardt.points, atol=1e-6)
+
+
+def test_gauss_newton_whose_step_raises_the_cost_falls_back_to_levenberg_marquardt(monkeypatch):
+    # From this far (0.3 rad, a unit off) the first undamped step overshoots: GTSAM's Gauss-Newton stops
+    # there at ten times the initial cost.
+    scene = make_scene(num_cameras=4, num_points=100, noise_px=0.5, seed=0)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(0), 0.3, 1.0, 1.0)
+    marquardt = run(scene, poses, points)
+    calls = []
+    result = run(scene, poses, points, BundleAdjustmentConfig(optimizer="gauss_newton"),
+                 on_iteration=lambda iteration, error: calls.append((iteration, error)))
+    assert result.final_cost == pytest.approx(marquardt.final_cost, rel=1e-12)
+    assert result.final_cost < 1e-3 * result.initial_cost
+    # The hook sees the iterations of the run that gave the result only.
+    assert [iteration for iteration, _ in calls] == list(range(1, result.iterations + 1))
+    assert result.iterations == marquardt.iterations
+
+
+def test_gauss_newton_on_an_indeterminate_system_falls_back_to_levenberg_marquardt():
+    # Point 0 seen by one camera only: its depth is free, the undamped system singular; LM's damping
+    # holds it.
+    scene = make_scene(num_cameras=4, num_points=50, noise_px=0.5, seed=0)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(0))
+    camera_index, point_index, uv = observations(scene)
+    seen = ~((point_index == 0) & (camera_index != 1))
+    args = (scene.K, poses, points, camera_index[seen], point_index[seen], uv[seen])
+    marquardt = bundle_adjust(*args, BundleAdjustmentConfig())
+    newton = bundle_adjust(*args, BundleAdjustmentConfig(optimizer="gauss_newton"))
+    assert newton.final_cost == pytest.approx(marquardt.final_cost, rel=1e-12)
+    np.testing.assert_allclose(newton.points, marquardt.points, atol=1e-12)
+
+
 def test_iteration_hook_sees_every_iteration_with_a_falling_error():
     scene = make_scene(num_cameras=4, num_points=150, noise_px=0.5, seed=3)
     poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))

@@ -480,6 +480,21 @@ def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_m
     assert final_adjustments(1e-3) == 1
 
 
+def test_every_mapper_ba_runs_the_mapper_optimizer(monkeypatch, noisy_scene):
+    kinds = {}
+    adjust = Scene.bundle_adjust
+
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+        kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
+        kinds.setdefault(kind, set()).add(config.optimizer)
+        return adjust(scene, config, variable_images, intrinsics_covariance)
+
+    monkeypatch.setattr(Scene, "bundle_adjust", recording)
+    reconstruct(noisy_scene.tracks, noisy_scene, ReconstructionConfig(
+        bundle_adjustment={"optimizer": "levenberg_marquardt", "mapper_optimizer": "gauss_newton"}))
+    assert kinds == {"local": {"gauss_newton"}, "global": {"gauss_newton"}, "final": {"gauss_newton"}}
+
+
 def test_the_initial_pair_ba_stops_at_the_refinement_tolerance(monkeypatch, noisy_scene):
     config = ReconstructionConfig(mapper={"refinement_relative_error_tol": 3e-4})
     calls = record_bundle_adjustments(monkeypatch)
