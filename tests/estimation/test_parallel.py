@@ -1,5 +1,5 @@
-"""Worker processes: the worker count, results in order and equal to the calling process's, and no process
-outliving the one that started it."""
+"""Worker processes: the worker count, results in order and equal to the calling process's, the pool's
+context in every call, one BLAS thread per process, and no process outliving the one that started it."""
 
 from __future__ import annotations
 
@@ -11,7 +11,14 @@ import textwrap
 import time
 from pathlib import Path
 
-from estimation.parallel import WorkerPool, available_cores, resolve_workers, worker_pool
+from estimation.parallel import (
+    WorkerPool,
+    _openblas_thread_functions,
+    available_cores,
+    blas_threads,
+    resolve_workers,
+    worker_pool,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -27,6 +34,28 @@ def test_processes_return_what_the_calling_process_computes_in_order():
         assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
         assert len({os.getpid(), *pool.map(_pid, range(40))}) >= 2     # the work ran elsewhere
     assert list(WorkerPool(1).map(divmod, range(5), [2] * 5)) == [divmod(n, 2) for n in range(5)]
+
+
+def test_every_call_gets_the_pool_context_first_in_the_processes_and_in_the_calling_process():
+    for workers in (2, 1):
+        with worker_pool(workers, context=100) as pool:
+            assert list(pool.map(divmod, range(1, 30))) == [divmod(100, n) for n in range(1, 30)]
+
+
+def _blas_threads(_: int) -> tuple[str | None, list[int]]:
+    return os.environ.get("OPENBLAS_NUM_THREADS"), [get() for get, _ in _openblas_thread_functions()]
+
+
+def test_items_run_on_one_blas_thread_and_the_calling_process_keeps_its_own():
+    environment, threads = _blas_threads(0)
+    assert threads, "numpy's OpenBLAS is found"
+    with worker_pool(2) as pool:
+        assert list(pool.map(_blas_threads, range(4))) == [("1", [1] * len(threads))] * 4
+    assert list(WorkerPool(1).map(_blas_threads, range(2))) == [(environment, [1] * len(threads))] * 2
+    assert _blas_threads(0) == (environment, threads)                    # restored after
+    with blas_threads(1):
+        assert _blas_threads(0)[1] == [1] * len(threads)
+    assert _blas_threads(0)[1] == threads
 
 
 def _pid(_: int) -> int:
