@@ -25,6 +25,7 @@ import types
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
+from multiprocessing.synchronize import Barrier
 from typing import Any
 
 PR_SET_PDEATHSIG = 1
@@ -32,6 +33,8 @@ PARENT_POLL_SECONDS = 1.0
 CHUNKS_PER_WORKER = 8
 """Items are sent to the processes in this many chunks per process: few round trips, and a slow chunk
 at the end still leaves the others busy."""
+START_TIMEOUT_SECONDS = 120.0
+"""A process waits this long for the others to start; then the pool is broken (an error, not a hang)."""
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 """Read by OpenBLAS, OpenMP and MKL when they load (numpy's BLAS cannot be limited after), so they are set
 in the environment the processes inherit."""
@@ -75,12 +78,18 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
-def _initialize_worker(parent_pid: int, modules: tuple[str, ...], context: Any) -> None:
+def _initialize_worker(parent_pid: int, modules: tuple[str, ...], context: Any,
+                       all_started: Barrier) -> None:
     global _context
     die_with_parent(parent_pid)
     for module in modules:
         importlib.import_module(module)
     _context = context
+    # No process takes an item before all are spawned: ProcessPoolExecutor spawns one at a submit only
+    # while none is idle, so a process done with its first item would leave the next one to be spawned
+    # later, outside `_main_module_hidden` and the one-BLAS-thread environment (seen under load: the
+    # start blocks while a process reads a large context, and the first one could finish its item).
+    all_started.wait(timeout=START_TIMEOUT_SECONDS)
 
 
 def _call_with_context(function: Callable[..., Any], *args: Any) -> Any:
@@ -167,9 +176,10 @@ class WorkerPool:
         self.context = context
         self._executor: ProcessPoolExecutor | None = None
         if self.workers > 1:
+            spawn = multiprocessing.get_context("spawn")
             self._executor = ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_initialize_worker, initargs=(os.getpid(), modules, context),
+                self.workers, mp_context=spawn, initializer=_initialize_worker,
+                initargs=(os.getpid(), modules, context, spawn.Barrier(self.workers)),
             )
             with _main_module_hidden(), _environment(dict.fromkeys(BLAS_THREAD_VARIABLES, "1")):
                 for _ in range(self.workers):      # start every process now, not at the first map
