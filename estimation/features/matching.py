@@ -81,16 +81,16 @@ class ArrayNamespace(NamedTuple):
             values.scatter_(-1, index, value)
 
 
+NUMPY = ArrayNamespace(np)
+
+
 def array_namespace(device: str) -> ArrayNamespace:
     """numpy for "cpu", torch for any other device (torch imported only then)."""
     if device == "cpu":
-        return ArrayNamespace(np)
+        return NUMPY
     import torch
 
     return ArrayNamespace(torch, device)
-
-
-NUMPY = ArrayNamespace(np)
 
 
 class DescriptorSet(NamedTuple):
