@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from estimation.parallel import (
@@ -58,6 +59,29 @@ def test_items_run_on_one_blas_thread_and_the_calling_process_keeps_its_own():
     with blas_threads(1):
         assert _blas_threads(0)[1] == [1] * len(threads)
     assert _blas_threads(0)[1] == threads
+
+
+def _slow_blas_environment(_: int) -> str | None:
+    time.sleep(0.05)
+    return os.environ.get("OPENBLAS_NUM_THREADS")
+
+
+def test_every_process_is_spawned_before_any_takes_an_item(monkeypatch):
+    """ProcessPoolExecutor spawns a process at a submit only while none is idle: had the first process
+    finished its start-up item before the second submit (as under load, with a large context), the second
+    would be spawned at the first map, outside the one-BLAS-thread environment (and the hidden __main__)."""
+    submit, calls = ProcessPoolExecutor.submit, []
+
+    def slow_start(self, *args, **kwargs):
+        future = submit(self, *args, **kwargs)
+        calls.append(None)
+        if len(calls) == 1:
+            time.sleep(2.0)        # time enough for the first process to start and finish its item
+        return future
+
+    monkeypatch.setattr(ProcessPoolExecutor, "submit", slow_start)
+    with worker_pool(2) as pool:
+        assert set(pool.map(_slow_blas_environment, range(40))) == {"1"}
 
 
 def _pid(_: int) -> int:
