@@ -1,10 +1,12 @@
-"""Descriptor matching alone: CPU and wall seconds of `match_pairs` on one image set's SIFT descriptors.
+"""Descriptor matching alone: CPU and wall seconds of matching every pair of one image set's SIFT
+descriptors, as `sift_tracks` does without verification (`match_and_verify_pairs`).
 
 The descriptors (`detect_features` with the default `SiftConfig`) and pairs (`candidate_pairs`) are made
-once; then `match_pairs` runs `--repeats` times for each `--workers` count, the first run of a process
-included (it pays torch's one-time kernel set-up, as a reconstruction does). CPU seconds
-(`time.process_time`, the whole process) move little when other work shares the machine; wall seconds
-only mean something under the bench lock on an otherwise idle machine. Without a folder, the 90 lego views
+once; then the matching runs `--repeats` times for each `--workers` count (1: in this process; more: that
+many spawned processes, started, fed the descriptors and shut down within each run, as in a
+reconstruction). CPU seconds (`time.process_time` of this process plus its finished children's
+`RUSAGE_CHILDREN`) move little when other work shares the machine; wall seconds only mean something under
+the bench lock on an otherwise idle machine. Without a folder, the 90 lego views
 (../shared/data/lego_200) are composited on white into a temporary folder first.
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_matching.py
@@ -14,6 +16,7 @@ only mean something under the bench lock on an otherwise idle machine. Without a
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 import tempfile
 import time
@@ -22,32 +25,39 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from estimation.config import SiftConfig  # noqa: E402
-from estimation.features.matching import match_pairs  # noqa: E402
+from estimation.config import RansacConfig, SiftConfig  # noqa: E402
+from estimation.features.matching import descriptor_set, matching_device  # noqa: E402
 from estimation.features.pairs import candidate_pairs  # noqa: E402
-from estimation.features.sift import detect_features  # noqa: E402
+from estimation.features.sift import PairWork, detect_features, match_and_verify_pairs  # noqa: E402
 from estimation.io.images import list_images, load_rgb  # noqa: E402
 
 
 def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
     config = SiftConfig()
     images = list_images(folder)
-    descriptors = [detect_features(load_rgb(path), config).descriptors for path in images.paths]
-    pairs = candidate_pairs(images.names, descriptors, config)
-    print(f"{folder}: {len(images.paths)} images, {sum(map(len, descriptors))} keypoints, {len(pairs)} pairs")
+    features = [detect_features(load_rgb(path), config) for path in images.paths]
+    pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
+    print(f"{folder}: {len(images.paths)} images, {sum(len(f.uv) for f in features)} keypoints, "
+          f"{len(pairs)} pairs")
+    work = PairWork([f.uv for f in features], [descriptor_set(f.descriptors) for f in features], config.ratio,
+                    config.max_distance, matching_device(config.device), None, RansacConfig(), None)
     for count in workers:
         for _ in range(repeats):
+            children = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu, wall = time.process_time(), time.perf_counter()
-            matches = match_pairs(descriptors, pairs, config.ratio, config.max_distance, workers=count)
+            matches, _ = match_and_verify_pairs(work, pairs, count)
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            child_cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
             total = sum(len(m.ratio) for m in matches.values())
-            print(f"workers {count}: {cpu:.3f} CPU s, {wall:.3f} s wall, {total} matches", flush=True)
+            print(f"workers {count}: {cpu + child_cpu:.3f} CPU s ({cpu:.3f} here, {child_cpu:.3f} in the "
+                  f"processes), {wall:.3f} s wall, {total} matches", flush=True)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder", type=Path, nargs="?", help="images (default: lego, made on the fly)")
-    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="match_pairs' threads")
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="processes (1: this one)")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     if args.folder is not None:

@@ -33,6 +33,7 @@ os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap: warnings and errors 
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import resource  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -80,6 +81,7 @@ class Outcome:
     rms_px: float = float("nan")
     ceres_left: float = float("nan")
     stage_seconds: dict[str, float] | None = None
+    cpu_seconds: tuple[float, float] | None = None     # this process's, its worker processes'
 
 
 def lego_set(work: Path) -> BenchSet:
@@ -118,16 +120,24 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
                                   ransac={"seed": seed}, mapper=mapper or {},
                                   sift={"workers": workers},
                                   two_view={} if estimator is None else {"estimator": estimator})
-    start = time.perf_counter()
+    start, cpu, children = time.perf_counter(), time.process_time(), child_cpu_seconds()
     result = reconstruct(bench.images, out, config)
     seconds = time.perf_counter() - start
+    cpu_seconds = (time.process_time() - cpu, child_cpu_seconds() - children)
     names = result.model.image_names
     return Outcome(poses={names[m]: pose for m, pose in result.model.poses.items()},
                    points=result.report["points"], mean_track_length=result.report["mean_track_length"],
-                   seconds=seconds, rms_px=result.report["reprojection_error_px"]["after_ba"]["rms"],
+                   seconds=seconds, cpu_seconds=cpu_seconds,
+                   rms_px=result.report["reprojection_error_px"]["after_ba"]["rms"],
                    ceres_left=ceres_cost_left(out / "sparse"),
                    stage_seconds={**result.report["seconds_per_stage"],
                                   **result.report["features"].get("seconds_per_stage", {})})
+
+
+def child_cpu_seconds() -> float:
+    """User + system CPU seconds of this process's finished children (the worker processes)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def ceres_cost_left(sparse: Path) -> float:
@@ -244,8 +254,9 @@ def main() -> None:
                             f"{100 * ours.ceres_left:.3f} % | {ours.seconds:.1f} | {ratio} |")
                 print(rows[-1], flush=True)
                 stages = ", ".join(f"{stage} {value:.1f}" for stage, value in ours.stage_seconds.items())
-                print(f"ours, seconds per stage (detection, matching, verification: inside features): "
-                      f"{stages}", flush=True)
+                print(f"ours, seconds per stage (detection, matching_and_verification: inside features): "
+                      f"{stages}; CPU s {ours.cpu_seconds[0]:.2f} + {ours.cpu_seconds[1]:.2f} in worker "
+                      f"processes", flush=True)
             if theirs:
                 rows.append(f"| {bench.name} | pycolmap | {len(theirs.poses)}/{total} | "
                             + " | ".join(pose_error_cells(theirs, bench.truth))

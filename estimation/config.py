@@ -129,16 +129,12 @@ class SiftConfig(BaseModel):
     )
     vocabulary_size: int = Field(64, ge=2, description="k-means words of the VLAD vocabulary.")
     device: Literal["auto", "cpu", "cuda"] = Field(
-        "auto", description="Torch device of the descriptor matching (auto: CUDA when available)."
-    )
-    cpu_threads: int = Field(
-        1, ge=1, description="torch CPU threads of the descriptor matching. 1: on lego's 4005 pairs one "
-        "thread took 6.4 s and two 11.0 s (wall, load 2.5-3 on 2 cores): its many small reductions gain "
-        "nothing from a second thread.",
+        "auto", description="Device of the descriptor matching: cpu (numpy) or cuda (torch); auto: CUDA "
+        "when an NVIDIA driver is present and torch sees a GPU (torch is not imported without a driver).",
     )
     workers: int = Field(
-        0, ge=0, description="Processes verifying image pairs and threads detecting features, side by "
-        "side (0: one per available CPU core; 1: all in the calling process).",
+        0, ge=0, description="Threads detecting features, then processes matching and verifying image "
+        "pairs, side by side (0: one per available CPU core; 1: all in the calling process).",
     )
 
 

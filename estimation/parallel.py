@@ -1,16 +1,19 @@
-"""Worker processes for CPU-bound work that splits into independent items (two-view verification of
-image pairs), and the worker count.
+"""Worker processes for CPU-bound work that splits into independent items (matching and verifying the
+pairs of one query image), and the worker count.
 
 Processes, not threads: one pair's RANSAC is thousands of small numpy calls that hold the GIL. They are
 started with the "spawn" context, never by fork: the parent may already run torch's or OpenCV's threads
 (and the service's job processes do). Every process dies with the process that started it, so a killed
-job leaves none behind, and imports the modules it needs as soon as it starts, while the parent still
-works on the steps before.
+job leaves none behind, and imports the modules it needs as soon as it starts. Data every item needs (the
+images' descriptors) is a pool's `context`, sent to each process once. Each process runs its BLAS on one
+thread, the calling process too while it does a one-worker pool's items: the pool's processes are the
+parallelism, and a BLAS thread per core in each would oversubscribe the cores.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib
 import multiprocessing
 import os
@@ -22,6 +25,7 @@ import types
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
+from multiprocessing.synchronize import Barrier
 from typing import Any
 
 PR_SET_PDEATHSIG = 1
@@ -29,6 +33,17 @@ PARENT_POLL_SECONDS = 1.0
 CHUNKS_PER_WORKER = 8
 """Items are sent to the processes in this many chunks per process: few round trips, and a slow chunk
 at the end still leaves the others busy."""
+START_TIMEOUT_SECONDS = 120.0
+"""A process waits this long for the others to start; then the pool is broken (an error, not a hang)."""
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+"""Read by OpenBLAS, OpenMP and MKL when they load (numpy's BLAS cannot be limited after), so they are set
+in the environment the processes inherit."""
+OPENBLAS_THREAD_FUNCTIONS = (("scipy_openblas_get_num_threads64_", "scipy_openblas_set_num_threads64_"),
+                             ("openblas_get_num_threads", "openblas_set_num_threads"))
+"""OpenBLAS's thread-count getter and setter as numpy's wheels (scipy-openblas, 64-bit integers) and a
+plain OpenBLAS export them."""
+_context: Any = None
+"""The pool's context, in a worker process."""
 
 
 def available_cores() -> int:
@@ -63,10 +78,79 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
-def _initialize_worker(parent_pid: int, modules: tuple[str, ...]) -> None:
+def _initialize_worker(parent_pid: int, modules: tuple[str, ...], context: Any,
+                       all_started: Barrier) -> None:
+    global _context
     die_with_parent(parent_pid)
     for module in modules:
         importlib.import_module(module)
+    _context = context
+    # No process takes an item before all are spawned: ProcessPoolExecutor spawns one at a submit only
+    # while none is idle, so a process done with its first item would leave the next one to be spawned
+    # later, outside `_main_module_hidden` and the one-BLAS-thread environment (seen under load: the
+    # start blocks while a process reads a large context, and the first one could finish its item).
+    all_started.wait(timeout=START_TIMEOUT_SECONDS)
+
+
+def _call_with_context(function: Callable[..., Any], *args: Any) -> Any:
+    return function(_context, *args)
+
+
+@functools.cache
+def _openblas_thread_functions() -> list[tuple[Callable[[], int], Callable[[int], None]]]:
+    """(get, set) of the thread count of every OpenBLAS this process has loaded, numpy's included (found in
+    /proc/self/maps; none elsewhere)."""
+    import numpy  # noqa: F401  (loads its OpenBLAS)
+
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = sorted({line.split()[-1] for line in maps if "openblas" in line.rsplit("/", 1)[-1]})
+    except OSError:
+        return []
+    functions = []
+    for path in paths:
+        library = ctypes.CDLL(path)
+        for get, set_ in OPENBLAS_THREAD_FUNCTIONS:
+            if hasattr(library, get) and hasattr(library, set_):
+                functions.append((getattr(library, get), getattr(library, set_)))
+                break
+    return functions
+
+
+@contextmanager
+def blas_threads(count: int) -> Iterator[None]:
+    """OpenBLAS on `count` threads inside the block, restored after: numpy loaded it with one thread per
+    core, and between its calls those threads spin, burning the other cores' time."""
+    functions = _openblas_thread_functions()
+    before = [get() for get, _ in functions]
+    for _, set_ in functions:
+        set_(count)
+    try:
+        yield
+    finally:
+        for (_, set_), threads in zip(functions, before, strict=True):
+            set_(threads)
+
+
+def _in_one_blas_thread(function: Callable[..., Any], *args: Any) -> Any:
+    with blas_threads(1):
+        return function(*args)
+
+
+@contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """os.environ with `values` set inside the block (processes started there inherit them), restored
+    after."""
+    before = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name)
+            else:
+                os.environ[name] = value
 
 
 @contextmanager
@@ -84,25 +168,32 @@ def _main_module_hidden() -> Iterator[None]:
 
 class WorkerPool:
     """`map` over items in `workers` spawned processes, or in the calling process when there is one worker
-    (or when this process may not have children: a daemonic multiprocessing worker)."""
+    (or when this process may not have children: a daemonic multiprocessing worker). With a `context`,
+    every call gets it as its first argument."""
 
-    def __init__(self, workers: int, modules: tuple[str, ...] = ()) -> None:
+    def __init__(self, workers: int, modules: tuple[str, ...] = (), context: Any = None) -> None:
         self.workers = workers if not multiprocessing.current_process().daemon else 1
+        self.context = context
         self._executor: ProcessPoolExecutor | None = None
         if self.workers > 1:
+            spawn = multiprocessing.get_context("spawn")
             self._executor = ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_initialize_worker, initargs=(os.getpid(), modules),
+                self.workers, mp_context=spawn, initializer=_initialize_worker,
+                initargs=(os.getpid(), modules, context, spawn.Barrier(self.workers)),
             )
-            with _main_module_hidden():
+            with _main_module_hidden(), _environment(dict.fromkeys(BLAS_THREAD_VARIABLES, "1")):
                 for _ in range(self.workers):      # start every process now, not at the first map
                     self._executor.submit(os.getpid)
 
     def map(self, function: Callable[..., Any], *sequences: Sequence[Any]) -> Iterator[Any]:
-        """function(*args) for args in zip(*sequences), in order, each as soon as it and those before are
-        done."""
+        """function(*args), or function(context, *args), for args in zip(*sequences), in order, each as soon
+        as it and those before are done."""
         if self._executor is None:
-            return map(function, *sequences)
+            if self.context is not None:
+                function = functools.partial(function, self.context)
+            return map(functools.partial(_in_one_blas_thread, function), *sequences)
+        if self.context is not None:
+            function = functools.partial(_call_with_context, function)
         chunk = max(1, min(map(len, sequences)) // (CHUNKS_PER_WORKER * self.workers))
         return self._executor.map(function, *sequences, chunksize=chunk)
 
@@ -112,9 +203,10 @@ class WorkerPool:
 
 
 @contextmanager
-def worker_pool(workers: int, modules: tuple[str, ...] = ()) -> Iterator[WorkerPool]:
-    """A WorkerPool of `workers` processes (see `resolve_workers`) importing `modules`, shut down after."""
-    pool = WorkerPool(workers, modules)
+def worker_pool(workers: int, modules: tuple[str, ...] = (), context: Any = None) -> Iterator[WorkerPool]:
+    """A WorkerPool of `workers` processes (see `resolve_workers`) importing `modules` and holding `context`,
+    shut down after."""
+    pool = WorkerPool(workers, modules, context)
     try:
         yield pool
     finally:

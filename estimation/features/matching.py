@@ -1,22 +1,21 @@
-"""Descriptor matching: nearest neighbours by batched distance matrices in torch, Lowe's ratio test and
-a mutual (cross) check.
+"""Descriptor matching: nearest neighbours by batched distance matrices, Lowe's ratio test and a mutual
+(cross) check.
 
 One image is matched against all its partner images at once: the partners' descriptors are stacked
-into zero-padded (J, F, 128) blocks of partners of similar size (padding at infinite distance), and the
-squared distances ||a||^2 + ||b||^2 - 2 a.b come from one matrix product per block of query rows, on
-the CPU or CUDA.
+into zero-padded (J, F, 128) blocks of partners of similar size (padding far from everything), and the
+squared distances ||a||^2 + ||b||^2 - 2 a.b come from one matrix product per block of query rows. The
+block work is written once against an array namespace (`ArrayNamespace`): numpy (its BLAS) on the CPU, so
+that a CPU reconstruction never imports torch (0.8 CPU s), and torch on a CUDA device.
 """
 
 from __future__ import annotations
 
-from collections import defaultdict
-from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
-from typing import NamedTuple
+import os
+import sys
+from types import ModuleType
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
-import torch
 
 DISTANCE_BLOCK_ELEMENTS = 1 << 24
 """Entries of the distance matrix held at once (64 MiB of float32): bounds memory for large images."""
@@ -24,6 +23,12 @@ MAX_PADDING = 0.25
 """Partners share a zero-padded block only while the largest has at most this share more descriptors
 than the smallest: padding every partner to the largest of all (lego: 146 to 420 keypoints) computed
 and searched ~40 % padding."""
+PADDING_DISTANCE = 1e30
+"""d^2 of a padding row from every query row: never among the two nearest (RootSIFT's d^2 is at most 4), and
+finite: +inf in the product gave NaN (0 * inf) where OpenBLAS pads its tiles with zeros."""
+NVIDIA_DRIVER = "/proc/driver/nvidia/version"
+"""Present where the NVIDIA kernel driver is loaded: without it CUDA cannot be available, and "auto"
+decides for the CPU without importing torch."""
 
 
 class DescriptorMatches(NamedTuple):
@@ -37,11 +42,55 @@ class DescriptorMatches(NamedTuple):
 EMPTY_MATCHES = DescriptorMatches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
 
 
-def matching_device(device: str) -> torch.device:
-    """torch device for "cpu", "cuda" or "auto" (CUDA when available)."""
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    return torch.device(device)
+def matching_device(device: Literal["auto", "cpu", "cuda"]) -> str:
+    """"cpu" or "cuda"; "auto" is CUDA when torch sees a GPU, asked only when torch is already loaded or an
+    NVIDIA driver is present (importing torch costs 0.8 CPU s)."""
+    if device != "auto":
+        return device
+    if "torch" not in sys.modules and not os.path.exists(NVIDIA_DRIVER):
+        return "cpu"
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+class ArrayNamespace(NamedTuple):
+    """The array module of the block work (numpy, or torch on `device`) and the few operations where the
+    two differ; everything else is called on `xp` with positional axes (`xp.argmin(x, -1)`)."""
+
+    xp: ModuleType
+    device: str = "cpu"
+
+    def asarray(self, array: np.ndarray) -> Any:
+        """The host array on this namespace's device (numpy: itself)."""
+        return array if self.xp is np else self.xp.from_numpy(array).to(self.device)
+
+    def to_numpy(self, values: Any) -> np.ndarray:
+        """A host numpy array of this namespace's array (numpy: itself)."""
+        return values if self.xp is np else values.cpu().numpy()
+
+    def take_along_last(self, values: Any, index: Any) -> Any:
+        """values[..., index[..., k]] along the last axis (numpy's take_along_axis, torch's gather)."""
+        return np.take_along_axis(values, index, -1) if self.xp is np else values.gather(-1, index)
+
+    def put_along_last(self, values: Any, index: Any, value: float) -> None:
+        """values[..., index[..., k]] = value along the last axis, in place."""
+        if self.xp is np:
+            np.put_along_axis(values, index, value, -1)
+        else:
+            values.scatter_(-1, index, value)
+
+
+NUMPY = ArrayNamespace(np)
+
+
+def array_namespace(device: str) -> ArrayNamespace:
+    """numpy for "cpu", torch for any other device (torch imported only then)."""
+    if device == "cpu":
+        return NUMPY
+    import torch
+
+    return ArrayNamespace(torch, device)
 
 
 class DescriptorSet(NamedTuple):
@@ -52,70 +101,82 @@ class DescriptorSet(NamedTuple):
 
 
 def descriptor_set(descriptors: np.ndarray) -> DescriptorSet:
+    """The descriptors as contiguous float32 with ||d||^2 of each row."""
     descriptors = np.ascontiguousarray(descriptors, np.float32)
     return DescriptorSet(descriptors, np.einsum("nd,nd->n", descriptors, descriptors))
 
 
 class BlockNeighbours(NamedTuple):
     """Each query row's two nearest partner rows per partner of one padded block, and each partner row's
-    nearest query distance (all squared Euclidean, torch tensors)."""
+    nearest query distance (all squared Euclidean, host numpy arrays)."""
 
-    top_distance: torch.Tensor        # (A, J, 2) d1^2, d2^2
-    top_index: torch.Tensor           # (A, J) row of the nearest in partner j
-    nearest_a_distance: torch.Tensor  # (J, W) per partner row, its nearest query row's d^2
+    top_distance: np.ndarray        # (A, J, 2) d1^2, d2^2
+    top_index: np.ndarray           # (A, J) row of the nearest in partner j
+    nearest_a_distance: np.ndarray  # (J, W) per partner row, its nearest query row's d^2
 
 
 class SmallestTwo(NamedTuple):
     """The two smallest entries along the last axis (..., 2) and the index of the smallest (...)."""
 
-    values: torch.Tensor
-    index: torch.Tensor
+    values: Any
+    index: Any
 
 
-def argmin_last(values: torch.Tensor) -> torch.Tensor:
-    """Index of the minimum along the last axis; on the CPU by numpy (a zero-copy view), whose argmin took
-    0.81 ms on a 260x40x300 lego block against 1.94 ms for torch's min with its index (4.8 for argmin)."""
-    if values.device.type == "cpu":
-        return torch.from_numpy(values.numpy().argmin(axis=-1))
-    return values.argmin(dim=-1)
-
-
-def smallest_two(values: torch.Tensor) -> SmallestTwo:
+def smallest_two(values: Any, arrays: ArrayNamespace = NUMPY) -> SmallestTwo:
     """The minimum and its index, then the minimum with that one entry at +inf (set in place: `values` is
-    overwritten there). The same values as torch.topk(values, 2, largest=False), in a third of its time on
-    lego's blocks (an argmin and an amin reduction against topk's per-row selection)."""
-    index = argmin_last(values)[..., None]
-    first = torch.gather(values, -1, index)[..., 0]
-    values.scatter_(-1, index, float("inf"))
-    return SmallestTwo(torch.stack([first, values.amin(dim=-1)], dim=-1), index[..., 0])
+    overwritten there), each read at its argmin: an argmin took 0.68 ms on a 260x40x300 lego block, an
+    `amin` along the rows 1.18 ms, and torch.topk(values, 2, largest=False) three times as long."""
+    xp = arrays.xp
+    index = xp.argmin(values, -1)[..., None]
+    first = arrays.take_along_last(values, index)[..., 0]
+    arrays.put_along_last(values, index, float("inf"))
+    second = arrays.take_along_last(values, xp.argmin(values, -1)[..., None])[..., 0]
+    return SmallestTwo(xp.stack([first, second], -1), index[..., 0])
 
 
-def nearest_in_block(a: torch.Tensor, squared_a: torch.Tensor, partners: list[DescriptorSet],
-                     device: torch.device) -> BlockNeighbours:
-    """d^2 = ||a||^2 + ||b||^2 - 2 a.b of the query rows against the partners zero-padded to one block
-    (padding at d^2 = +inf), its column minima and its two smallest per partner (`smallest_two`)."""
+def query_rows(query: DescriptorSet) -> np.ndarray:
+    """[-2 a, ||a||^2, 1] (N, D + 2): its product with `partner_rows` is d^2 = ||a||^2 + ||b||^2 - 2 a.b."""
+    ones = np.ones((len(query.descriptors), 1), np.float32)
+    return np.hstack([-2.0 * query.descriptors, query.squared_norms[:, None], ones])
+
+
+def partner_rows(partners: list[DescriptorSet], width: int) -> np.ndarray:
+    """[b, 1, ||b||^2] of each partner zero-padded to `width` rows ((J * width, D + 2)); a padding row is
+    [0, 0, PADDING_DISTANCE]."""
+    dimension = partners[0].descriptors.shape[1]
+    rows = np.zeros((len(partners), width, dimension + 2), np.float32)
+    rows[:, :, -1] = PADDING_DISTANCE
+    for row, b in zip(rows, partners, strict=True):
+        row[: len(b.descriptors), :dimension] = b.descriptors
+        row[: len(b.descriptors), dimension] = 1.0
+        row[: len(b.descriptors), -1] = b.squared_norms
+    return rows.reshape(len(partners) * width, dimension + 2)
+
+
+def nearest_in_block(query: Any, partners: list[DescriptorSet], arrays: ArrayNamespace = NUMPY
+                     ) -> BlockNeighbours:
+    """d^2 of the query rows (`query_rows`, on `arrays`' device) against the partners zero-padded to one
+    block (`partner_rows`), its column minima and its two smallest per partner (`smallest_two`)."""
+    xp = arrays.xp
     num_partners, width = len(partners), max(len(b.descriptors) for b in partners)
-    stacked = np.zeros((num_partners, width, a.shape[1]), np.float32)
-    squared_b = np.full((num_partners, width), np.inf, np.float32)
-    for row, b in enumerate(partners):
-        stacked[row, : len(b.descriptors)] = b.descriptors
-        squared_b[row, : len(b.descriptors)] = b.squared_norms
-    flat_b = torch.from_numpy(stacked.reshape(num_partners * width, -1)).to(device)
-    flat_squared_b = torch.from_numpy(squared_b.reshape(1, -1)).to(device)
-    num_a = len(a)
-    top_distance = torch.empty((num_a, num_partners, 2), device=device)
-    top_index = torch.empty((num_a, num_partners), dtype=torch.int64, device=device)
-    nearest_a_distance = torch.full((num_partners, width), float("inf"), device=device)
+    flat_b = arrays.asarray(partner_rows(partners, width))
+    num_a = len(query)
+    top_distance = np.empty((num_a, num_partners, 2), np.float32)
+    top_index = np.empty((num_a, num_partners), np.int64)
+    nearest_a_distance = None
     block = max(1, DISTANCE_BLOCK_ELEMENTS // (num_partners * width))
     for start in range(0, num_a, block):
         stop = min(start + block, num_a)
-        # ||b||^2 - 2 a.b in the product, + ||a||^2 in place: no second block-sized temporary.
-        distance = torch.addmm(flat_squared_b, a[start:stop], flat_b.T, alpha=-2.0)
-        distance = distance.add_(squared_a[start:stop, None]).reshape(stop - start, num_partners, width)
-        nearest_a_distance = torch.minimum(nearest_a_distance, distance.amin(dim=0))
+        # The norms are columns of the product (a pass over the block each, 0.45 ms on lego's, saved).
+        distance = (query[start:stop] @ flat_b.T).reshape(stop - start, num_partners, width)
+        column_minima = xp.amin(distance, 0)
+        nearest_a_distance = (column_minima if nearest_a_distance is None
+                              else xp.minimum(nearest_a_distance, column_minima))
         # Last: smallest_two overwrites each row's minimum.
-        top_distance[start:stop], top_index[start:stop] = smallest_two(distance)
-    return BlockNeighbours(top_distance, top_index, nearest_a_distance)
+        two = smallest_two(distance, arrays)
+        top_distance[start:stop] = arrays.to_numpy(two.values)
+        top_index[start:stop] = arrays.to_numpy(two.index)
+    return BlockNeighbours(top_distance, top_index, arrays.to_numpy(nearest_a_distance))
 
 
 def size_groups(sizes: list[int], max_padding: float) -> list[list[int]]:
@@ -132,7 +193,7 @@ def size_groups(sizes: list[int], max_padding: float) -> list[list[int]]:
 
 
 def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio: float, max_distance: float,
-                      device: torch.device = torch.device("cpu")) -> list[DescriptorMatches]:
+                      arrays: ArrayNamespace = NUMPY) -> list[DescriptorMatches]:
     """Per partner b: nearest neighbours a -> b with d1 < ratio * d2 and d1 < max_distance whose b -> a
     nearest neighbour is the same a (Euclidean distances d). Partners of similar size share a padded
     block (`size_groups`, MAX_PADDING)."""
@@ -140,18 +201,17 @@ def match_one_to_many(query: DescriptorSet, partners: list[DescriptorSet], ratio
     usable = [k for k, b in enumerate(partners) if len(b.descriptors) >= 2]
     if len(query.descriptors) < 2 or not usable:
         return results
-    a, squared_a = (torch.from_numpy(array).to(device) for array in query)
+    rows = arrays.asarray(query_rows(query))
     for group in size_groups([len(partners[k].descriptors) for k in usable], MAX_PADDING):
         members = [usable[g] for g in group]
         top_distance, top_index, nearest_a_distance = nearest_in_block(
-            a, squared_a, [partners[k] for k in members], device)
-        distances = top_distance.clamp_min(0.0).sqrt()
-        ratios = distances[..., 0] / distances[..., 1].clamp_min(torch.finfo(torch.float32).tiny)
+            rows, [partners[k] for k in members], arrays)
+        distances = np.sqrt(np.maximum(top_distance, 0.0))
+        ratios = distances[..., 0] / np.maximum(distances[..., 1], np.finfo(np.float32).tiny)
         # Mutual: a is as near to its b as b's nearest a is (the column minimum, far cheaper than its
         # argmin; only exactly equal distances, i.e. duplicate descriptors in a, could let two a's through).
-        mutual = top_distance[..., 0] <= torch.gather(nearest_a_distance.T, 0, top_index)
+        mutual = top_distance[..., 0] <= np.take_along_axis(nearest_a_distance.T, top_index, 0)
         accepted = (ratios < ratio) & (distances[..., 0] < max_distance) & mutual
-        accepted, top_index, ratios = accepted.cpu().numpy(), top_index.cpu().numpy(), ratios.cpu().numpy()
         for row, k in enumerate(members):
             index_a = np.flatnonzero(accepted[:, row])
             results[k] = DescriptorMatches(index_a, top_index[index_a, row],
@@ -165,35 +225,3 @@ def match_descriptors(descriptors_a: np.ndarray, descriptors_b: np.ndarray, rati
     neighbour is the same a."""
     return match_one_to_many(descriptor_set(descriptors_a), [descriptor_set(descriptors_b)], ratio,
                              max_distance)[0]
-
-
-@contextmanager
-def torch_threads(count: int) -> Iterator[None]:
-    """torch's intra-op CPU threads set to `count` inside the block, restored after."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
-def match_pairs(descriptors: list[np.ndarray], pairs: list[tuple[int, int]], ratio: float,
-                max_distance: float = np.inf, device: torch.device = torch.device("cpu"),
-                cpu_threads: int = 1, workers: int = 1) -> dict[tuple[int, int], DescriptorMatches]:
-    """Matches of every pair (i, j), each image i matched against all its partners j in one batch
-    (`cpu_threads` torch threads each), the images i in `workers` threads at once (torch releases the GIL
-    in its kernels)."""
-    sets = [descriptor_set(d) for d in descriptors]
-    partners_of: dict[int, list[int]] = defaultdict(list)
-    for i, j in pairs:
-        partners_of[i].append(j)
-
-    def match_image(i: int) -> list[DescriptorMatches]:
-        return match_one_to_many(sets[i], [sets[j] for j in partners_of[i]], ratio, max_distance, device)
-
-    matches = {}
-    with torch_threads(cpu_threads), ThreadPoolExecutor(workers) as threads:
-        for i, results in zip(partners_of, threads.map(match_image, partners_of), strict=True):
-            matches.update({(i, j): result for j, result in zip(partners_of[i], results, strict=True)})
-    return matches

@@ -12,7 +12,6 @@ import re
 
 import cv2
 import numpy as np
-import torch
 
 from estimation.config import SiftConfig
 
@@ -58,20 +57,25 @@ def train_vocabulary(descriptors: list[np.ndarray], size: int) -> np.ndarray:
     return centres
 
 
+def l2_normalized(vectors: np.ndarray, axis: int = -1) -> np.ndarray:
+    """v / max(||v||, 1e-12) along `axis` (a zero vector stays zero)."""
+    return vectors / np.maximum(np.linalg.norm(vectors, axis=axis, keepdims=True), 1e-12)
+
+
 def vlad(descriptors: np.ndarray, vocabulary: np.ndarray) -> np.ndarray:
     """VLAD: per word, the sum of (descriptor - centre) over the descriptors nearest to it; each word's
     block L2-normalized (intra-normalization), signed square root, then the whole vector L2-normalized."""
     words, dimension = vocabulary.shape
     if len(descriptors) == 0:
         return np.zeros(words * dimension, np.float32)
-    d = torch.as_tensor(descriptors, dtype=torch.float32)
-    centres = torch.as_tensor(vocabulary, dtype=torch.float32)
-    nearest = torch.cdist(d, centres).argmin(dim=1)
-    residual_sums = torch.zeros_like(centres).index_add_(0, nearest, d - centres[nearest])
-    residual_sums = torch.nn.functional.normalize(residual_sums, dim=1)
-    flat = residual_sums.flatten()
-    flat = flat.sign() * flat.abs().sqrt()
-    return torch.nn.functional.normalize(flat, dim=0).numpy()
+    d = np.asarray(descriptors, np.float32)
+    centres = np.asarray(vocabulary, np.float32)
+    # argmin_c ||d - c||^2 = argmin_c ||c||^2 - 2 d.c (||d||^2 is the same for every word).
+    nearest = np.argmin(np.einsum("cd,cd->c", centres, centres) - 2.0 * d @ centres.T, axis=1)
+    residual_sums = np.zeros_like(centres)
+    np.add.at(residual_sums, nearest, d - centres[nearest])
+    flat = l2_normalized(residual_sums).ravel()
+    return l2_normalized(np.sign(flat) * np.sqrt(np.abs(flat)))
 
 
 def retrieval_pairs(global_descriptors: np.ndarray, neighbours: int) -> set[tuple[int, int]]:

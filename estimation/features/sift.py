@@ -1,4 +1,4 @@
-"""SIFT features and matches (OpenCV + torch) merged into multi-view `Tracks`, for folders without match
+"""SIFT features and matches (OpenCV + numpy) merged into multi-view `Tracks`, for folders without match
 files.
 
 Detection runs on the image downscaled to `max_image_side` (keypoints mapped back to full-resolution
@@ -8,19 +8,20 @@ norm, so Euclidean distance compares them by the Hellinger kernel). Candidate pa
 `features.pairs` (exhaustive, or retrieval + sequence), matches from `features.matching` (ratio test and
 mutual check). With a TwoViewConfig every pair is verified geometrically (`two_view.geometry`: E, F and H
 in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. `SiftConfig.workers`
-images are detected and matched at once (threads: OpenCV and torch release the GIL) and as many pairs
-verified at once (processes, `estimation.parallel`: the RANSAC loops hold it); the result does not depend
-on the count. The surviving matches
-are joined into tracks by the image-aware union-find of `track_building`, most distinctive matches
-(lowest ratio) first.
+images are detected at once (threads: OpenCV releases the GIL), then as many query images are matched
+against their partners and their pairs verified at once, one query image per item (processes,
+`estimation.parallel`: the RANSAC loops hold the GIL); the result does not depend on the count. The
+surviving matches are joined into tracks by the image-aware union-find of `track_building`, most
+distinctive matches (lowest ratio) first.
 """
 
 from __future__ import annotations
 
 import time
+from collections import defaultdict
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import partial
 from itertools import repeat
 from pathlib import Path
 from typing import NamedTuple
@@ -30,6 +31,15 @@ import numpy as np
 
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import DegenerateConfigurationError
+from estimation.features.matching import (
+    DescriptorMatches,
+    DescriptorSet,
+    array_namespace,
+    descriptor_set,
+    match_one_to_many,
+    matching_device,
+)
+from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
 from estimation.io.images import ImageSet, load_rgb
 from estimation.parallel import resolve_workers, worker_pool
@@ -37,8 +47,7 @@ from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geom
 from estimation.types import ProgressCallback, Tracks
 
 DETECTION_SHARE = 0.4
-MATCHING_SHARE = 0.2
-"""Fractions of the SIFT progress spent detecting and matching (the rest verifying), for the progress bar."""
+"""Fraction of the SIFT progress spent detecting (the rest matching and verifying), for the progress bar."""
 
 
 class ImageFeatures(NamedTuple):
@@ -58,7 +67,7 @@ class SiftResult:
     verified_per_pair: dict[tuple[int, int], int]       # kept after geometric verification
     num_rejected_links: int
     two_view: dict[tuple[int, int], TwoViewGeometry] = field(default_factory=dict)   # verified pairs
-    seconds_per_stage: dict[str, float] = field(default_factory=dict)   # detection, matching, verification
+    seconds_per_stage: dict[str, float] = field(default_factory=dict)   # detection, matching_and_verification
 
 
 def root_sift(descriptors: np.ndarray) -> np.ndarray:
@@ -104,6 +113,70 @@ def sample_colors(rgb: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return rgb[rows, columns]
 
 
+@dataclass(frozen=True)
+class PairWork:
+    """What matching and verifying an image's pairs needs, sent once to each worker process: every image's
+    keypoints and descriptors, and the settings."""
+
+    uv: list[np.ndarray]
+    descriptors: list[DescriptorSet]
+    ratio: float
+    max_distance: float
+    device: str                          # "cpu" or "cuda" (`matching_device`)
+    two_view: TwoViewConfig | None
+    ransac: RansacConfig
+    K: np.ndarray | None
+
+
+def match_and_verify(work: PairWork, i: int, partners: list[int]
+                     ) -> list[tuple[DescriptorMatches, TwoViewGeometry | None]]:
+    """Image i's matches with each partner j (`match_one_to_many`) and, with `work.two_view`, the two-view
+    geometry of each pair with at least min_inliers matches (None for the others). Only the type and the
+    inliers are used (the initial pair's E is estimated and polished again by the mapper): E is not
+    polished here."""
+    matches = match_one_to_many(work.descriptors[i], [work.descriptors[j] for j in partners], work.ratio,
+                                work.max_distance, array_namespace(work.device))
+    if work.two_view is None:
+        return [(pair_matches, None) for pair_matches in matches]
+    return [(pair_matches, estimate_two_view_geometry(
+                work.uv[i][pair_matches.index_a], work.uv[j][pair_matches.index_b], K1=work.K, K2=work.K,
+                config=work.two_view, ransac=work.ransac, refine_essential=False)
+             if len(pair_matches.ratio) >= work.two_view.min_inliers else None)
+            for j, pair_matches in zip(partners, matches, strict=True)]
+
+
+Pair = tuple[int, int]
+
+
+def match_and_verify_pairs(work: PairWork, pairs: list[Pair], workers: int,
+                           progress: Callable[[float], None] = lambda fraction: None,
+                           ) -> tuple[dict[Pair, DescriptorMatches], dict[Pair, TwoViewGeometry]]:
+    """The matches of every pair (i, j) and the geometry of each pair verified (`match_and_verify`), one
+    query image i with all its partners j per item, in `workers` processes; `progress` gets the fraction of
+    the work done."""
+    partners_of: dict[int, list[int]] = defaultdict(list)
+    for i, j in pairs:
+        partners_of[i].append(j)
+    # Largest first (the product's work: query rows times partner rows), so that the last items to finish
+    # are small and no process waits long for another.
+    cost = {i: len(work.uv[i]) * sum(len(work.uv[j]) for j in partners)
+            for i, partners in partners_of.items()}
+    queries = sorted(partners_of, key=lambda i: -cost[i])
+    matches: dict[Pair, DescriptorMatches] = {}
+    geometries: dict[Pair, TwoViewGeometry] = {}
+    done, total = 0, max(1, sum(cost.values()))
+    with worker_pool(workers, modules=("estimation.features.sift",), context=work) as pool:
+        outcomes = pool.map(match_and_verify, queries, [partners_of[i] for i in queries])
+        for i, image_outcomes in zip(queries, outcomes, strict=True):
+            for j, (pair_matches, geometry) in zip(partners_of[i], image_outcomes, strict=True):
+                matches[(i, j)] = pair_matches
+                if geometry is not None:
+                    geometries[(i, j)] = geometry
+            done += cost[i]
+            progress(done / total)
+    return matches, geometries
+
+
 def sift_tracks(
     images: ImageSet,
     config: SiftConfig,
@@ -119,45 +192,20 @@ def sift_tracks(
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
-        detecting = threads.map(_detect_in_file, images.paths, repeat(config))
-        # Matching and retrieval need torch, whose import takes ~0.8 s of one core: it loads while the
-        # threads detect.
-        from estimation.features.matching import DescriptorMatches, match_pairs, matching_device
-        from estimation.features.pairs import candidate_pairs
-
         detected = []
-        for image_features in detecting:
+        for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):
             detected.append(image_features)
             report("features", DETECTION_SHARE * len(detected) / len(images))
     features, colors = [f for f, _ in detected], [c for _, c in detected]
     seconds["detection"] = time.perf_counter() - started
 
+    started = time.perf_counter()
     pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
-    # The verifying processes start now, so that their imports overlap the matching.
-    verifiers = worker_pool(workers if two_view is not None else 1, modules=("estimation.two_view.geometry",))
-    with verifiers as pool:
-        started = time.perf_counter()
-        report("matching", DETECTION_SHARE)
-        matches = match_pairs([f.descriptors for f in features], pairs, config.ratio, config.max_distance,
-                              matching_device(config.device), config.cpu_threads, workers)
-        report("matching", DETECTION_SHARE + MATCHING_SHARE)
-        seconds["matching"] = time.perf_counter() - started
-
-        started = time.perf_counter()
-        geometries: dict[tuple[int, int], TwoViewGeometry] = {}
-        if two_view is not None:
-            verifiable = [pair for pair in pairs if len(matches[pair].ratio) >= two_view.min_inliers]
-            # Only the type and the inliers are kept here (the initial pair's E is estimated and polished
-            # again by the mapper): no non-linear polish of E per pair.
-            estimate = partial(estimate_two_view_geometry, K1=K, K2=K, config=two_view, ransac=ransac,
-                               refine_essential=False)
-            results = pool.map(estimate, [features[i].uv[matches[(i, j)].index_a] for i, j in verifiable],
-                               [features[j].uv[matches[(i, j)].index_b] for i, j in verifiable])
-            for count, (pair, geometry) in enumerate(zip(verifiable, results, strict=True), start=1):
-                geometries[pair] = geometry
-                report("verification", DETECTION_SHARE + MATCHING_SHARE
-                       + (1 - DETECTION_SHARE - MATCHING_SHARE) * count / len(verifiable))
-        seconds["verification"] = time.perf_counter() - started
+    work = PairWork([f.uv for f in features], [descriptor_set(f.descriptors) for f in features], config.ratio,
+                    config.max_distance, matching_device(config.device), two_view, ransac, K)
+    matches, geometries = match_and_verify_pairs(work, pairs, workers, lambda fraction: report(
+        "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction))
+    seconds["matching_and_verification"] = time.perf_counter() - started
 
     offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])
     links, link_ratios, verified_per_pair = [], [], {}

@@ -1,5 +1,5 @@
-"""Worker processes: the worker count, results in order and equal to the calling process's, and no process
-outliving the one that started it."""
+"""Worker processes: the worker count, results in order and equal to the calling process's, the pool's
+context in every call, one BLAS thread per process, and no process outliving the one that started it."""
 
 from __future__ import annotations
 
@@ -9,9 +9,17 @@ import subprocess
 import sys
 import textwrap
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from estimation.parallel import WorkerPool, available_cores, resolve_workers, worker_pool
+from estimation.parallel import (
+    WorkerPool,
+    _openblas_thread_functions,
+    available_cores,
+    blas_threads,
+    resolve_workers,
+    worker_pool,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -27,6 +35,53 @@ def test_processes_return_what_the_calling_process_computes_in_order():
         assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
         assert len({os.getpid(), *pool.map(_pid, range(40))}) >= 2     # the work ran elsewhere
     assert list(WorkerPool(1).map(divmod, range(5), [2] * 5)) == [divmod(n, 2) for n in range(5)]
+
+
+def test_every_call_gets_the_pool_context_first_in_the_processes_and_in_the_calling_process():
+    for workers in (2, 1):
+        with worker_pool(workers, context=100) as pool:
+            assert list(pool.map(divmod, range(1, 30))) == [divmod(100, n) for n in range(1, 30)]
+
+
+def _blas_threads(_: int) -> tuple[str | None, list[int]]:
+    """OPENBLAS_NUM_THREADS and the thread count of each OpenBLAS loaded here."""
+    return os.environ.get("OPENBLAS_NUM_THREADS"), [get() for get, _ in _openblas_thread_functions()]
+
+
+def test_items_run_on_one_blas_thread_and_the_calling_process_keeps_its_own():
+    environment, threads = _blas_threads(0)
+    assert threads, "numpy's OpenBLAS is found"
+    with worker_pool(2) as pool:
+        for child_environment, child_threads in pool.map(_blas_threads, range(4)):
+            assert child_environment == "1" and child_threads and set(child_threads) == {1}
+    assert list(WorkerPool(1).map(_blas_threads, range(2))) == [(environment, [1] * len(threads))] * 2
+    assert _blas_threads(0) == (environment, threads)                    # restored after
+    with blas_threads(1):
+        assert _blas_threads(0)[1] == [1] * len(threads)
+    assert _blas_threads(0)[1] == threads
+
+
+def _slow_blas_environment(_: int) -> str | None:
+    time.sleep(0.05)
+    return os.environ.get("OPENBLAS_NUM_THREADS")
+
+
+def test_every_process_is_spawned_before_any_takes_an_item(monkeypatch):
+    """ProcessPoolExecutor spawns a process at a submit only while none is idle: had the first process
+    finished its start-up item before the second submit (as under load, with a large context), the second
+    would be spawned at the first map, outside the one-BLAS-thread environment (and the hidden __main__)."""
+    submit, calls = ProcessPoolExecutor.submit, []
+
+    def slow_start(self, *args, **kwargs):
+        future = submit(self, *args, **kwargs)
+        calls.append(None)
+        if len(calls) == 1:
+            time.sleep(2.0)        # time enough for the first process to start and finish its item
+        return future
+
+    monkeypatch.setattr(ProcessPoolExecutor, "submit", slow_start)
+    with worker_pool(2) as pool:
+        assert set(pool.map(_slow_blas_environment, range(40))) == {"1"}
 
 
 def _pid(_: int) -> int:

@@ -1,19 +1,25 @@
-"""Batched descriptor matching: ratio test, mutual check, and agreement with brute force per pair."""
+"""Batched descriptor matching: ratio test, mutual check, agreement with brute force per pair, and the same
+matches from numpy and torch."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from estimation.features.matching import (
     DISTANCE_BLOCK_ELEMENTS,
+    NUMPY,
+    ArrayNamespace,
+    descriptor_set,
     match_descriptors,
-    match_pairs,
+    match_one_to_many,
     size_groups,
     smallest_two,
-    torch_threads,
 )
+
+TORCH = ArrayNamespace(torch, "cpu")
 
 
 def unit(vector: np.ndarray) -> np.ndarray:
@@ -42,14 +48,16 @@ def test_the_mutual_check_keeps_only_the_match_both_sides_agree_on():
     np.testing.assert_array_equal(matches.index_b, [0])
 
 
-def test_the_two_smallest_per_row_are_those_of_topk_and_a_repeated_minimum_counts_twice():
-    values = torch.from_numpy(np.random.default_rng(3).random((4, 5, 30)).astype(np.float32))
+@pytest.mark.parametrize("arrays", [NUMPY, TORCH], ids=["numpy", "torch"])
+def test_the_two_smallest_per_row_are_the_sorted_first_two_and_a_repeated_minimum_counts_twice(arrays):
+    values = np.random.default_rng(3).random((4, 5, 30)).astype(np.float32)
     values[0, 0, [4, 17]] = -1.0                                  # a minimum that occurs twice
-    expected = torch.topk(values, 2, dim=-1, largest=False)
-    two = smallest_two(values.clone())
-    torch.testing.assert_close(two.values, expected.values, rtol=0, atol=0)
-    assert torch.equal(two.index[1:], expected.indices[1:, :, 0])
-    assert two.values[0, 0].tolist() == [-1.0, -1.0] and two.index[0, 0].item() in (4, 17)
+    expected = np.sort(values, axis=-1)[..., :2]
+    two = smallest_two(arrays.asarray(values.copy()), arrays)
+    np.testing.assert_array_equal(arrays.to_numpy(two.values), expected)
+    index = arrays.to_numpy(two.index)
+    np.testing.assert_array_equal(index[1:], np.argmin(values[1:], axis=-1))
+    assert index[0, 0] in (4, 17)
 
 
 def test_too_few_descriptors_give_no_matches():
@@ -66,35 +74,48 @@ def brute_force(a: np.ndarray, b: np.ndarray, ratio: float) -> set[tuple[int, in
             if best.distance < ratio * second.distance and nearest_a_of_b[best.trainIdx] == best.queryIdx}
 
 
-def test_batched_matching_of_many_pairs_equals_brute_force_pair_by_pair(monkeypatch):
-    rng = np.random.default_rng(2)
+def random_images(rng: np.random.Generator, counts: tuple[int, ...]) -> list[np.ndarray]:
+    """Descriptor sets of the given sizes sharing noisy copies of up to 150 common rows, shuffled."""
     shared = rng.normal(size=(150, 128))
     images = []
-    for count in (300, 180, 250, 2, 90):                       # uneven sizes: padding is exercised
+    for count in counts:
         rows = np.concatenate([shared[: min(count, 150)], rng.normal(size=(max(count - 150, 0), 128))])
         noisy = rows + rng.normal(0, 0.3, rows.shape)
         images.append(np.abs(noisy[rng.permutation(count)]).astype(np.float32))
-    pairs = [(i, j) for i in range(5) for j in range(i + 1, 5)]
+    return images
+
+
+def match_each_image_with_the_later_ones(images: list[np.ndarray], arrays: ArrayNamespace
+                                         ) -> dict[tuple[int, int], set[tuple[int, int]]]:
+    """Index pairs (a, b) of every image pair (i, j > i), image i matched against all its partners at once."""
+    sets = [descriptor_set(d) for d in images]
+    found = {}
+    for i in range(len(images)):
+        partners = list(range(i + 1, len(images)))
+        for j, result in zip(partners, match_one_to_many(sets[i], [sets[j] for j in partners], 0.8, np.inf,
+                                                         arrays), strict=True):
+            found[(i, j)] = set(zip(result.index_a.tolist(), result.index_b.tolist(), strict=True))
+    return found
+
+
+def test_batched_matching_of_many_pairs_equals_brute_force_pair_by_pair(monkeypatch):
+    images = random_images(np.random.default_rng(2), (300, 180, 250, 2, 90))   # uneven: padding is exercised
     # A small block forces several blocks of query rows per image.
     monkeypatch.setattr("estimation.features.matching.DISTANCE_BLOCK_ELEMENTS", DISTANCE_BLOCK_ELEMENTS >> 8)
-    matches = match_pairs(images, pairs, ratio=0.8)
-    assert set(matches) == set(pairs)
-    threaded = match_pairs(images, pairs, ratio=0.8, workers=3)   # images matched side by side
-    for pair in pairs:
-        assert all(np.array_equal(a, b) for a, b in zip(matches[pair], threaded[pair], strict=True))
-    for (i, j), result in matches.items():
-        found = set(zip(result.index_a.tolist(), result.index_b.tolist(), strict=True))
+    for (i, j), found in match_each_image_with_the_later_ones(images, NUMPY).items():
         enough = min(len(images[i]), len(images[j])) >= 2
         expected = brute_force(images[i], images[j], 0.8) if enough else set()
         assert found == expected
         assert len(expected) > 20 or 3 in (i, j)                  # image 3 has only two descriptors
 
 
-def test_matching_threads_are_set_inside_the_block_and_restored_after():
-    before = torch.get_num_threads()
-    with torch_threads(1):
-        assert torch.get_num_threads() == 1
-    assert torch.get_num_threads() == before
+def test_numpy_and_torch_find_the_same_matches(monkeypatch):
+    """One matcher for both namespaces: torch (CUDA on a GPU machine, its CPU here) finds numpy's matches."""
+    images = random_images(np.random.default_rng(4), (260, 400, 120, 330, 150, 290))
+    monkeypatch.setattr("estimation.features.matching.DISTANCE_BLOCK_ELEMENTS", DISTANCE_BLOCK_ELEMENTS >> 6)
+    in_numpy = match_each_image_with_the_later_ones(images, NUMPY)
+    assert sum(map(len, in_numpy.values())) > 500
+    assert match_each_image_with_the_later_ones(images, TORCH) == in_numpy
 
 
 def test_partners_are_grouped_by_size_so_that_padding_stays_bounded():

@@ -3,6 +3,11 @@ tracks that agree with known geometry."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
+
 import cv2
 import numpy as np
 import pytest
@@ -14,7 +19,7 @@ from estimation.features.sift import detect_features, root_sift, sample_colors, 
 from estimation.io.images import find_calibration, list_images, load_rgb
 from estimation.io.matchfile import load_match_tracks
 from estimation.two_view.geometry import TwoViewGeometryType
-from tests.estimation.imports import import_loads
+from tests.estimation.imports import REPOSITORY
 
 
 def test_root_sift_is_the_l2_normalized_square_root_of_the_l1_normalized_descriptor():
@@ -111,7 +116,7 @@ def test_one_worker_detects_matches_and_verifies_exactly_as_two_do(shared_data, 
         np.testing.assert_array_equal(geometry.E, parallel.two_view[pair].E)
     np.testing.assert_array_equal(serial.tracks.track_index, parallel.tracks.track_index)
     np.testing.assert_array_equal(serial.tracks.uv, parallel.tracks.uv)
-    assert set(serial.seconds_per_stage) == {"detection", "matching", "verification"}
+    assert set(serial.seconds_per_stage) == {"detection", "matching_and_verification"}
 
 
 def test_sift_correspondences_agree_with_the_course_matches_epipolar_geometry(shared_data, unity_sift):
@@ -139,7 +144,25 @@ def test_images_without_any_common_features_are_an_input_error(tmp_path):
         sift_tracks(list_images(tmp_path), SiftConfig())
 
 
-def test_detection_starts_before_torch_is_loaded():
-    """torch (matching, retrieval) is imported inside sift_tracks, after the detecting threads start, so
-    that its import overlaps the detection: the module itself does not load it."""
-    assert not import_loads("estimation.features.sift", "torch")
+def test_a_cpu_reconstruction_never_imports_torch(tmp_path):
+    """Matching runs in numpy on the CPU and "auto" asks torch for CUDA only where an NVIDIA driver is
+    loaded (importing torch costs ~0.8 CPU s): a small SIFT run (one worker: all of it in this process)
+    loads no torch."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (160, 200, 3), np.uint8), (3, 3), 0)
+    for index in range(3):
+        cv2.imwrite(str(tmp_path / f"{index}.png"), np.roll(texture, 6 * index, axis=1))
+    script = textwrap.dedent(f"""
+        import sys
+        import estimation.features.matching as matching
+        from estimation.config import SiftConfig
+        from estimation.features.sift import sift_tracks
+        from estimation.io.images import list_images
+
+        matching.NVIDIA_DRIVER = {str(tmp_path / "no-driver")!r}     # as on a machine without a GPU
+        result = sift_tracks(list_images({str(tmp_path)!r}), SiftConfig(device="auto", workers=1))
+        print(sum(result.matches_per_pair.values()) > 0, "torch" in sys.modules)
+    """)
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                         cwd=REPOSITORY, env={**os.environ, "PYTHONPATH": str(REPOSITORY)})
+    assert run.stdout.split() == ["True", "False"]
