@@ -21,7 +21,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import repeat
 from pathlib import Path
 from typing import NamedTuple
@@ -126,16 +126,22 @@ class PairWork:
     two_view: TwoViewConfig | None
     ransac: RansacConfig
     K: np.ndarray | None
+    matched: dict[int, list[DescriptorMatches]] | None = None   # per query image, when matched beforehand
+
+
+def query_matches(work: PairWork, i: int, partners: list[int]) -> list[DescriptorMatches]:
+    """Image i's matches with each partner j (`match_one_to_many` on `work.device`)."""
+    return match_one_to_many(work.descriptors[i], [work.descriptors[j] for j in partners], work.ratio,
+                             work.max_distance, array_namespace(work.device))
 
 
 def match_and_verify(work: PairWork, i: int, partners: list[int]
                      ) -> list[tuple[DescriptorMatches, TwoViewGeometry | None]]:
-    """Image i's matches with each partner j (`match_one_to_many`) and, with `work.two_view`, the two-view
-    geometry of each pair with at least min_inliers matches (None for the others). Only the type and the
-    inliers are used (the initial pair's E is estimated and polished again by the mapper): E is not
-    polished here."""
-    matches = match_one_to_many(work.descriptors[i], [work.descriptors[j] for j in partners], work.ratio,
-                                work.max_distance, array_namespace(work.device))
+    """Image i's matches with each partner j (`work.matched`'s, else `query_matches`) and, with
+    `work.two_view`, the two-view geometry of each pair with at least min_inliers matches (None for the
+    others). Only the type and the inliers are used (the initial pair's E is estimated and polished again
+    by the mapper): E is not polished here."""
+    matches = work.matched[i] if work.matched is not None else query_matches(work, i, partners)
     if work.two_view is None:
         return [(pair_matches, None) for pair_matches in matches]
     return [(pair_matches, estimate_two_view_geometry(
@@ -162,6 +168,11 @@ def match_and_verify_pairs(work: PairWork, pairs: list[Pair], workers: int,
     cost = {i: len(work.uv[i]) * sum(len(work.uv[j]) for j in partners)
             for i, partners in partners_of.items()}
     queries = sorted(partners_of, key=lambda i: -cost[i])
+    if work.device != "cpu":
+        # A GPU matches in this process (one device context, not one per worker process); the workers
+        # only verify.
+        work = replace(work, descriptors=[], matched={i: query_matches(work, i, partners_of[i])
+                                                      for i in queries})
     matches: dict[Pair, DescriptorMatches] = {}
     geometries: dict[Pair, TwoViewGeometry] = {}
     done, total = 0, max(1, sum(cost.values()))

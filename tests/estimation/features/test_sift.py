@@ -166,3 +166,34 @@ def test_a_cpu_reconstruction_never_imports_torch(tmp_path):
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
                          cwd=REPOSITORY, env={**os.environ, "PYTHONPATH": str(REPOSITORY)})
     assert run.stdout.split() == ["True", "False"]
+
+
+def test_a_gpu_matches_in_the_calling_process_and_the_workers_only_verify(monkeypatch):
+    """On a device other than the CPU every query image is matched here (one device context), not in each
+    worker process; the pairs and their geometry are those of the CPU path. (No GPU needed: the device's
+    namespace is numpy here, and a worker that matched would fail on the empty descriptor list.)"""
+    from estimation.features import sift
+    from estimation.features.matching import NUMPY, descriptor_set
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform([-1, -1, 4], [1, 1, 6], (120, 3))
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    uv, descriptors = [], []
+    shared = root_sift(rng.integers(0, 256, (120, 128)).astype(np.float32))
+    for shift in (0.0, 0.3, 0.6):
+        projected = (points + [shift, 0, 0]) @ K.T
+        uv.append(projected[:, :2] / projected[:, 2:])
+        descriptors.append(descriptor_set(shared))
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    calls = []
+    monkeypatch.setattr(sift, "array_namespace", lambda device: calls.append(device) or NUMPY)
+    on_cpu = sift.PairWork(uv, descriptors, 0.8, 0.7, "cpu", TwoViewConfig(), RansacConfig(), K)
+    on_gpu = sift.PairWork(uv, descriptors, 0.8, 0.7, "cuda", TwoViewConfig(), RansacConfig(), K)
+    cpu_matches, cpu_geometries = sift.match_and_verify_pairs(on_cpu, pairs, workers=1)
+    calls.clear()
+    gpu_matches, gpu_geometries = sift.match_and_verify_pairs(on_gpu, pairs, workers=2)
+    assert calls == ["cuda", "cuda"]                               # query images 0 and 1, here
+    assert all(len(m.ratio) == 120 for m in gpu_matches.values())
+    for pair in pairs:
+        np.testing.assert_array_equal(gpu_matches[pair].index_b, cpu_matches[pair].index_b)
+        np.testing.assert_array_equal(gpu_geometries[pair].inlier_mask, cpu_geometries[pair].inlier_mask)
