@@ -54,6 +54,11 @@ class BundleAdjustmentConfig(BaseModel):
         description="Elimination order: points_first eliminates every point before any camera (the Schur "
         "complement, as Ceres' SCHUR solvers do); colamd/metis are GTSAM's fill-reducing heuristics.",
     )
+    mapper_global_ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
+        "colamd", description="elimination order of the incremental mapper's global BAs (initial pair, "
+        "refinement, final): COLAMD orders the eliminated cameras and points by fill, cheaper than "
+        "points_first on these problems where every camera sees many others through shared points.",
+    )
     linear_solver: Literal[
         "multifrontal_cholesky", "multifrontal_qr", "sequential_cholesky", "sequential_qr", "pcg_block_jacobi"
     ] = Field(
