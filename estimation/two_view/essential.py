@@ -106,15 +106,15 @@ def _real_roots(action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """w = a^-1 b for stacked systems a (R, n, n), b (R, n); NaN rows where a is singular (det a = 0)."""
+    """w = a^-1 b for stacked systems a (R, n, n), b (R, n, k); NaN where a is singular (det a = 0)."""
     try:
-        return np.linalg.solve(a, b[..., None])[..., 0]
+        return np.linalg.solve(a, b)
     except np.linalg.LinAlgError:
-        # Rare (y, z not fixed by x alone, as when two roots share x): the determinants only then, so that
-        # one such root costs its own solution, not the batch's.
+        # Rare: the determinants only then (a solve per batch, not a solve and a determinant), so that one
+        # singular system costs its own solution, not the batch's.
         solvable = np.abs(np.linalg.det(a)) > 0
         w = np.full(b.shape, np.nan)
-        w[solvable] = np.linalg.solve(a[solvable], b[solvable, :, None])[..., 0]
+        w[solvable] = np.linalg.solve(a[solvable], b[solvable])
         return w
 
 
@@ -130,7 +130,8 @@ def _yz_of_roots(rows: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarra
     system[:, :, 5] = (rows[:, :, 0] * x + rows[:, :, 6]) * x + rows[:, :, 9]
     # Row 0 (x * x^2) is dropped: the six rows agree at a root; with it (normal equations on all six)
     # y, z strayed up to 1e-8 from eig's eigenvectors on synthetic samples, without it 1e-10.
-    w = _solve_or_nan(system[:, :, :5], -system[:, :, 5])
+    # A singular system (y, z not fixed by x alone, as when two roots share x) leaves that root NaN.
+    w = _solve_or_nan(system[:, :, :5], -system[:, :, 5:])[..., 0]
     return w[:, 3], w[:, 4]
 
 
@@ -140,10 +141,11 @@ def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     null_space = _null_space_basis(x1, x2)
     E = np.moveaxis(null_space, 1, -1).reshape(len(x1), 3, 3, 4)      # entries linear in (x, y, z, 1)
     constraints = _cubic_constraints(E)
-    finite = np.isfinite(constraints).all(axis=(1, 2)) & (np.abs(np.linalg.det(constraints[:, :, :10])) > 0)
-    constraints, null_space = constraints[finite], null_space[finite]
-    # Gauss-Jordan on the cubic monomials: cubic_r = -reduced[r] . basis.
-    reduced = np.linalg.solve(constraints[:, :, :10], constraints[:, :, 10:])
+    # Gauss-Jordan on the cubic monomials: cubic_r = -reduced[r] . basis; a degenerate sample (singular or
+    # non-finite constraints) gives a non-finite reduction and is dropped.
+    reduced = _solve_or_nan(constraints[:, :, :10], constraints[:, :, 10:])
+    solved = np.isfinite(reduced).all(axis=(1, 2))
+    reduced, null_space = reduced[solved], null_space[solved]
     action = np.zeros((len(reduced), 10, 10))
     action[:, ACTION_CUBIC_ROWS] = -reduced[:, X_TIMES_BASIS[ACTION_CUBIC_ROWS]]
     action[:, ACTION_BASIS_ROWS, X_TIMES_BASIS[ACTION_BASIS_ROWS] - 10] = 1.0
