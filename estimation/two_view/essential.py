@@ -112,7 +112,8 @@ def _solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     except np.linalg.LinAlgError:
         # Rare: the determinants only then (a solve per batch, not a solve and a determinant), so that one
         # singular system costs its own solution, not the batch's.
-        solvable = np.abs(np.linalg.det(a)) > 0
+        with np.errstate(invalid="ignore"):                # a non-finite system's det is NaN: not solvable
+            solvable = np.abs(np.linalg.det(a)) > 0
         w = np.full(b.shape, np.nan)
         w[solvable] = np.linalg.solve(a[solvable], b[solvable])
         return w
