@@ -54,6 +54,11 @@ class BundleAdjustmentConfig(BaseModel):
         description="Elimination order: points_first eliminates every point before any camera (the Schur "
         "complement, as Ceres' SCHUR solvers do); colamd/metis are GTSAM's fill-reducing heuristics.",
     )
+    mapper_global_ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
+        "colamd", description="elimination order of the incremental mapper's global BAs (initial pair, "
+        "refinement, final; the local BAs keep `ordering`, where COLAMD was slower): on lego, RANSAC seeds "
+        "0-2, the 18 global BAs took 0.53 -> 0.49 CPU s with COLAMD's order, the same iterations and models.",
+    )
     linear_solver: Literal[
         "multifrontal_cholesky", "multifrontal_qr", "sequential_cholesky", "sequential_qr", "pcg_block_jacobi"
     ] = Field(

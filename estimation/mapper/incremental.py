@@ -235,7 +235,7 @@ class _ModelBuilder:
         refinement_relative_error_tol (the BAs that follow go on from there)."""
         ba = self.config.bundle_adjustment
         return ba.model_copy(update={"relative_error_tol": self.mapper.refinement_relative_error_tol,
-                                     "optimizer": ba.mapper_optimizer})
+                                     "optimizer": ba.mapper_optimizer, "ordering": ba.mapper_global_ordering})
 
     def measure_noise(self) -> float:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
@@ -404,6 +404,7 @@ class _ModelBuilder:
         final = ba.model_copy(update={
             "relative_error_tol": min(ba.relative_error_tol, self.mapper.final_relative_error_tol),
             "optimizer": ba.mapper_optimizer,
+            "ordering": ba.mapper_global_ordering,
         })
         decrease, iterations, covariance = 0.0, 0, None
         for _ in range(FINAL_BA_ROUNDS):

@@ -5,7 +5,8 @@ The first camera is the world frame (R = I, C = 0); candidates are the second ca
 The 5-point solver is Stewenius' Groebner-basis formulation, batched over samples: E = x X + y Y + z Z + W
 in the null space of the five epipolar rows, det(E) = 0 and 2 E E^T E - tr(E E^T) E = 0 give ten cubics
 in (x, y, z), eliminated to the ten cubic monomials; the action matrix of x on the quotient basis of the
-ten monomials of degree <= 2 has the (up to ten) real solutions as eigenvectors.
+ten monomials of degree <= 2 has the (up to ten) real solutions' x as eigenvalues; y and z at each follow
+from five of the eigen-equation's rows, a 5 x 5 linear solve (cheaper than eig's eigenvectors).
 """
 
 from __future__ import annotations
@@ -95,25 +96,64 @@ def _cubic_constraints(E: np.ndarray) -> np.ndarray:
     return (products.reshape(-1, 40) @ QUADRATIC_TIMES_LINEAR).reshape(num, 10, 20)
 
 
+def _real_roots(action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sample, x) of every real eigenvalue x of the action matrices (B, 10, 10): M v = x v, v the basis
+    monomials at a root; eigenvalues only (LAPACK skips the Schur vectors: ~2/3 of eig's cost)."""
+    values = np.linalg.eigvals(action)
+    real = np.abs(values.imag) < REAL_ROOT_TOLERANCE * (1.0 + np.abs(values.real))
+    sample, root = np.nonzero(real)
+    return sample, values.real[sample, root]
+
+
+def _solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """w = a^-1 b for stacked systems a (R, n, n), b (R, n, k); NaN where a is singular (det a = 0)."""
+    try:
+        return np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:
+        # Rare: the determinants only then (a solve per batch, not a solve and a determinant), so that one
+        # singular system costs its own solution, not the batch's.
+        with np.errstate(invalid="ignore"):                # a non-finite system's det is NaN: not solvable
+            solvable = np.abs(np.linalg.det(a)) > 0
+        w = np.full(b.shape, np.nan)
+        w[solvable] = np.linalg.solve(a[solvable], b[solvable])
+        return w
+
+
+def _yz_of_roots(rows: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(y, z) at each root x from rows 1..5 of (M - x I) v = 0, v = (x^2, xy, xz, y^2, yz, z^2, x, y, z, 1)
+    linear in w = (y^2, yz, z^2, y, z, 1): a 5 x 5 solve per root (rows (R, 5, 10): M[1:6], one per root)."""
+    rows = rows - x[:, None, None] * np.eye(10)[1:6]
+    x = x[:, None]
+    system = np.empty((len(x), 5, 6))
+    system[:, :, :3] = rows[:, :, 3:6]
+    system[:, :, 3] = rows[:, :, 1] * x + rows[:, :, 7]
+    system[:, :, 4] = rows[:, :, 2] * x + rows[:, :, 8]
+    system[:, :, 5] = (rows[:, :, 0] * x + rows[:, :, 6]) * x + rows[:, :, 9]
+    # Row 0 (x * x^2) is dropped: the six rows agree at a root; with it (normal equations on all six)
+    # y, z strayed up to 1e-8 from eig's eigenvectors on synthetic samples, without it 1e-10.
+    # A singular system (y, z not fixed by x alone, as when two roots share x) leaves that root NaN.
+    w = _solve_or_nan(system[:, :, :5], -system[:, :, 5:])[..., 0]
+    return w[:, 3], w[:, 4]
+
+
 def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """All real E with x2^T E x1 = 0, det E = 0, 2 E E^T E = tr(E E^T) E from samples (B, 5, 2) of
     normalized coordinates; returns (M, 3, 3) unit-norm matrices, M <= 10 B."""
     null_space = _null_space_basis(x1, x2)
     E = np.moveaxis(null_space, 1, -1).reshape(len(x1), 3, 3, 4)      # entries linear in (x, y, z, 1)
     constraints = _cubic_constraints(E)
-    finite = np.isfinite(constraints).all(axis=(1, 2)) & (np.abs(np.linalg.det(constraints[:, :, :10])) > 0)
-    constraints, null_space = constraints[finite], null_space[finite]
-    # Gauss-Jordan on the cubic monomials: cubic_r = -reduced[r] . basis.
-    reduced = np.linalg.solve(constraints[:, :, :10], constraints[:, :, 10:])
+    # Gauss-Jordan on the cubic monomials: cubic_r = -reduced[r] . basis; a degenerate sample (singular or
+    # non-finite constraints) gives a non-finite reduction and is dropped.
+    reduced = _solve_or_nan(constraints[:, :, :10], constraints[:, :, 10:])
+    solved = np.isfinite(reduced).all(axis=(1, 2))
+    reduced, null_space = reduced[solved], null_space[solved]
     action = np.zeros((len(reduced), 10, 10))
     action[:, ACTION_CUBIC_ROWS] = -reduced[:, X_TIMES_BASIS[ACTION_CUBIC_ROWS]]
     action[:, ACTION_BASIS_ROWS, X_TIMES_BASIS[ACTION_BASIS_ROWS] - 10] = 1.0
-    values, vectors = np.linalg.eig(action)
-    real = np.abs(values.imag) < REAL_ROOT_TOLERANCE * (1.0 + np.abs(values.real))
-    vectors = vectors.real
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xyz1 = vectors[:, 6:10] / vectors[:, 9:10]            # basis rows 6..9 are x, y, z, 1
-    solutions = np.einsum("bks,bkj->bsj", xyz1, null_space).reshape(-1, 10, 3, 3)[real]
+    sample, x = _real_roots(action)
+    y, z = _yz_of_roots(action[sample, 1:6], x)
+    solutions = np.einsum("rk,rkj->rj", np.stack([x, y, z, np.ones_like(x)], axis=1),
+                          null_space[sample]).reshape(-1, 3, 3)
     solutions = solutions[np.isfinite(solutions).all(axis=(1, 2))]
     return solutions / np.linalg.norm(solutions, axis=(1, 2), keepdims=True)
 

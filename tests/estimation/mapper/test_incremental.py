@@ -480,19 +480,22 @@ def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_m
     assert final_adjustments(1e-3) == 1
 
 
-def test_every_mapper_ba_runs_the_mapper_optimizer(monkeypatch, noisy_scene):
+def test_every_mapper_ba_runs_the_mapper_optimizer_and_the_global_ones_the_mapper_global_ordering(
+        monkeypatch, noisy_scene):
     kinds = {}
     adjust = Scene.bundle_adjust
 
     def recording(scene, config, variable_images=None, intrinsics_covariance=False):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
-        kinds.setdefault(kind, set()).add(config.optimizer)
+        kinds.setdefault(kind, set()).add((config.optimizer, config.ordering))
         return adjust(scene, config, variable_images, intrinsics_covariance)
 
     monkeypatch.setattr(Scene, "bundle_adjust", recording)
-    reconstruct(noisy_scene.tracks, noisy_scene, ReconstructionConfig(
-        bundle_adjustment={"optimizer": "levenberg_marquardt", "mapper_optimizer": "gauss_newton"}))
-    assert kinds == {"local": {"gauss_newton"}, "global": {"gauss_newton"}, "final": {"gauss_newton"}}
+    reconstruct(noisy_scene.tracks, noisy_scene, ReconstructionConfig(bundle_adjustment={
+        "optimizer": "levenberg_marquardt", "mapper_optimizer": "gauss_newton",
+        "ordering": "points_first", "mapper_global_ordering": "colamd"}))
+    assert kinds == {"local": {("gauss_newton", "points_first")}, "global": {("gauss_newton", "colamd")},
+                     "final": {("gauss_newton", "colamd")}}
 
 
 def test_the_initial_pair_ba_stops_at_the_refinement_tolerance(monkeypatch, noisy_scene):

@@ -12,6 +12,7 @@ from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.alignment import relative_pose, rotation_angle_deg
 from estimation.synthetic import make_scene
 from estimation.two_view.essential import (
+    _solve_or_nan,
     choose_relative_pose,
     essential_from_fundamental,
     five_point_essential,
@@ -112,6 +113,29 @@ def test_five_point_solutions_include_the_true_essential_matrix_and_satisfy_its_
         distance = np.minimum(np.abs(solutions - truth).max(axis=(1, 2)),
                               np.abs(solutions + truth).max(axis=(1, 2)))
         assert np.sum(distance < 1e-8) >= 20                      # the truth among each sample's roots
+
+
+def test_every_noise_free_sample_of_many_random_scenes_has_the_true_essential_among_its_roots():
+    for seed in range(30):
+        scene = make_scene(num_cameras=3, num_points=40, seed=seed)
+        rng = np.random.default_rng(seed)
+        for i, j in [(0, 1), (0, 2), (1, 2)]:
+            _, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+            x1, x2 = to_normalized(scene.K, uv1), to_normalized(scene.K, uv2)
+            truth = true_essential(scene, i, j)
+            for _ in range(10):
+                sample = rng.choice(len(uv1), 5, replace=False)
+                solutions = five_point_essential(x1[sample][None], x2[sample][None])
+                np.testing.assert_allclose(np.linalg.norm(solutions, axis=(1, 2)), 1.0)
+                distance = np.minimum(np.abs(solutions - truth).max(axis=(1, 2)),
+                                      np.abs(solutions + truth).max(axis=(1, 2)))
+                assert distance.min() < 1e-8, (seed, i, j, sample)
+
+
+def test_a_singular_or_non_finite_system_gives_nan_and_leaves_the_others_solved():
+    a = np.stack([np.diag([2.0, 4.0]), np.zeros((2, 2)), np.full((2, 2), np.nan)])
+    w = _solve_or_nan(a, np.ones((3, 2, 1)))[..., 0]
+    np.testing.assert_array_equal(w, [[0.5, 0.25], [np.nan, np.nan], [np.nan, np.nan]])
 
 
 def test_five_point_ransac_under_noise_and_30_percent_outliers_is_within_0_2_degrees():
