@@ -75,7 +75,7 @@ class StageProgressBars:
 @click.option("--all-models", is_flag=True,
               help="Also write every smaller model (images no model could join) to OUT/models/<k>/.")
 @click.option("--workers", type=click.IntRange(min=0), default=0, show_default=True,
-              help="SIFT detection threads and pair verification processes side by side (0: one per "
+              help="SIFT detection threads, then processes matching and verifying pairs (0: one per "
                    "available CPU core; 1: everything in this process).")
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, relative_pose: str,
                 estimator: str, camera_model: str, single_camera: bool, refine_principal_point: bool | None,
