@@ -25,8 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from estimation.config import RansacConfig, SiftConfig  # noqa: E402
-from estimation.features.matching import descriptor_set, matching_device  # noqa: E402
+from estimation.config import SiftConfig  # noqa: E402
 from estimation.features.pairs import candidate_pairs  # noqa: E402
 from estimation.features.sift import PairWork, detect_features, match_and_verify_pairs  # noqa: E402
 from estimation.io.images import list_images, load_rgb  # noqa: E402
@@ -39,8 +38,7 @@ def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
     pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
     print(f"{folder}: {len(images.paths)} images, {sum(len(f.uv) for f in features)} keypoints, "
           f"{len(pairs)} pairs")
-    work = PairWork([f.uv for f in features], [descriptor_set(f.descriptors) for f in features], config.ratio,
-                    config.max_distance, matching_device(config.device), None, RansacConfig(), None)
+    work = PairWork.of(features, config)
     for count in workers:
         for _ in range(repeats):
             children = resource.getrusage(resource.RUSAGE_CHILDREN)

@@ -38,7 +38,6 @@ def verification_inputs(work: Path) -> dict[str, np.ndarray]:
     """K and, per verifiable pair of lego (at least min_inliers matches), the matched uv1, uv2: cached."""
     cache = work / "lego_verification_inputs.npz"
     if not cache.exists():
-        from estimation.features.matching import descriptor_set
         from estimation.features.pairs import candidate_pairs
         from estimation.features.sift import PairWork, detect_features, match_and_verify_pairs
         from estimation.io.images import list_images, load_rgb
@@ -46,13 +45,11 @@ def verification_inputs(work: Path) -> dict[str, np.ndarray]:
         folder = work / "lego"
         folder.mkdir(parents=True, exist_ok=True)
         K = prepare_lego(DATA, folder)
-        config = SiftConfig()
+        config = SiftConfig(device="cpu")
         images = list_images(folder)
         features = [detect_features(load_rgb(path), config) for path in images.paths]
         pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
-        work = PairWork([f.uv for f in features], [descriptor_set(f.descriptors) for f in features],
-                        config.ratio, config.max_distance, "cpu", None, RansacConfig(), K)
-        matches, _ = match_and_verify_pairs(work, pairs, workers=1)
+        matches, _ = match_and_verify_pairs(PairWork.of(features, config), pairs, workers=1)
         verifiable = [pair for pair in pairs if len(matches[pair].ratio) >= TwoViewConfig().min_inliers]
         uv1 = [features[i].uv[matches[(i, j)].index_a] for i, j in verifiable]
         uv2 = [features[j].uv[matches[(i, j)].index_b] for i, j in verifiable]

@@ -128,6 +128,13 @@ class PairWork:
     K: np.ndarray | None
     matched: dict[int, list[DescriptorMatches]] | None = None   # per query image, when matched beforehand
 
+    @classmethod
+    def of(cls, features: list[ImageFeatures], config: SiftConfig, two_view: TwoViewConfig | None = None,
+           ransac: RansacConfig = RansacConfig(), K: np.ndarray | None = None) -> PairWork:
+        """The work of the detected `features` with `config`'s matching settings (`matching_device`)."""
+        return cls([f.uv for f in features], [descriptor_set(f.descriptors) for f in features], config.ratio,
+                   config.max_distance, matching_device(config.device), two_view, ransac, K)
+
 
 def query_matches(work: PairWork, i: int, partners: list[int]) -> list[DescriptorMatches]:
     """Image i's matches with each partner j (`match_one_to_many` on `work.device`)."""
@@ -212,8 +219,7 @@ def sift_tracks(
 
     started = time.perf_counter()
     pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
-    work = PairWork([f.uv for f in features], [descriptor_set(f.descriptors) for f in features], config.ratio,
-                    config.max_distance, matching_device(config.device), two_view, ransac, K)
+    work = PairWork.of(features, config, two_view, ransac, K)
     matches, geometries = match_and_verify_pairs(work, pairs, workers, lambda fraction: report(
         "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction))
     seconds["matching_and_verification"] = time.perf_counter() - started

@@ -43,6 +43,14 @@ def minimal_null_vector(A: np.ndarray) -> np.ndarray:
     return x.reshape(*A.shape[:-2], A.shape[-1])
 
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x with [v]x w = v x w, batched over v (..., 3) -> (..., 3, 3)."""
+    zero = np.zeros_like(v[..., 0])
+    return np.stack([np.stack([zero, -v[..., 2], v[..., 1]], axis=-1),
+                     np.stack([v[..., 2], zero, -v[..., 0]], axis=-1),
+                     np.stack([-v[..., 1], v[..., 0], zero], axis=-1)], axis=-2)
+
+
 def rotation_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues: R = I + sinc(theta) [w]x + (1 - cos theta) / theta^2 [w]x^2, theta = ||w||; (..., 3) ->
     (..., 3, 3).
@@ -51,10 +59,7 @@ def rotation_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     """
     w = np.asarray(rotvec, float)
     theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    zero = np.zeros_like(w[..., 0])
-    cross = np.stack([np.stack([zero, -w[..., 2], w[..., 1]], axis=-1),
-                      np.stack([w[..., 2], zero, -w[..., 0]], axis=-1),
-                      np.stack([-w[..., 1], w[..., 0], zero], axis=-1)], axis=-2)
+    cross = skew(w)
     # numpy's sinc is the normalized sin(pi x) / (pi x).
     return (np.eye(3) + np.sinc(theta / np.pi) * cross
             + 0.5 * np.sinc(theta / (2 * np.pi)) ** 2 * (cross @ cross))

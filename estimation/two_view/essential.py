@@ -17,7 +17,7 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.linalg import levenberg_marquardt, rotation_from_rotvec
+from estimation.geometry.linalg import levenberg_marquardt, rotation_from_rotvec, skew
 from estimation.geometry.ransac import ransac
 from estimation.geometry.triangulation import observations_for_pair, triangulate_linear
 from estimation.two_view.fundamental import eight_point, epipolar_rows, sampson_distance, sampson_residual
@@ -219,14 +219,6 @@ def choose_relative_pose(E: np.ndarray, K: np.ndarray, uv1: np.ndarray, uv2: np.
         if best is None or scores[-1] > best.in_front.sum():
             best = RelativePose(pose=candidate, points=points, in_front=in_front, candidate_scores=[])
     return best._replace(candidate_scores=scores)
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x with [v]x w = v x w, batched over v (..., 3) -> (..., 3, 3)."""
-    zero = np.zeros_like(v[..., 0])
-    return np.stack([np.stack([zero, -v[..., 2], v[..., 1]], axis=-1),
-                     np.stack([v[..., 2], zero, -v[..., 0]], axis=-1),
-                     np.stack([-v[..., 1], v[..., 0], zero], axis=-1)], axis=-2)
 
 
 JACOBIAN_STEP = 1e-7

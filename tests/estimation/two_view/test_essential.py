@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.alignment import relative_pose, rotation_angle_deg
+from estimation.geometry.linalg import skew
 from estimation.synthetic import make_scene
 from estimation.two_view.essential import (
     _solve_or_nan,
@@ -20,7 +21,6 @@ from estimation.two_view.essential import (
     pose_candidates,
     ransac_essential,
     refine_essential,
-    skew,
     to_normalized,
 )
 from estimation.two_view.fundamental import eight_point, ransac_fundamental, sampson_residual
