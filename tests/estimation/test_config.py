@@ -19,3 +19,20 @@ def test_an_out_of_range_mapper_setting_is_refused_naming_its_field(section, fie
         ReconstructionConfig(**{section: {field: value}})
     assert [error["loc"] for error in refused.value.errors()] == [(section, field)]
 
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("optimizer", "dogleg"),
+    ("mapper_optimizer", "newton"),
+    ("mapper_global_ordering", "amd"),
+])
+def test_an_unknown_optimizer_or_ordering_of_the_bundle_adjustment_is_refused_naming_its_field(field, value):
+    with pytest.raises(pydantic.ValidationError) as refused:
+        ReconstructionConfig(bundle_adjustment={field: value})
+    assert [error["loc"] for error in refused.value.errors()] == [("bundle_adjustment", field)]
+
+
+def test_sift_device_accepts_only_auto_cpu_or_cuda():
+    with pytest.raises(pydantic.ValidationError) as refused:
+        ReconstructionConfig(sift={"device": "mps"})
+    assert [error["loc"] for error in refused.value.errors()] == [("sift", "device")]
