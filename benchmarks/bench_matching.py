@@ -1,12 +1,12 @@
 """Descriptor matching alone: CPU and wall seconds of matching every pair of one image set's SIFT
 descriptors, as `sift_tracks` does without verification (`match_and_verify_pairs`).
 
-The descriptors (`detect_features` with the default `SiftConfig`) and pairs (`candidate_pairs`) are made
-once; then the matching runs `--repeats` times for each `--workers` count (1: in this process; more: that
-many spawned processes, started, fed the descriptors and shut down within each run, as in a
-reconstruction). CPU seconds (`time.process_time` of this process plus its finished children's
-`RUSAGE_CHILDREN`) move little when other work shares the machine; wall seconds only mean something under
-the bench lock on an otherwise idle machine. Without a folder, the 90 lego views
+The descriptors (`detect_features` with the default `SiftConfig`) and pairs (`candidate_pairs`) are made once;
+then the matching runs `--repeats` times for each `--workers` count (1: in this process; more: that many
+spawned processes, started, fed the descriptors and shut down within each run, as in a reconstruction; the
+seconds the pool takes to start are printed once per count). CPU seconds (`time.process_time` of this process
+plus its finished children's `RUSAGE_CHILDREN`) move little when other work shares the machine; wall seconds
+only mean something under the bench lock on an otherwise idle machine. Without a folder, the 90 lego views
 (../shared/data/lego_200) are composited on white into a temporary folder first.
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_matching.py
@@ -29,6 +29,7 @@ from estimation.config import SiftConfig  # noqa: E402
 from estimation.features.pairs import candidate_pairs  # noqa: E402
 from estimation.features.sift import PairWork, detect_features, match_and_verify_pairs  # noqa: E402
 from estimation.io.images import list_images, load_rgb  # noqa: E402
+from estimation.parallel import worker_pool  # noqa: E402
 
 
 def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
@@ -40,6 +41,12 @@ def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
           f"{len(pairs)} pairs")
     work = PairWork.of(features, config)
     for count in workers:
+        if count > 1:
+            # What `match_and_verify_pairs` waits for before its first item: the processes spawned and fed
+            # the context (started side by side: parallel.WorkerPool).
+            wall = time.perf_counter()
+            with worker_pool(count, modules=("estimation.features.sift",), context=work):
+                print(f"workers {count}: the pool started in {time.perf_counter() - wall:.3f} s", flush=True)
         for _ in range(repeats):
             children = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu, wall = time.process_time(), time.perf_counter()

@@ -180,7 +180,8 @@ class WorkerPool:
             spawn = multiprocessing.get_context("spawn")
             # The context travels pickled to bytes and is unpickled after the imports: unpickled with the
             # start data, it would import its classes' modules while the parent waits on that process's
-            # pipe, so the processes would start one after the other (lego: 0.44 -> 0.29 s to start two).
+            # pipe, so the processes would start one after the other (lego: 0.45 -> 0.29 s to start two,
+            # benchmarks/bench_matching.py).
             self._executor = ProcessPoolExecutor(
                 self.workers, mp_context=spawn, initializer=_initialize_worker,
                 initargs=(os.getpid(), modules, pickle.dumps(context), spawn.Barrier(self.workers)),
