@@ -25,6 +25,20 @@ def null_vector(A: np.ndarray) -> np.ndarray:
     return np.linalg.svd(A, full_matrices=A.shape[-2] < A.shape[-1])[2][..., -1, :]
 
 
+def solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """w = a^-1 b for stacked systems a (R, n, n), b (R, n, k); NaN where a is singular (det a = 0)."""
+    try:
+        return np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:
+        # Rare: the determinants only then (a solve per batch, not a solve and a determinant), so that one
+        # singular system costs its own solution, not the batch's.
+        with np.errstate(invalid="ignore"):                # a non-finite system's det is NaN: not solvable
+            solvable = np.abs(np.linalg.det(a)) > 0
+        w = np.full(b.shape, np.nan)
+        w[solvable] = np.linalg.solve(a[solvable], b[solvable])
+        return w
+
+
 def minimal_null_vector(A: np.ndarray) -> np.ndarray:
     """x ~ [-B^-1 a; 1] with A = [B a] (..., n - 1, n) of rank n - 1, scaled to ||x|| = 1: A x = 0.
 
@@ -34,12 +48,12 @@ def minimal_null_vector(A: np.ndarray) -> np.ndarray:
     orientations on one keypoint) the SVD gives a vector of the null space.
     """
     systems = A.reshape(-1, *A.shape[-2:])
-    leading_block = systems[:, :, :-1]
-    regular = np.linalg.det(leading_block) != 0.0
     x = np.ones((len(systems), A.shape[-1]))
-    x[regular, :-1] = np.linalg.solve(leading_block[regular], -systems[regular, :, -1:])[..., 0]
-    x[~regular] = np.linalg.svd(systems[~regular])[2][:, -1, :]
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    x[:, :-1] = solve_or_nan(systems[:, :, :-1], -systems[:, :, -1:])[..., 0]
+    singular = np.isnan(x[:, 0])
+    if singular.any():            # (an SVD of no systems still costs a LAPACK call's overhead)
+        x[singular] = np.linalg.svd(systems[singular])[2][:, -1, :]
+    x /= np.sqrt((x * x).sum(axis=1, keepdims=True))
     return x.reshape(*A.shape[:-2], A.shape[-1])
 
 

@@ -11,13 +11,14 @@ from five of the eigen-equation's rows, a 5 x 5 linear solve (cheaper than eig's
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.linalg import levenberg_marquardt, rotation_from_rotvec, skew
+from estimation.geometry.linalg import levenberg_marquardt, rotation_from_rotvec, skew, solve_or_nan
 from estimation.geometry.ransac import ransac
 from estimation.geometry.triangulation import observations_for_pair, triangulate_linear
 from estimation.two_view.fundamental import eight_point, epipolar_rows, sampson_distance, sampson_residual
@@ -65,6 +66,9 @@ ACTION_CUBIC_ROWS, ACTION_BASIS_ROWS = np.flatnonzero(X_TIMES_BASIS < 10), np.fl
 """Rows of the action matrix whose x * b is a cubic monomial (reduced by the constraints) or a basis one."""
 
 
+DIAGONAL = np.arange(3)
+ROOT_ROWS = np.arange(5)
+"""Rows 1..5 of the action matrix, counted from row 1: those `_yz_of_roots` solves for (y, z)."""
 FIRST_ROW_COFACTOR_SIGNS = np.array([1.0, -1.0, 1.0])
 """det E = sum_k (-1)^k E_0k M_0k, M_0k the minor of E_0k."""
 
@@ -87,8 +91,11 @@ def _cubic_constraints(E: np.ndarray) -> np.ndarray:
     EEt = EEt.reshape(num, 3, 3, 10)
     trace = np.einsum("biiq->bq", EEt)
     products = np.empty((num, 10, 10, 4))
-    products[:, :9] = (2.0 * np.einsum("bikq,bkjc->bijqc", EEt, E, optimize=True)
-                       - trace[:, None, None, :, None] * E[:, :, :, None, :]).reshape(num, 9, 10, 4)
+    # 2 E E^T E - tr(E E^T) E = (2 E E^T - tr(E E^T) I) E: the trace joins the left factor (a 3 x 3 x 10
+    # update, not a broadcast over the 3 x 3 x 10 x 4 product) and the product is written into place.
+    left = 2.0 * EEt
+    left[:, DIAGONAL, DIAGONAL] -= trace[:, None, :]
+    np.einsum("bikq,bkjc->bijqc", left, E, optimize=True, out=products[:, :9].reshape(num, 3, 3, 10, 4))
     minors = (E[:, 1, [1, 0, 0], :, None] * E[:, 2, [2, 2, 1], None, :]
               - E[:, 1, [2, 2, 1], :, None] * E[:, 2, [1, 0, 0], None, :])
     minors = (minors.reshape(-1, 16) @ LINEAR_TIMES_LINEAR).reshape(num, 3, 10)
@@ -105,24 +112,12 @@ def _real_roots(action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return sample, values.real[sample, root]
 
 
-def _solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """w = a^-1 b for stacked systems a (R, n, n), b (R, n, k); NaN where a is singular (det a = 0)."""
-    try:
-        return np.linalg.solve(a, b)
-    except np.linalg.LinAlgError:
-        # Rare: the determinants only then (a solve per batch, not a solve and a determinant), so that one
-        # singular system costs its own solution, not the batch's.
-        with np.errstate(invalid="ignore"):                # a non-finite system's det is NaN: not solvable
-            solvable = np.abs(np.linalg.det(a)) > 0
-        w = np.full(b.shape, np.nan)
-        w[solvable] = np.linalg.solve(a[solvable], b[solvable])
-        return w
-
-
-def _yz_of_roots(rows: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(y, z) at each root x from rows 1..5 of (M - x I) v = 0, v = (x^2, xy, xz, y^2, yz, z^2, x, y, z, 1)
-    linear in w = (y^2, yz, z^2, y, z, 1): a 5 x 5 solve per root (rows (R, 5, 10): M[1:6], one per root)."""
-    rows = rows - x[:, None, None] * np.eye(10)[1:6]
+def _yz_of_roots(action: np.ndarray, sample: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(y, z) at each root x of the action matrix M = action[sample] from rows 1..5 of (M - x I) v = 0,
+    v = (x^2, xy, xz, y^2, yz, z^2, x, y, z, 1) linear in w = (y^2, yz, z^2, y, z, 1): a 5 x 5 solve
+    per root."""
+    rows = action[sample, 1:6]                                  # a copy: x I is subtracted in place
+    rows[:, ROOT_ROWS, ROOT_ROWS + 1] -= x[:, None]
     x = x[:, None]
     system = np.empty((len(x), 5, 6))
     system[:, :, :3] = rows[:, :, 3:6]
@@ -132,7 +127,7 @@ def _yz_of_roots(rows: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarra
     # Row 0 (x * x^2) is dropped: the six rows agree at a root; with it (normal equations on all six)
     # y, z strayed up to 1e-8 from eig's eigenvectors on synthetic samples, without it 1e-10.
     # A singular system (y, z not fixed by x alone, as when two roots share x) leaves that root NaN.
-    w = _solve_or_nan(system[:, :, :5], -system[:, :, 5:])[..., 0]
+    w = solve_or_nan(system[:, :, :5], -system[:, :, 5:])[..., 0]
     return w[:, 3], w[:, 4]
 
 
@@ -144,23 +139,29 @@ def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     constraints = _cubic_constraints(E)
     # Gauss-Jordan on the cubic monomials: cubic_r = -reduced[r] . basis; a degenerate sample (singular or
     # non-finite constraints) gives a non-finite reduction and is dropped.
-    reduced = _solve_or_nan(constraints[:, :, :10], constraints[:, :, 10:])
+    reduced = solve_or_nan(constraints[:, :, :10], constraints[:, :, 10:])
     solved = np.isfinite(reduced).all(axis=(1, 2))
     reduced, null_space = reduced[solved], null_space[solved]
     action = np.zeros((len(reduced), 10, 10))
     action[:, ACTION_CUBIC_ROWS] = -reduced[:, X_TIMES_BASIS[ACTION_CUBIC_ROWS]]
     action[:, ACTION_BASIS_ROWS, X_TIMES_BASIS[ACTION_BASIS_ROWS] - 10] = 1.0
     sample, x = _real_roots(action)
-    y, z = _yz_of_roots(action[sample, 1:6], x)
+    y, z = _yz_of_roots(action, sample, x)
     solutions = np.einsum("rk,rkj->rj", np.stack([x, y, z, np.ones_like(x)], axis=1),
                           null_space[sample]).reshape(-1, 3, 3)
     solutions = solutions[np.isfinite(solutions).all(axis=(1, 2))]
     return solutions / np.linalg.norm(solutions, axis=(1, 2), keepdims=True)
 
 
+def normalizer(K: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """uv -> x = K^-1 [u v 1] (dehomogenized), for points (..., 2), with K inverted once."""
+    principal_point, inverse_T = K[:2, 2], np.linalg.inv(K[:2, :2]).T
+    return lambda uv: (uv - principal_point) @ inverse_T
+
+
 def to_normalized(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """x = K^-1 [u v 1] (dehomogenized), for points (..., 2)."""
-    return (uv - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T
+    return normalizer(K)(uv)
 
 
 def fundamental_from_essential(E: np.ndarray, K1: np.ndarray, K2: np.ndarray) -> np.ndarray:
@@ -270,20 +271,19 @@ def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.nd
     RANSAC driver, each new best E re-fitted by the 8-point algorithm on its normalized inliers (LO), and
     (with `refine`) the final E polished by `polish_essential`."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
+    # K's inverses taken once per pair, not once per batch, refit and scoring (as to_normalized and
+    # fundamental_from_essential would: ~6000 inversions on lego's pairs).
+    normalized1, normalized2 = normalizer(K1), normalizer(K2)
+    K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
 
     def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
-        return five_point_essential(to_normalized(K1, sample1), to_normalized(K2, sample2))
-
-    # F = K2^-T E K1^-1 with K's inverses taken once per pair, not once per scored batch (as
-    # fundamental_from_essential would: 3772 inversions on lego's pairs).
-    K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
+        return five_point_essential(normalized1(sample1), normalized2(sample2))
 
     def residuals(E: np.ndarray, points1: np.ndarray, points2: np.ndarray) -> np.ndarray:
         return sampson_distance(K2_inv_T @ E @ K1_inv, points1, points2)
 
     def refit(inliers1: np.ndarray, inliers2: np.ndarray) -> np.ndarray:
-        E = eight_point(to_normalized(K1, inliers1), to_normalized(K2, inliers2))
-        return project_to_essential(E)[None]
+        return project_to_essential(eight_point(normalized1(inliers1), normalized2(inliers2)))[None]
 
     result = ransac((uv1, uv2), minimal, FIVE_POINT_SAMPLE, residuals, threshold_px, config, refit=refit,
                     model_name="essential matrix")

@@ -1,12 +1,18 @@
 """Null vectors of minimal systems (one row fewer than unknowns) by LU: as the SVD's, also where the
-leading block is singular or the null vector's last entry is tiny. Rotation vectors to matrices, and a
+leading block is singular or the null vector's last entry is tiny; stacked solves leaving the singular
+systems NaN. Rotation vectors to matrices, and a
 small dense Levenberg-Marquardt reaching the minimum scipy's finds."""
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from estimation.geometry.linalg import levenberg_marquardt, minimal_null_vector, rotation_from_rotvec
+from estimation.geometry.linalg import (
+    levenberg_marquardt,
+    minimal_null_vector,
+    rotation_from_rotvec,
+    solve_or_nan,
+)
 
 
 def assert_unit_null_vectors(A: np.ndarray, x: np.ndarray) -> None:
@@ -47,6 +53,12 @@ def test_a_null_vector_with_a_tiny_last_entry_is_accurate():
     x = minimal_null_vector(A)
     np.testing.assert_allclose(np.abs(x @ truth), 1.0, atol=1e-12)
 
+
+
+def test_a_singular_or_non_finite_system_gives_nan_and_leaves_the_others_solved():
+    a = np.stack([np.diag([2.0, 4.0]), np.zeros((2, 2)), np.full((2, 2), np.nan)])
+    w = solve_or_nan(a, np.ones((3, 2, 1)))[..., 0]
+    np.testing.assert_array_equal(w, [[0.5, 0.25], [np.nan, np.nan], [np.nan, np.nan]])
 
 
 def test_rotation_from_rotvec_is_scipys_rotation_at_every_angle_including_zero():

@@ -13,7 +13,6 @@ from estimation.geometry.alignment import relative_pose, rotation_angle_deg
 from estimation.geometry.linalg import skew
 from estimation.synthetic import make_scene
 from estimation.two_view.essential import (
-    _solve_or_nan,
     choose_relative_pose,
     essential_from_fundamental,
     five_point_essential,
@@ -130,12 +129,6 @@ def test_every_noise_free_sample_of_many_random_scenes_has_the_true_essential_am
                 distance = np.minimum(np.abs(solutions - truth).max(axis=(1, 2)),
                                       np.abs(solutions + truth).max(axis=(1, 2)))
                 assert distance.min() < 1e-8, (seed, i, j, sample)
-
-
-def test_a_singular_or_non_finite_system_gives_nan_and_leaves_the_others_solved():
-    a = np.stack([np.diag([2.0, 4.0]), np.zeros((2, 2)), np.full((2, 2), np.nan)])
-    w = _solve_or_nan(a, np.ones((3, 2, 1)))[..., 0]
-    np.testing.assert_array_equal(w, [[0.5, 0.25], [np.nan, np.nan], [np.nan, np.nan]])
 
 
 def test_five_point_ransac_under_noise_and_30_percent_outliers_is_within_0_2_degrees():
