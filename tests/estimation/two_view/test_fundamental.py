@@ -9,6 +9,7 @@ from estimation.geometry.alignment import relative_pose
 from estimation.geometry.ransac import HYPOTHESES_PER_BATCH
 from estimation.synthetic import make_scene
 from estimation.two_view.fundamental import (
+    _enforce_rank_two,
     eight_point,
     hartley_normalization,
     ransac_fundamental,
@@ -37,6 +38,24 @@ def test_hartley_normalization_centres_points_at_mean_distance_sqrt2():
     assert np.linalg.norm(n.points, axis=1).mean() == pytest.approx(np.sqrt(2))
     homogeneous = np.hstack([uv, np.ones((100, 1))]) @ n.T.T
     np.testing.assert_allclose(homogeneous[:, :2], n.points, atol=1e-12)
+
+
+def svd_rank_two(F):
+    """The closest rank-2 matrix by the SVD: the smallest singular value set to zero."""
+    U, S, Vt = np.linalg.svd(F)
+    S[..., 2] = 0.0
+    return U @ (S[..., :, None] * Vt)
+
+
+def test_rank_two_projection_is_the_svds_on_random_rank_two_and_ill_conditioned_matrices():
+    rng = np.random.default_rng(0)
+    U, _, Vt = np.linalg.svd(rng.standard_normal((4, 3, 3)))
+    spectra = np.array([[1.0, 0.5, 0.0], [1.0, 0.1, 1e-9], [1.0, 1e-2, 1e-3], [1.0, 1.0, 0.3]])
+    F = np.concatenate([rng.standard_normal((64, 3, 3)), U @ (spectra[..., :, None] * Vt)])
+    projected = _enforce_rank_two(F)
+    np.testing.assert_allclose(projected, svd_rank_two(F), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(projected), 0.0, atol=1e-12)
+    np.testing.assert_allclose(_enforce_rank_two(F[0]), svd_rank_two(F[0]), atol=1e-12)
 
 
 def test_eight_point_recovers_the_true_f_from_noise_free_correspondences():
