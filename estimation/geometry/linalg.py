@@ -32,7 +32,7 @@ def solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     # The gufunc behind np.linalg.solve leaves a singular system's solution NaN and raises the 'invalid'
     # flag, which np.linalg.solve turns into an error for the whole stack: called directly, one LU per
     # system however many are singular (SIFT's repeated keypoints make a singular minimal sample common:
-    # over half of lego's batches of 8-point samples hold one).
+    # 899 of lego's 1564 batches of minimal F and H samples hold one).
     with np.errstate(invalid="ignore"):
         return _umath_linalg.solve(a, b, signature="dd->d")
 

@@ -67,8 +67,9 @@ ACTION_CUBIC_ROWS, ACTION_BASIS_ROWS = np.flatnonzero(X_TIMES_BASIS < 10), np.fl
 
 
 DIAGONAL = np.arange(3)
+"""Indices of a 3 x 3 matrix's diagonal."""
 ROOT_ROWS = np.arange(5)
-"""Rows 1..5 of the action matrix, counted from row 1: those `_yz_of_roots` solves for (y, z)."""
+"""`_yz_of_roots`' rows k, the action matrix's rows k + 1, which meet M's diagonal at column k + 1."""
 FIRST_ROW_COFACTOR_SIGNS = np.array([1.0, -1.0, 1.0])
 """det E = sum_k (-1)^k E_0k M_0k, M_0k the minor of E_0k."""
 

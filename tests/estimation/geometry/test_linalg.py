@@ -1,7 +1,7 @@
 """Null vectors of minimal systems (one row fewer than unknowns) by LU: as the SVD's, also where the
 leading block is singular or the null vector's last entry is tiny; stacked solves leaving the singular
-systems NaN. Rotation vectors to matrices, and a
-small dense Levenberg-Marquardt reaching the minimum scipy's finds."""
+systems NaN. Rotation vectors to matrices, and a small dense Levenberg-Marquardt reaching the minimum
+scipy's finds."""
 
 import numpy as np
 from scipy.optimize import least_squares
