@@ -32,7 +32,10 @@ class BundleAdjustmentConfig(BaseModel):
     absolute_error_tol: float = Field(0.0, ge=0, description="Stop when the cost decreases less than this.")
     local_window: int = Field(6, ge=2, description="Cameras optimised in the local BA after a registration.")
     local_max_iterations: int = Field(
-        10, ge=1, description="LM iterations of each local BA (the global BA at the end converges fully)."
+        1, ge=1, description="Iterations of each local BA (the global BAs converge). 1: one Gauss-Newton "
+        "step, whose cost check falls back to LM; on lego's 20 RANSAC seeds 0-19 instead of 10 (2.4 "
+        "iterations per local BA at local_relative_error_tol), every seed 90/90, mean rotation error "
+        "0.397 deg against 0.396 (mean of the seeds' means), mapper 39.3 -> 32.7 CPU s in all.",
     )
     local_relative_error_tol: float = Field(
         1e-4, gt=0, description="relative_error_tol of each local BA: on lego's 88 local BAs, 1e-4 instead "

@@ -254,15 +254,18 @@ def _projection_factors(
     bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
     point_keys = (num_cameras + point_index[by_camera]).astype(float)
     measurements = np.ascontiguousarray(ideal[by_camera].T)
+    rows = np.ascontiguousarray(ideal[by_camera])   # a contiguous pixel per factor converts faster
+    # Bound once: the per-observation loop below is the BA's largest Python cost (~1 us per factor).
+    add, triangulation_factor = graph.add, gtsam.TriangulationFactorCal3_S2
     for camera in np.flatnonzero(np.diff(bounds)).tolist():
         begin, end = bounds[camera], bounds[camera + 1]
         K = cameras[camera].K
         calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
         if camera in constant_poses:
             pinhole = gtsam.PinholeCameraCal3_S2(constant_poses[camera], calibration)
-            for key, measured in zip(point_keys[begin:end].astype(np.int64).tolist(),
-                                     measurements[:, begin:end].T, strict=True):
-                graph.add(gtsam.TriangulationFactorCal3_S2(pinhole, measured, pixel_noise, key))
+            for key, measured in zip((num_cameras + point_index[by_camera[begin:end]]).tolist(),
+                                     rows[begin:end], strict=True):
+                add(triangulation_factor(pinhole, measured, pixel_noise, key))
         else:
             gtsam.utilities.insertProjectionFactors(
                 graph, camera, point_keys[begin:end], measurements[:, begin:end], pixel_noise, calibration
@@ -601,8 +604,9 @@ def bundle_adjust(
     initial = gtsam.Values()
     for c, pose in gtsam_poses.items():
         initial.insert(c, pose)
+    insert_point = initial.insertPoint3   # bound once: one call per point
     for key, point in zip(point_keys.tolist(), points[observed_points], strict=True):
-        initial.insert(key, point)
+        insert_point(key, point)
     for key in calibration_keys.tolist():
         first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
         initial.insert(key, camera_to_gtsam(cameras[first], refine.principal_point))
