@@ -519,3 +519,20 @@ def test_while_the_model_grows_each_refinement_adjusts_at_most_growth_refinement
 
     assert most_consecutive_global_bas_while_growing(2) == 2
     assert most_consecutive_global_bas_while_growing(1) == 1
+
+
+def test_each_mapper_ba_stops_after_the_iterations_of_its_kind(monkeypatch, noisy_scene):
+    caps = {}
+    adjust = Scene.bundle_adjust
+
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+        kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
+        caps.setdefault(kind, set()).add(config.max_iterations)
+        return adjust(scene, config, variable_images, intrinsics_covariance)
+
+    monkeypatch.setattr(Scene, "bundle_adjust", recording)
+    reconstruct(noisy_scene.tracks, noisy_scene, ReconstructionConfig(
+        bundle_adjustment={"local_max_iterations": 2, "max_iterations": 50},
+        mapper={"refinement_max_iterations": 3}))
+    # "global": the initial pair's BA and the refinement rounds'.
+    assert caps == {"local": {2}, "global": {3}, "final": {50}}
