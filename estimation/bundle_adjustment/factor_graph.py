@@ -101,8 +101,9 @@ class IntrinsicsCovariance(NamedTuple):
         return self.matrix[np.ix_(index, index)]
 
 
-class _Residuals(NamedTuple):
-    """What the reprojection residuals before and after a BA are computed from (when first read)."""
+class _ErrorInputs(NamedTuple):
+    """What the reprojection residuals before a BA and after it (with the result's poses and points) are
+    computed from, when first read."""
 
     initial_observed: Camera  # the camera of each observation (Camera.take), before and after
     final_observed: Camera
@@ -124,21 +125,21 @@ class BundleAdjustmentResult:
     iterations: int  # of the optimizer run that gave the result (a failed Gauss-Newton's not counted)
     seconds: float  # wall time of the adjustment (graph construction included, the error figures not)
     cameras: list[Camera]  # intrinsics per pose after the adjustment (the same object when shared)
-    residuals: _Residuals = field(repr=False, compare=False)
+    error_inputs: _ErrorInputs = field(repr=False, compare=False)
     # of a shared refined camera, for measurement_sigma_px pixel noise; None unless asked for
     intrinsics_covariance: IntrinsicsCovariance | None = None
 
     @cached_property
     def initial_residuals(self) -> np.ndarray:
         """(O, 2) pixels at the input cameras, poses and points."""
-        r = self.residuals
+        r = self.error_inputs
         return _observed_residuals(r.initial_observed, r.initial_poses, r.initial_points, r.camera_index,
                                    r.point_index, r.uv)
 
     @cached_property
     def final_residuals(self) -> np.ndarray:
         """(O, 2) pixels at the adjusted cameras, poses and points."""
-        r = self.residuals
+        r = self.error_inputs
         return _observed_residuals(r.final_observed, self.poses, self.points, r.camera_index, r.point_index,
                                    r.uv)
 
@@ -154,12 +155,12 @@ class BundleAdjustmentResult:
     @property
     def initial_cost(self) -> float:
         """Robust cost sum_o huber_k(||r_o|| / sigma), priors excluded."""
-        config = self.residuals.config
+        config = self.error_inputs.config
         return huber_cost(self.initial_residuals, config.huber_threshold_px, config.measurement_sigma_px)
 
     @property
     def final_cost(self) -> float:
-        config = self.residuals.config
+        config = self.error_inputs.config
         return huber_cost(self.final_residuals, config.huber_threshold_px, config.measurement_sigma_px)
 
 
@@ -682,14 +683,14 @@ def bundle_adjust(
 
     adjusted_observed = Camera.take(adjusted_cameras, camera_index) if refines else observed
     # Copies of what the caller may change before reading the error figures.
-    residuals = _Residuals(observed, adjusted_observed, list(poses), points.copy(), camera_index.copy(),
-                           point_index.copy(), uv.copy(), config)
+    error_inputs = _ErrorInputs(observed, adjusted_observed, list(poses), points.copy(), camera_index.copy(),
+                                point_index.copy(), uv.copy(), config)
     return BundleAdjustmentResult(
         poses=adjusted_poses,
         points=adjusted_points,
         iterations=iterations,
         seconds=time.perf_counter() - start,
         cameras=adjusted_cameras,
-        residuals=residuals,
+        error_inputs=error_inputs,
         intrinsics_covariance=covariance,
     )
