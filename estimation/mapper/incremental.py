@@ -241,11 +241,25 @@ class _ModelBuilder:
             update["ordering"] = ba.mapper_global_ordering
         return ba.model_copy(update=update)
 
+    def refines_intrinsics(self) -> bool:
+        """Whether the scene's BAs refine intrinsics (then its local and refinement BAs take more steps)."""
+        refine = self.scene.refine
+        return refine is not None and refine.refines(self.scene.cameras[0].model)
+
+    def local_ba_config(self) -> BundleAdjustmentConfig:
+        """A local BA: it stops at local_relative_error_tol or after local_max_iterations
+        (local_max_iterations_refining when it refines intrinsics)."""
+        ba = self.config.bundle_adjustment
+        steps = ba.local_max_iterations_refining if self.refines_intrinsics() else ba.local_max_iterations
+        return self.mapper_ba_config(ba.local_relative_error_tol, steps, local=True)
+
     def refinement_ba_config(self) -> BundleAdjustmentConfig:
         """The global BA of the initial pair and of each refinement round: it stops at
-        refinement_relative_error_tol or after refinement_max_iterations (the BAs that follow go on)."""
-        return self.mapper_ba_config(self.mapper.refinement_relative_error_tol,
-                                     self.mapper.refinement_max_iterations)
+        refinement_relative_error_tol or after refinement_max_iterations (max_iterations when it refines
+        intrinsics); the BAs that follow go on."""
+        steps = (self.config.bundle_adjustment.max_iterations if self.refines_intrinsics()
+                 else self.mapper.refinement_max_iterations)
+        return self.mapper_ba_config(self.mapper.refinement_relative_error_tol, steps)
 
     def measure_noise(self) -> float:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
@@ -340,10 +354,7 @@ class _ModelBuilder:
         ba = self.config.bundle_adjustment
         neighbours = np.argsort(-shared, kind="stable")[: ba.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
-        scene.bundle_adjust(
-            self.mapper_ba_config(ba.local_relative_error_tol, ba.local_max_iterations, local=True),
-            variable_images=window,
-        )
+        scene.bundle_adjust(self.local_ba_config(), variable_images=window)
         used = scene.used_observations()
         touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
         scene.complete_tracks(self.max_error, touched)
