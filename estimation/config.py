@@ -33,10 +33,9 @@ class BundleAdjustmentConfig(BaseModel):
     local_window: int = Field(6, ge=2, description="Cameras optimised in the local BA after a registration.")
     local_max_iterations: int = Field(
         1, ge=1, description="Iterations of each local BA with fixed intrinsics (the final BA converges). "
-        "1: one Gauss-Newton "
-        "step, whose cost check falls back to LM; on lego's 20 RANSAC seeds 0-19 instead of 10 (2.4 "
-        "iterations per local BA at local_relative_error_tol), every seed 90/90, mean rotation error "
-        "0.397 deg against 0.396 (mean of the seeds' means), mapper 39.3 -> 32.7 CPU s in all.",
+        "1: one Gauss-Newton step, whose cost check falls back to LM; on lego's RANSAC seeds 0-19 instead "
+        "of 10 (2.4 iterations per local BA at local_relative_error_tol), every seed 90/90, mean rotation "
+        "error 0.397 deg against 0.396 (mean of the seeds' means), mapper 39.3 -> 32.7 CPU s in all.",
     )
     local_max_iterations_refining: int = Field(
         10, ge=1, description="Iterations of each local BA that refines intrinsics: one step there (and in "

@@ -150,6 +150,7 @@ class BundleAdjustmentResult:
 
     @property
     def final_rms_px(self) -> float:
+        """The same after the adjustment."""
         return rms(self.final_residuals)
 
     @property
@@ -160,6 +161,7 @@ class BundleAdjustmentResult:
 
     @property
     def final_cost(self) -> float:
+        """The same after the adjustment."""
         config = self.error_inputs.config
         return huber_cost(self.final_residuals, config.huber_threshold_px, config.measurement_sigma_px)
 
