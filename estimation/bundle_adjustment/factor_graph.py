@@ -31,7 +31,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import NamedTuple
 
 import gtsam
@@ -100,21 +101,69 @@ class IntrinsicsCovariance(NamedTuple):
         return self.matrix[np.ix_(index, index)]
 
 
+class _ErrorInputs(NamedTuple):
+    """What the reprojection residuals before a BA and after it (with the result's poses and points) are
+    computed from, when first read."""
+
+    initial_observed: Camera  # the camera of each observation (Camera.take), before and after
+    final_observed: Camera
+    initial_poses: list[CameraPose]
+    initial_points: np.ndarray
+    camera_index: np.ndarray
+    point_index: np.ndarray
+    uv: np.ndarray
+    config: BundleAdjustmentConfig  # its huber_threshold_px and measurement_sigma_px
+
+
 @dataclass(frozen=True)
 class BundleAdjustmentResult:
-    """Adjusted cameras and points with the reprojection error before and after."""
+    """Adjusted cameras and points; the reprojection error before and after is computed when first read
+    (the mapper's local BAs never read it)."""
 
     poses: list[CameraPose]  # world-to-camera, same order as the input
     points: np.ndarray  # (N, 3); points without observations are returned unchanged
-    initial_rms_px: float  # RMS over all observations (outliers included) of the pixel residual norm
-    final_rms_px: float
     iterations: int  # of the optimizer run that gave the result (a failed Gauss-Newton's not counted)
-    seconds: float  # wall time of the whole call (graph construction included)
-    initial_cost: float  # robust cost sum_o huber_k(||r_o|| / sigma), priors excluded
-    final_cost: float
+    seconds: float  # wall time of the adjustment (graph construction included, the error figures not)
     cameras: list[Camera]  # intrinsics per pose after the adjustment (the same object when shared)
+    error_inputs: _ErrorInputs = field(repr=False, compare=False)
     # of a shared refined camera, for measurement_sigma_px pixel noise; None unless asked for
     intrinsics_covariance: IntrinsicsCovariance | None = None
+
+    @cached_property
+    def initial_residuals(self) -> np.ndarray:
+        """(O, 2) pixels at the input cameras, poses and points."""
+        r = self.error_inputs
+        return _observed_residuals(r.initial_observed, r.initial_poses, r.initial_points, r.camera_index,
+                                   r.point_index, r.uv)
+
+    @cached_property
+    def final_residuals(self) -> np.ndarray:
+        """(O, 2) pixels at the adjusted cameras, poses and points."""
+        r = self.error_inputs
+        return _observed_residuals(r.final_observed, self.poses, self.points, r.camera_index, r.point_index,
+                                   r.uv)
+
+    @property
+    def initial_rms_px(self) -> float:
+        """RMS over all observations (outliers included) of the pixel residual norm."""
+        return rms(self.initial_residuals)
+
+    @property
+    def final_rms_px(self) -> float:
+        """The same after the adjustment."""
+        return rms(self.final_residuals)
+
+    @property
+    def initial_cost(self) -> float:
+        """Robust cost sum_o huber_k(||r_o|| / sigma), priors excluded."""
+        config = self.error_inputs.config
+        return huber_cost(self.initial_residuals, config.huber_threshold_px, config.measurement_sigma_px)
+
+    @property
+    def final_cost(self) -> float:
+        """The same after the adjustment."""
+        config = self.error_inputs.config
+        return huber_cost(self.final_residuals, config.huber_threshold_px, config.measurement_sigma_px)
 
 
 def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
@@ -254,15 +303,18 @@ def _projection_factors(
     bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
     point_keys = (num_cameras + point_index[by_camera]).astype(float)
     measurements = np.ascontiguousarray(ideal[by_camera].T)
+    rows = np.ascontiguousarray(ideal[by_camera])   # a contiguous pixel per factor converts faster
+    # Bound once: the per-observation loop below is the BA's largest Python cost (~1 us per factor).
+    add, triangulation_factor = graph.add, gtsam.TriangulationFactorCal3_S2
     for camera in np.flatnonzero(np.diff(bounds)).tolist():
         begin, end = bounds[camera], bounds[camera + 1]
         K = cameras[camera].K
         calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
         if camera in constant_poses:
             pinhole = gtsam.PinholeCameraCal3_S2(constant_poses[camera], calibration)
-            for key, measured in zip(point_keys[begin:end].astype(np.int64).tolist(),
-                                     measurements[:, begin:end].T, strict=True):
-                graph.add(gtsam.TriangulationFactorCal3_S2(pinhole, measured, pixel_noise, key))
+            for key, measured in zip((num_cameras + point_index[by_camera[begin:end]]).tolist(),
+                                     rows[begin:end], strict=True):
+                add(triangulation_factor(pinhole, measured, pixel_noise, key))
         else:
             gtsam.utilities.insertProjectionFactors(
                 graph, camera, point_keys[begin:end], measurements[:, begin:end], pixel_noise, calibration
@@ -601,8 +653,9 @@ def bundle_adjust(
     initial = gtsam.Values()
     for c, pose in gtsam_poses.items():
         initial.insert(c, pose)
+    insert_point = initial.insertPoint3   # bound once: one call per point
     for key, point in zip(point_keys.tolist(), points[observed_points], strict=True):
-        initial.insert(key, point)
+        insert_point(key, point)
     for key in calibration_keys.tolist():
         first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
         initial.insert(key, camera_to_gtsam(cameras[first], refine.principal_point))
@@ -630,20 +683,16 @@ def bundle_adjust(
         covariance = _intrinsics_covariance(graph, values, int(calibration_keys[0]), num_cameras,
                                             fixed_cameras, cameras[0].model, refine)
 
-    initial_residuals = _observed_residuals(observed, poses, points, camera_index, point_index, uv)
     adjusted_observed = Camera.take(adjusted_cameras, camera_index) if refines else observed
-    final_residuals = _observed_residuals(
-        adjusted_observed, adjusted_poses, adjusted_points, camera_index, point_index, uv
-    )
+    # Copies of what the caller may change before reading the error figures.
+    error_inputs = _ErrorInputs(observed, adjusted_observed, list(poses), points.copy(), camera_index.copy(),
+                                point_index.copy(), uv.copy(), config)
     return BundleAdjustmentResult(
         poses=adjusted_poses,
         points=adjusted_points,
-        initial_rms_px=rms(initial_residuals),
-        final_rms_px=rms(final_residuals),
         iterations=iterations,
         seconds=time.perf_counter() - start,
-        initial_cost=huber_cost(initial_residuals, config.huber_threshold_px, config.measurement_sigma_px),
-        final_cost=huber_cost(final_residuals, config.huber_threshold_px, config.measurement_sigma_px),
         cameras=adjusted_cameras,
+        error_inputs=error_inputs,
         intrinsics_covariance=covariance,
     )

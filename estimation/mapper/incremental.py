@@ -230,19 +230,36 @@ class _ModelBuilder:
         scene.bundle_adjust(self.refinement_ba_config())
         scene.filter_points(self.max_error, self.min_angle)
 
-    def mapper_ba_config(self, relative_error_tol: float, local: bool = False) -> BundleAdjustmentConfig:
-        """The settings of one of the mapper's BAs: mapper_optimizer, stopping at relative_error_tol; a local
-        BA also at local_max_iterations, a global one eliminates in mapper_global_ordering."""
+    def mapper_ba_config(self, relative_error_tol: float, max_iterations: int,
+                         local: bool = False) -> BundleAdjustmentConfig:
+        """The settings of one of the mapper's BAs: mapper_optimizer, stopping at relative_error_tol or
+        after max_iterations; a global one eliminates in mapper_global_ordering."""
         ba = self.config.bundle_adjustment
-        update = {"relative_error_tol": relative_error_tol, "optimizer": ba.mapper_optimizer}
-        update.update({"max_iterations": ba.local_max_iterations} if local
-                      else {"ordering": ba.mapper_global_ordering})
+        update = {"relative_error_tol": relative_error_tol, "optimizer": ba.mapper_optimizer,
+                  "max_iterations": max_iterations}
+        if not local:
+            update["ordering"] = ba.mapper_global_ordering
         return ba.model_copy(update=update)
+
+    def refines_intrinsics(self) -> bool:
+        """Whether the scene's BAs refine intrinsics (then its local and refinement BAs take more steps)."""
+        refine = self.scene.refine
+        return refine is not None and refine.refines(self.scene.cameras[0].model)
+
+    def local_ba_config(self) -> BundleAdjustmentConfig:
+        """A local BA: it stops at local_relative_error_tol or after local_max_iterations
+        (local_max_iterations_refining when it refines intrinsics)."""
+        ba = self.config.bundle_adjustment
+        steps = ba.local_max_iterations_refining if self.refines_intrinsics() else ba.local_max_iterations
+        return self.mapper_ba_config(ba.local_relative_error_tol, steps, local=True)
 
     def refinement_ba_config(self) -> BundleAdjustmentConfig:
         """The global BA of the initial pair and of each refinement round: it stops at
-        refinement_relative_error_tol (the BAs that follow go on from there)."""
-        return self.mapper_ba_config(self.mapper.refinement_relative_error_tol)
+        refinement_relative_error_tol or after refinement_max_iterations (max_iterations when it refines
+        intrinsics); the BAs that follow go on."""
+        steps = (self.config.bundle_adjustment.max_iterations if self.refines_intrinsics()
+                 else self.mapper.refinement_max_iterations)
+        return self.mapper_ba_config(self.mapper.refinement_relative_error_tol, steps)
 
     def measure_noise(self) -> float:
         """After a global BA: error limit = max_reprojection_sigmas x the pixel noise measured on the
@@ -337,8 +354,7 @@ class _ModelBuilder:
         ba = self.config.bundle_adjustment
         neighbours = np.argsort(-shared, kind="stable")[: ba.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
-        scene.bundle_adjust(self.mapper_ba_config(ba.local_relative_error_tol, local=True),
-                            variable_images=window)
+        scene.bundle_adjust(self.local_ba_config(), variable_images=window)
         used = scene.used_observations()
         touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
         scene.complete_tracks(self.max_error, touched)
@@ -406,7 +422,8 @@ class _ModelBuilder:
         more than final_min_change of the observations. Returns (relative cost decrease of the last BA,
         its iterations, the covariance of the refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
-        final = self.mapper_ba_config(min(ba.relative_error_tol, self.mapper.final_relative_error_tol))
+        final = self.mapper_ba_config(min(ba.relative_error_tol, self.mapper.final_relative_error_tol),
+                                      ba.max_iterations)
         decrease, iterations, covariance = 0.0, 0, None
         for _ in range(FINAL_BA_ROUNDS):
             result = self.scene.bundle_adjust(final, intrinsics_covariance=True)

@@ -88,6 +88,21 @@ def test_noise_free_scene_is_recovered_exactly_after_similarity_alignment():
     assert result.final_rms_px < 1e-6 < 1.0 < result.initial_rms_px
 
 
+def test_the_error_figures_are_of_the_inputs_as_passed_even_when_the_caller_changes_them_later():
+    scene = make_scene(num_cameras=4, num_points=100, noise_px=0.5, seed=3)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(2))
+    image_index, track_index, uv = (array.copy() for array in observations(scene))
+    config = BundleAdjustmentConfig()
+    result = bundle_adjust(scene.K, poses, points, image_index, track_index, uv, config)
+    before = reprojection_residuals(scene.K, poses, points, image_index, track_index, uv)
+    after = reprojection_residuals(scene.K, result.poses, result.points, image_index, track_index, uv)
+    for array in (points, image_index, track_index, uv):   # read lazily: the call's copies stay
+        array[...] = 0
+    assert result.initial_rms_px == rms(before) and result.final_rms_px == rms(after)
+    assert result.initial_cost == huber_cost(before, config.huber_threshold_px, config.measurement_sigma_px)
+    assert result.final_cost == huber_cost(after, config.huber_threshold_px, config.measurement_sigma_px)
+
+
 def test_perturbed_noisy_scene_converges_to_truth_and_noise_level():
     scene = make_scene(num_cameras=6, num_points=400, noise_px=0.5, seed=2)
     poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(1))

@@ -519,3 +519,39 @@ def test_while_the_model_grows_each_refinement_adjusts_at_most_growth_refinement
 
     assert most_consecutive_global_bas_while_growing(2) == 2
     assert most_consecutive_global_bas_while_growing(1) == 1
+
+
+def record_iteration_caps(monkeypatch) -> dict[str, set[int]]:
+    """max_iterations of every Scene.bundle_adjust call by kind: local, global (the initial pair's and the
+    refinement rounds') or final."""
+    caps = {}
+    adjust = Scene.bundle_adjust
+
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+        kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
+        caps.setdefault(kind, set()).add(config.max_iterations)
+        return adjust(scene, config, variable_images, intrinsics_covariance)
+
+    monkeypatch.setattr(Scene, "bundle_adjust", recording)
+    return caps
+
+
+CAPPED = ReconstructionConfig(
+    bundle_adjustment={"local_max_iterations": 2, "local_max_iterations_refining": 4, "max_iterations": 50},
+    mapper={"refinement_max_iterations": 3},
+)
+
+
+def test_with_fixed_intrinsics_each_mapper_ba_stops_after_the_iterations_of_its_kind(
+        monkeypatch, noisy_scene):
+    caps = record_iteration_caps(monkeypatch)
+    reconstruct(noisy_scene.tracks, noisy_scene, CAPPED)
+    assert caps == {"local": {2}, "global": {3}, "final": {50}}
+
+
+def test_refining_intrinsics_the_local_bas_take_their_own_cap_and_the_refinement_bas_converge(monkeypatch):
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
+    scene = make_scene(num_cameras=6, num_points=300, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
+    caps = record_iteration_caps(monkeypatch)
+    run_incremental(scene.tracks, truth, CAPPED, refine=IntrinsicsRefinement(focal=True, distortion=True))
+    assert caps == {"local": {4}, "global": {50}, "final": {50}}
