@@ -174,7 +174,8 @@ def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray
 def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """||r_o|| in pixels, inf where the point is behind the observing camera or not finite, (O,)."""
     projection = project(K, obs.R, obs.t, np.asarray(points, float)[obs.point_index])
-    error = np.linalg.norm(projection.uv - obs.uv, axis=1)
+    residuals = projection.uv - obs.uv
+    error = np.sqrt(np.einsum("oi,oi->o", residuals, residuals))   # the norm's own sum, in fewer calls
     return np.where((projection.depth > 0) & np.isfinite(error), error, np.inf)
 
 

@@ -84,6 +84,9 @@ class Scene:
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Adopt new intrinsics per image: the working pixels follow them."""
         self.cameras = cameras
+        # One Camera object for every image (fixed or shared intrinsics): the error checks project with it
+        # as is, instead of filling per-observation arrays of the same values (`Camera.take`).
+        self.shared_camera = cameras[0] if all(camera is cameras[0] for camera in cameras) else None
         source = Camera.take(cameras, self.tracks.image_index)
         working = transfer_pixels(source, Camera.from_K(self.K), self.observed_uv)
         self.tracks = replace(self.tracks, uv=working)
@@ -198,8 +201,10 @@ class Scene:
         against its point, or against point_ids[k] when given."""
         obs_ids = np.asarray(obs_ids, np.int64)
         points = self.obs_point[obs_ids] if point_ids is None else np.asarray(point_ids, np.int64)
-        obs = self.observations(obs_ids, points, len(self.point_alive))._replace(uv=self.observed_uv[obs_ids])
-        camera = Camera.take(self.cameras, self.tracks.image_index[obs_ids])
+        images = self.tracks.image_index[obs_ids]
+        obs = Observations(R=self.R[images], t=self.t[images], uv=self.observed_uv[obs_ids],
+                           point_index=points, num_points=len(self.point_alive))
+        camera = self.shared_camera or Camera.take(self.cameras, images)
         return observation_errors(camera, obs, self.point_xyz)
 
     def noise_sigma(self, max_error_px: float) -> float:

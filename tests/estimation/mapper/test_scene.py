@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from estimation.geometry.projection import Camera
 from estimation.mapper.scene import Scene, pixel_noise_sigma
 from estimation.synthetic import make_scene
 
@@ -125,3 +126,18 @@ def test_noise_sigma_is_measured_on_used_and_free_observations_within_the_limit(
     sigma = scene.noise_sigma(max_error_px=4.0)
     assert 0.2 < sigma < 0.45                       # 250 samples of a 0.3 px noise (points not refitted)
     assert scene.noise_sigma(max_error_px=1e-6) != scene.noise_sigma(max_error_px=4.0)
+
+
+def test_errors_of_a_shared_camera_equal_those_of_the_same_camera_given_per_image():
+    truth = make_scene(num_points=50, seed=21)
+    camera = Camera.from_K(truth.K, "simple-radial", k1=0.05)
+    shared = Scene(truth.tracks, camera)
+    per_image = Scene(truth.tracks, [dataclasses.replace(camera) for _ in truth.poses])
+    assert shared.shared_camera is camera and per_image.shared_camera is None
+    obs = np.concatenate([observations_of_track(truth, t) for t in range(10)])
+    for scene in (shared, per_image):
+        for m, pose in enumerate(truth.poses):
+            scene.register_image(m, pose)
+        scene.add_points(truth.points[:10] + 0.01, obs, truth.tracks.track_index[obs])
+    np.testing.assert_array_equal(shared.errors(obs), per_image.errors(obs))
+    assert np.all(shared.errors(obs) > 0)
