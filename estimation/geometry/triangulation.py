@@ -11,13 +11,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from estimation.geometry.projection import project, reprojection_residuals
+from estimation.geometry.projection import as_camera, project, reprojection_residuals
 
 NONLINEAR_ITERATIONS = 10
 INITIAL_DAMPING = 1e-3
 STEP_TOLERANCE = 1e-8
 """Levenberg-Marquardt stops once every proposed step is below this fraction of its point's norm (scipy's
 default xtol): on the mapper's points further steps move them by less than 1e-8 relative."""
+IDENTITY_3 = np.eye(3)
+SOLVE_REGULARIZATION = 1e-12 * IDENTITY_3
+"""Added to each damped 3x3 system, so that a point seen along one ray still has a solution."""
 
 
 class Observations(NamedTuple):
@@ -90,24 +93,28 @@ def triangulate_nonlinear(K: np.ndarray, obs: Observations, initial: np.ndarray,
     every step is below STEP_TOLERANCE relative or after `iterations`."""
     points = np.array(initial, float)
     damping = np.full(obs.num_points, INITIAL_DAMPING)
+    camera = as_camera(K)   # built once for every projection below
 
     def cost(residuals: np.ndarray) -> np.ndarray:
         return np.bincount(obs.point_index, weights=(residuals**2).sum(axis=1), minlength=obs.num_points)
 
-    residuals = reprojection_residuals(K, obs, points)
+    residuals = reprojection_residuals(camera, obs, points)
     current = cost(residuals)
     for _ in range(iterations):
         J = _projection_jacobian(K, obs, points)
-        JtJ = sum_per_point(np.einsum("oki,okj->oij", J, J), obs.point_index, obs.num_points)
-        Jtr = sum_per_point(np.einsum("oki,ok->oi", J, residuals), obs.point_index, obs.num_points)
+        # J^T J and J^T r of every observation, summed per point in one pass: (P, 9 + 3).
+        sums = sum_per_point(np.concatenate([np.einsum("oki,okj->oij", J, J).reshape(-1, 9),
+                                             np.einsum("oki,ok->oi", J, residuals)], axis=1),
+                             obs.point_index, obs.num_points)
+        JtJ, Jtr = sums[:, :9].reshape(-1, 3, 3), sums[:, 9:]
         diagonal = np.einsum("pii->pi", JtJ)
-        system = JtJ + (damping[:, None] * diagonal)[:, :, None] * np.eye(3)
-        step = np.linalg.solve(system + 1e-12 * np.eye(3), -Jtr[:, :, None])[:, :, 0]
+        system = JtJ + (damping[:, None] * diagonal)[:, :, None] * IDENTITY_3
+        step = np.linalg.solve(system + SOLVE_REGULARIZATION, -Jtr[:, :, None])[:, :, 0]
         if np.all(np.linalg.norm(step, axis=1) <= STEP_TOLERANCE * (np.linalg.norm(points, axis=1)
                                                                     + STEP_TOLERANCE)):
             break
         candidate = points + step
-        trial_residuals = reprojection_residuals(K, obs, candidate)
+        trial_residuals = reprojection_residuals(camera, obs, candidate)
         trial = cost(trial_residuals)
         better = trial < current
         points[better] = candidate[better]

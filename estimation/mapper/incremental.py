@@ -328,19 +328,16 @@ class _ModelBuilder:
         and filter the points they see."""
         scene = self.scene
         used = scene.used_observations()
-        images = self.tracks.image_index[used]
-        own_points = np.unique(scene.obs_point[used[images == image]])
-        shared = np.bincount(
-            images[np.isin(scene.obs_point[used], own_points)], minlength=len(scene.registered)
-        )
+        own = scene.points_seen_in([image])
+        shared = np.bincount(self.tracks.image_index[used[own[scene.obs_point[used]]]],
+                             minlength=len(scene.registered))
         shared[image] = 0
         ba = self.config.bundle_adjustment
         neighbours = np.argsort(-shared, kind="stable")[: ba.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
         scene.bundle_adjust(self.mapper_ba_config(ba.local_relative_error_tol, local=True),
                             variable_images=window)
-        used = scene.used_observations()
-        touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
+        touched = np.flatnonzero(scene.points_seen_in(window))
         scene.complete_tracks(self.max_error, touched)
         scene.merge_tracks(self.max_error)
         scene.filter_points(self.max_error, self.min_angle, touched)

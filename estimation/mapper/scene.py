@@ -127,8 +127,17 @@ class Scene:
         return np.flatnonzero(self.obs_point >= 0)
 
     def point_observation_counts(self) -> np.ndarray:
-        used = self.obs_point[self.obs_point >= 0]
-        return np.bincount(used, minlength=len(self.point_alive))
+        # Free observations (-1) fall in bin 0 and are dropped: no mask and copy of the used ones.
+        return np.bincount(self.obs_point + 1, minlength=len(self.point_alive) + 1)[1:]
+
+    def points_seen_in(self, images: np.ndarray | list[int]) -> np.ndarray:
+        """(points,) bool: the points with an observation in one of `images` (a mask: no np.unique)."""
+        used = self.used_observations()
+        in_images = np.zeros(len(self.registered), bool)
+        in_images[np.asarray(images, np.int64)] = True
+        seen = np.zeros(len(self.point_alive), bool)
+        seen[self.obs_point[used[in_images[self.tracks.image_index[used]]]]] = True
+        return seen
 
     def add_points(self, xyz: np.ndarray, obs_ids: np.ndarray, new_point_of_obs: np.ndarray) -> np.ndarray:
         """New points xyz (n, 3), observation obs_ids[k] supporting point new_point_of_obs[k] in [0, n).
@@ -286,14 +295,16 @@ class Scene:
             & (self.obs_point < 0)
             & self.registered[self.tracks.image_index]
         )
-        tracks_of_obs, counts = np.unique(self.tracks.track_index[obs_ids], return_counts=True)
-        obs_ids = obs_ids[np.isin(self.tracks.track_index[obs_ids], tracks_of_obs[counts >= 2])]
+        per_track = np.bincount(self.tracks.track_index[obs_ids], minlength=self.tracks.num_tracks)
+        enough = per_track >= 2
+        obs_ids = obs_ids[enough[self.tracks.track_index[obs_ids]]]
         if len(obs_ids) == 0:
             return 0
-        track_list, point_index = np.unique(self.tracks.track_index[obs_ids], return_inverse=True)
+        # Point k is the k-th track with enough observations (in track order).
+        point_index = (np.cumsum(enough) - 1)[self.tracks.track_index[obs_ids]]
         result = triangulate_ransac(
             self.K,
-            self.observations(obs_ids, point_index, len(track_list)),
+            self.observations(obs_ids, point_index, int(enough.sum())),
             max_error_px,
             min_angle_deg,
             hypotheses_per_point,

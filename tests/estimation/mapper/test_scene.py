@@ -141,3 +141,15 @@ def test_errors_of_a_shared_camera_equal_those_of_the_same_camera_given_per_imag
         scene.add_points(truth.points[:10] + 0.01, obs, truth.tracks.track_index[obs])
     np.testing.assert_array_equal(shared.errors(obs), per_image.errors(obs))
     assert np.all(shared.errors(obs) > 0)
+
+
+def test_points_seen_in_marks_the_points_observed_in_any_of_the_images(posed):
+    truth, scene = posed
+    in_image_0 = observations_of_track(truth, 0)[truth.tracks.image_index[observations_of_track(truth, 0)] != 4]
+    in_image_4 = observations_of_track(truth, 1)[truth.tracks.image_index[observations_of_track(truth, 1)] != 0]
+    first, second = scene.add_points(truth.points[:2], np.concatenate([in_image_0, in_image_4]),
+                                     np.repeat([0, 1], [len(in_image_0), len(in_image_4)]))
+    assert list(np.flatnonzero(scene.points_seen_in([0]))) == [first]
+    assert list(np.flatnonzero(scene.points_seen_in([4]))) == [second]
+    assert list(np.flatnonzero(scene.points_seen_in([0, 4]))) == [first, second]
+    assert list(np.flatnonzero(scene.points_seen_in([1]))) == [first, second]
