@@ -145,8 +145,9 @@ def test_errors_of_a_shared_camera_equal_those_of_the_same_camera_given_per_imag
 
 def test_points_seen_in_marks_the_points_observed_in_any_of_the_images(posed):
     truth, scene = posed
-    in_image_0 = observations_of_track(truth, 0)[truth.tracks.image_index[observations_of_track(truth, 0)] != 4]
-    in_image_4 = observations_of_track(truth, 1)[truth.tracks.image_index[observations_of_track(truth, 1)] != 0]
+    track_0, track_1 = observations_of_track(truth, 0), observations_of_track(truth, 1)
+    in_image_0 = track_0[truth.tracks.image_index[track_0] != 4]      # seen in images 0-3
+    in_image_4 = track_1[truth.tracks.image_index[track_1] != 0]      # seen in images 1-4
     first, second = scene.add_points(truth.points[:2], np.concatenate([in_image_0, in_image_4]),
                                      np.repeat([0, 1], [len(in_image_0), len(in_image_4)]))
     assert list(np.flatnonzero(scene.points_seen_in([0]))) == [first]
