@@ -6,7 +6,7 @@ in Lambda Twist (Persson and Nordberg 2018), up to four poses per sample; every 
 scored by the project's one RANSAC driver (`geometry.ransac`). When a hypothesis beats the best
 consensus so far, the driver's local optimization (LO-RANSAC, Chum et al. 2003, as COLMAP's LORANSAC)
 refits EPnP on its inliers and keeps the refit while the consensus does not shrink. The winner is
-refined by `pnp_nonlinear` (Levenberg-Marquardt on the reprojection error) on its inliers. The seed's
+refined by `pnp.refine_pose` (Levenberg-Marquardt on the reprojection error) on its inliers. The seed's
 6-point DLT (`pnp.pnp_ransac`) stays available as the linear alternative.
 """
 
@@ -19,13 +19,13 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.pnp import pnp_nonlinear, projection_errors
+from estimation.geometry.pnp import projection_errors, refine_pose
 from estimation.geometry.ransac import ransac
 from estimation.types import CameraPose
 
 P3P_SAMPLE_SIZE = 3
 EPNP_MIN_CORRESPONDENCES = 6
-"""cv2's EPnP (and `pnp_nonlinear`) need this many correspondences."""
+"""cv2's EPnP (and `pnp.refine_pose`) need this many correspondences."""
 ROOT_IMAGINARY_TOLERANCE = 1e-6
 """A root whose imaginary part is below this (relative) counts as real: a double root splits into a
 near-real complex pair under rounding."""
@@ -249,7 +249,7 @@ def absolute_pose_ransac(
             f"absolute pose RANSAC found no pose with {EPNP_MIN_CORRESPONDENCES}+ inliers in {len(points)} "
             "2D-3D correspondences"
         )
-    refined = pnp_nonlinear(K, points[best_mask], uv[best_mask], best_pose).pose
+    refined = refine_pose(K, points[best_mask], uv[best_mask], best_pose)
     refined_mask = (
         projection_errors(K, np.concatenate([refined.R, refined.t[:, None]], axis=1), points, uv) < threshold
     )

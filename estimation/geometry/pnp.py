@@ -145,14 +145,19 @@ def pnp_ransac(K: np.ndarray, points: np.ndarray, uv: np.ndarray, config: Ransac
     return PnPResult(pose=CameraPose(R=R, t=t), inlier_mask=inlier_mask, iterations=iterations)
 
 
-def pnp_nonlinear(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: CameraPose) -> PnPRefinement:
+def refine_pose(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: CameraPose) -> CameraPose:
     """min_{R, t} sum ||pi(K (R X + t)) - uv||^2 from `initial`: OpenCV's Levenberg-Marquardt
     (solvePnPRefineLM, analytic Jacobian over a rotation vector)."""
     _require(len(points))
     points, uv = np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv, np.float64)
     rvec, tvec = cv2.solvePnPRefineLM(points, uv, np.asarray(K, np.float64), None,
                                       cv2.Rodrigues(initial.R)[0], np.reshape(initial.t, (3, 1)).copy())
-    pose = CameraPose(R=cv2.Rodrigues(rvec)[0], t=tvec.ravel())
+    return CameraPose(R=cv2.Rodrigues(rvec)[0], t=tvec.ravel())
+
+
+def pnp_nonlinear(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: CameraPose) -> PnPRefinement:
+    """`refine_pose`, with the RMS reprojection error before and after."""
+    pose = refine_pose(K, points, uv, initial)
 
     def rms(start: CameraPose) -> float:
         residuals = project(as_camera(K), start.R, start.t, points).uv - uv

@@ -16,6 +16,7 @@ from estimation.mapper.incremental import (
     SparseModel,
     reconstruct_models,
     run_incremental,
+    track_observation_pairs,
 )
 from estimation.mapper.scene import Scene
 from estimation.synthetic import make_object_scene, make_scene, observe, project, rotation_about_axis
@@ -519,3 +520,14 @@ def test_while_the_model_grows_each_refinement_adjusts_at_most_growth_refinement
 
     assert most_consecutive_global_bas_while_growing(2) == 2
     assert most_consecutive_global_bas_while_growing(1) == 1
+
+
+def test_track_observation_pairs_lists_each_pair_of_a_tracks_observations_once_with_its_image_pair():
+    # Observations in no track order: track 0 in images 2, 0, 1; track 1 in images 1, 3; track 2 in 0, 3.
+    tracks = Tracks(["a", "b", "c", "d"], np.array([1, 0, 2, 0, 1, 0, 2]), np.array([1, 2, 0, 0, 3, 1, 3]),
+                    np.zeros((7, 2)), np.zeros((3, 3), np.uint8))
+    pairs = track_observation_pairs(tracks)
+    listed = sorted(zip(pairs.first.tolist(), pairs.second.tolist(), pairs.image_pair.tolist(), strict=True))
+    # image pair (m, n), m < n, as m * 4 + n
+    assert listed == [(0, 4, 1 * 4 + 3), (1, 3, 0 * 4 + 2), (1, 5, 1 * 4 + 2), (2, 6, 0 * 4 + 3),
+                      (3, 5, 0 * 4 + 1)]
