@@ -34,7 +34,7 @@ from estimation.mapper.initial_pair import (
     co_visible_pairs,
     pair_name,
 )
-from estimation.mapper.next_image import visibility_pyramid_scores
+from estimation.mapper.next_image import PyramidCells, pyramid_cells, visibility_pyramid_scores
 from estimation.mapper.scene import Scene
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
@@ -214,6 +214,8 @@ class _ModelBuilder:
         self.observation_pairs = track_observation_pairs(tracks)
         # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
         self.image_size = (2.0 * self.scene.K[0, 2], 2.0 * self.scene.K[1, 2])
+        self._cells: PyramidCells | None = None
+        self._cells_uv: np.ndarray | None = None   # the working pixels _cells were computed from
 
     @property
     def tracks(self) -> Tracks:
@@ -296,9 +298,7 @@ class _ModelBuilder:
         has_point[scene.point_track[scene.point_alive]] = True
         visible = has_point[tracks.track_index] & waiting[tracks.image_index]
         counts = np.bincount(tracks.image_index[visible], minlength=len(waiting))
-        scores = visibility_pyramid_scores(
-            tracks.image_index[visible], tracks.uv[visible], len(waiting), *self.image_size
-        )
+        scores = visibility_pyramid_scores(self.pyramid_cells(), len(waiting), visible)
         for image in np.flatnonzero(waiting & (counts < self.mapper.min_pnp_correspondences)):
             self.failures[int(image)] = (
                 f"only {counts[image]} 2D-3D correspondences with the reconstructed "
@@ -306,6 +306,14 @@ class _ModelBuilder:
             )
         ready = np.flatnonzero(waiting & (counts >= self.mapper.min_pnp_correspondences))
         return [int(m) for m in ready[np.argsort(-scores[ready], kind="stable")]]
+
+    def pyramid_cells(self) -> PyramidCells:
+        """Every observation's visibility pyramid cell, again only when the working pixels changed (the
+        intrinsics were refined)."""
+        if self._cells_uv is not self.tracks.uv:
+            self._cells = pyramid_cells(self.tracks.image_index, self.tracks.uv, *self.image_size)
+            self._cells_uv = self.tracks.uv
+        return self._cells
 
     def register(self, image: int) -> str | None:
         """Absolute pose of `image` from its 2D-3D correspondences; adds its inlier observations to their
