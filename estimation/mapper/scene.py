@@ -267,11 +267,17 @@ class Scene:
         has[self.point_track[self.point_alive]] = True
         return has
 
-    def _main_point_of_track(self) -> np.ndarray:
-        """Track -> its live point with most observations, -1 for none."""
+    def _ranked_points(self) -> np.ndarray:
+        """The live points by track, within a track most observations first (ties: lower id): one stable
+        sort of the key track (most + 1) + (most - count) (two-key np.lexsort cost twice as much)."""
         alive = np.flatnonzero(self.point_alive)
         counts = self.point_observation_counts()[alive]
-        ranked = alive[np.lexsort((-counts, self.point_track[alive]))]
+        most = int(counts.max(initial=0))
+        return alive[np.argsort(self.point_track[alive] * (most + 1) + (most - counts), kind="stable")]
+
+    def _main_point_of_track(self) -> np.ndarray:
+        """Track -> its live point with most observations, -1 for none."""
+        ranked = self._ranked_points()
         point_of_track = np.full(self.tracks.num_tracks, -1, np.int64)
         point_of_track[self.point_track[ranked[::-1]]] = ranked[::-1]  # the first of each track wins
         return point_of_track
@@ -355,9 +361,7 @@ class Scene:
         observation of both within max_error_px. Returns the number of merges."""
         merged = 0
         for _ in range(MAX_MERGE_ROUNDS):
-            alive = np.flatnonzero(self.point_alive)
-            counts = self.point_observation_counts()
-            ranked = alive[np.lexsort((-counts[alive], self.point_track[alive]))]
+            ranked = self._ranked_points()
             same_track = self.point_track[ranked[1:]] == self.point_track[ranked[:-1]]
             starts = np.concatenate([[True], ~same_track])  # first (largest) point of each track
             keep_ids = ranked[:-1][same_track & starts[:-1]]
