@@ -338,13 +338,14 @@ class Scene:
         """(observations, point, error): each observation of obs_ids whose track has a live point (among
         point_ids when given) with the point of its track it reprojects closest to."""
         alive = np.flatnonzero(self._live_points(point_ids))
-        alive = alive[np.argsort(self.point_track[alive], kind="stable")]
-        tracks_sorted = self.point_track[alive]
-        track_of_obs = self.tracks.track_index[obs_ids]
-        begin = np.searchsorted(tracks_sorted, track_of_obs, side="left")
-        num_candidates = np.searchsorted(tracks_sorted, track_of_obs, side="right") - begin
-        if num_candidates.sum() == 0:
+        alive = alive[np.argsort(self.point_track[alive], kind="stable")]       # by track
+        per_track = np.bincount(self.point_track[alive], minlength=self.tracks.num_tracks)
+        obs_ids = obs_ids[per_track[self.tracks.track_index[obs_ids]] > 0]
+        if len(obs_ids) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        track_of_obs = self.tracks.track_index[obs_ids]
+        begin = (np.cumsum(per_track) - per_track)[track_of_obs]               # its track's first in alive
+        num_candidates = per_track[track_of_obs]
         # One (observation, point) candidate per point of the observation's track.
         cand_obs = np.repeat(obs_ids, num_candidates)
         offsets = np.arange(num_candidates.sum()) - np.repeat(
