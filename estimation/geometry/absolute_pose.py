@@ -134,9 +134,10 @@ def refine_distances(distances: np.ndarray, cosines: np.ndarray, squared_sides: 
         rows[[0, 1, 2], :, j] = 2 * (s_j - s_k * cosines).T
         rows[[0, 1, 2], :, k] = 2 * (s_k - s_j * cosines).T
         # J^-1 f = (f_0 r1 x r2 + f_1 r2 x r0 + f_2 r0 x r1) / det J (Cramer), skipped where J is singular.
-        adjugate_f = (f[:, 0:1] * _cross(rows[1], rows[2]) + f[:, 1:2] * _cross(rows[2], rows[0])
+        r1_x_r2 = _cross(rows[1], rows[2])
+        adjugate_f = (f[:, 0:1] * r1_x_r2 + f[:, 1:2] * _cross(rows[2], rows[0])
                       + f[:, 2:3] * _cross(rows[0], rows[1]))
-        determinant = np.einsum("bi,bi->b", rows[0], _cross(rows[1], rows[2]))
+        determinant = np.einsum("bi,bi->b", rows[0], r1_x_r2)
         regular = determinant != 0.0
         distances = distances - np.where(regular[:, None], adjugate_f, 0.0) / np.where(
             regular, determinant, 1.0)[:, None]
@@ -147,14 +148,14 @@ def rigid_from_triangles(world: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """[R | t] (B, 3, 4) with camera_k = R world_k + t for congruent triangles (B, 3, 3): R = F_c F_w^T
     for the orthonormal frames F = [e1, e3 x e1, e3] of edges e1 ~ X2 - X1, e3 ~ (X2 - X1) x (X3 - X1)."""
 
-    def frame(triangle: np.ndarray) -> np.ndarray:
-        e1 = triangle[:, 1] - triangle[:, 0]
-        e3 = _cross(e1, triangle[:, 2] - triangle[:, 0])
-        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-        e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
-        return np.stack([e1, _cross(e3, e1), e3], axis=2)
-
-    R = frame(camera) @ np.swapaxes(frame(world), 1, 2)
+    # Both triangles' frames in one pass: (2B, 3, 3), the camera's first.
+    triangles = np.concatenate([camera, world])
+    e1 = triangles[:, 1] - triangles[:, 0]
+    e3 = _cross(e1, triangles[:, 2] - triangles[:, 0])
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
+    frames = np.stack([e1, _cross(e3, e1), e3], axis=2)
+    R = frames[: len(camera)] @ np.swapaxes(frames[len(camera):], 1, 2)
     t = camera.mean(axis=1) - np.einsum("bij,bj->bi", R, world.mean(axis=1))
     return np.concatenate([R, t[:, :, None]], axis=2)
 
