@@ -175,13 +175,16 @@ def p3p_batch(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> P3PSolutions
         u = _poly_value(polynomials.numerator, v) / _poly_value(polynomials.denominator, v)
         s1 = np.sqrt(b2[:, None] / (1.0 + v**2 - 2 * v * cos_13[:, None]))
         distances = np.stack([s1, u * s1, v * s1], axis=2)                     # (B, 4, 3)
-        sample_index, root = np.nonzero(real & np.all(np.isfinite(distances) & (distances > 0), axis=2))
-        distances = refine_distances(distances[sample_index, root],
-                                     np.stack([cos_12, cos_13, cos_23], axis=1)[sample_index],
-                                     np.stack([c2, b2, a2], axis=1)[sample_index])
-        poses = rigid_from_triangles(points[sample_index], distances[:, :, None] * rays[sample_index])
+        solution = np.flatnonzero(real & np.all(np.isfinite(distances) & (distances > 0), axis=2))
+        sample_index = solution // 4                                           # 4 roots per sample
+        # Rows by take (numpy 2's fancy row indexing of 2-D and 3-D arrays costs several times more).
+        distances = refine_distances(distances.reshape(-1, 3).take(solution, axis=0),
+                                     np.stack([cos_12, cos_13, cos_23], axis=1).take(sample_index, axis=0),
+                                     np.stack([c2, b2, a2], axis=1).take(sample_index, axis=0))
+        poses = rigid_from_triangles(points.take(sample_index, axis=0),
+                                     distances[:, :, None] * rays.take(sample_index, axis=0))
     finite = np.all(np.isfinite(poses), axis=(1, 2)) & np.all(distances > 0, axis=1)
-    return P3PSolutions(poses=poses[finite], sample_index=sample_index[finite])
+    return P3PSolutions(poses=poses.compress(finite, axis=0), sample_index=sample_index[finite])
 
 
 def p3p(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> list[CameraPose]:

@@ -256,4 +256,4 @@ def project(camera: Camera | np.ndarray, R: np.ndarray, t: np.ndarray, points: n
 def reprojection_residuals(camera: Camera | np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """r_o = pi(camera, R_o X_p(o) + t_o) - uv_o, (O, 2) pixels, for flat `Observations` (R, t, uv,
     point_index); a 3x3 K is the pinhole camera. Depth is clamped, so behind-camera residuals are large."""
-    return project(camera, obs.R, obs.t, np.asarray(points, float)[obs.point_index]).uv - obs.uv
+    return project(camera, obs.R, obs.t, np.asarray(points, float).take(obs.point_index, axis=0)).uv - obs.uv

@@ -320,7 +320,7 @@ class _ModelBuilder:
         points. Returns why it failed, or None."""
         scene = self.scene
         obs_ids, point_ids = scene.correspondences_2d3d(image)
-        points, uv = scene.point_xyz[point_ids], self.tracks.uv[obs_ids]
+        points, uv = scene.point_xyz.take(point_ids, axis=0), self.tracks.uv.take(obs_ids, axis=0)
         ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.pnp_threshold})
         try:
             if self.mapper.absolute_pose == "p3p":
