@@ -238,7 +238,9 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     support[~((pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
     # Best hypothesis per point: the first of the largest support (the order of the listed pairs).
     ranked = np.lexsort((h, -support, owner))
-    leaders = ranked[np.unique(owner[ranked], return_index=True)[1]]
+    first_of_owner = np.ones(len(ranked), bool)
+    first_of_owner[1:] = owner[ranked[1:]] != owner[ranked[:-1]]
+    leaders = ranked[first_of_owner]
     best_hypothesis = np.full(obs.num_points, -1, np.int64)
     best_hypothesis[owner[leaders]] = leaders
     best_of_obs = best_hypothesis[obs.point_index]

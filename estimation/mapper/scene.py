@@ -234,9 +234,11 @@ class Scene:
         """Whether two viewing rays of each given live point (point_ids sorted, unique) are min_angle_deg
         or more apart (`triangulation_angle_reaches`)."""
         point_ids = np.asarray(point_ids, np.int64)
+        position = np.full(len(self.point_alive), -1, np.int64)       # point -> its index in point_ids
+        position[point_ids] = np.arange(len(point_ids))
         used = self.used_observations()
-        used = used[self._live_points(point_ids)[self.obs_point[used]]]
-        compact = np.searchsorted(point_ids, self.obs_point[used])
+        compact = position[self.obs_point[used]]
+        used, compact = used[compact >= 0], compact[compact >= 0]
         centers = -np.einsum("mji,mj->mi", self.R, self.t)        # per image: C = -R^T t
         return triangulation_angle_reaches(centers.take(self.tracks.image_index[used], axis=0), compact,
                                            self.point_xyz.take(point_ids, axis=0), min_angle_deg)
