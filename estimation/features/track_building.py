@@ -54,7 +54,14 @@ class ImageAwareUnionFind:
         return True
 
     def labels(self) -> np.ndarray:
-        return np.array([self.find(node) for node in range(len(self.parent))], np.int64)
+        """The root of every node, by pointer jumping on the whole parent array (parent = parent[parent]
+        until nothing moves) instead of a find per node."""
+        parent = np.array(self.parent, np.int64)
+        while True:
+            grandparent = parent[parent]
+            if np.array_equal(grandparent, parent):
+                return parent
+            parent = grandparent
 
 
 def assemble_tracks(
@@ -72,7 +79,8 @@ def assemble_tracks(
     node_image = np.asarray(node_image, np.int64)
     num_nodes = node_image.size
     union_find = ImageAwareUnionFind(node_image)
-    rejected = sum(not union_find.union(int(a), int(b)) for a, b in np.asarray(links).reshape(-1, 2))
+    # Python ints (tolist): iterating numpy rows and converting their scalars cost 2-3 times the unions.
+    rejected = sum(not union_find.union(a, b) for a, b in np.asarray(links, np.int64).reshape(-1, 2).tolist())
     labels = union_find.labels()
 
     kept_per_label = np.bincount(labels, minlength=num_nodes)

@@ -6,7 +6,7 @@ in Lambda Twist (Persson and Nordberg 2018), up to four poses per sample; every 
 scored by the project's one RANSAC driver (`geometry.ransac`). When a hypothesis beats the best
 consensus so far, the driver's local optimization (LO-RANSAC, Chum et al. 2003, as COLMAP's LORANSAC)
 refits EPnP on its inliers and keeps the refit while the consensus does not shrink. The winner is
-refined by `pnp_nonlinear` (Levenberg-Marquardt on the reprojection error) on its inliers. The seed's
+refined by `pnp.refine_pose` (Levenberg-Marquardt on the reprojection error) on its inliers. The seed's
 6-point DLT (`pnp.pnp_ransac`) stays available as the linear alternative.
 """
 
@@ -19,13 +19,13 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.pnp import pnp_nonlinear, projection_errors
+from estimation.geometry.pnp import projection_errors, refine_pose
 from estimation.geometry.ransac import ransac
 from estimation.types import CameraPose
 
 P3P_SAMPLE_SIZE = 3
 EPNP_MIN_CORRESPONDENCES = 6
-"""cv2's EPnP (and `pnp_nonlinear`) need this many correspondences."""
+"""cv2's EPnP (and `pnp.refine_pose`) need this many correspondences."""
 ROOT_IMAGINARY_TOLERANCE = 1e-6
 """A root whose imaginary part is below this (relative) counts as real: a double root splits into a
 near-real complex pair under rounding."""
@@ -34,6 +34,9 @@ PAIRS_23_13_12 = ((1, 2), (0, 2), (0, 1))
 DISTANCE_REFINEMENT_STEPS = 2
 """Gauss-Newton steps on the three distances: the quartic's roots lose digits where it is ill-conditioned
 (true poses off by up to 5e-7 on 2000 random samples); two steps bring them within 1e-10."""
+V_SQUARED_MINUS_ONE = np.array([-1.0, 0.0, 1.0])
+CONSTANT_ONE = np.array([1.0, 0.0, 0.0])
+"""Ascending coefficients of v^2 - 1 and of 1, as quadratics."""
 LEADING_COEFFICIENT_FLOOR = 1e-14
 """Smallest |leading coefficient| of the normalized quartic (a root near infinity stays finite)."""
 
@@ -95,14 +98,14 @@ def grunert_polynomials(cos_23: np.ndarray, cos_13: np.ndarray, cos_12: np.ndarr
 
     From the law of cosines on distances s_k along unit rays j_k (cos_jk = j_j . j_k) to X_k with
     a = |X2 - X3|, b = |X1 - X3|, c = |X1 - X2|: u = N / D makes the a^2 and c^2 equations agree."""
-    one, zero = np.ones_like(a2), np.zeros_like(a2)
+    one = np.ones_like(a2)
     q = np.stack([one, -2 * cos_13, one], axis=1)
-    numerator = b2[:, None] * np.stack([-one, zero, one], axis=1) - (a2 - c2)[:, None] * q
+    numerator = b2[:, None] * V_SQUARED_MINUS_ONE - (a2 - c2)[:, None] * q
     denominator = 2 * b2[:, None] * np.stack([-cos_12, cos_23], axis=1)
+    cubic = 2 * (b2 * cos_12)[:, None] * _poly_mul(numerator, denominator)       # degree 3 of 4
     quartic = (b2[:, None] * _poly_mul(numerator, numerator)
-               - np.pad(2 * (b2 * cos_12)[:, None] * _poly_mul(numerator, denominator), ((0, 0), (0, 1)))
-               + _poly_mul(b2[:, None] * np.stack([one, zero, zero], axis=1) - c2[:, None] * q,
-                           _poly_mul(denominator, denominator)))
+               - np.concatenate([cubic, np.zeros((len(cubic), 1))], axis=1)
+               + _poly_mul(b2[:, None] * CONSTANT_ONE - c2[:, None] * q, _poly_mul(denominator, denominator)))
     return GrunertPolynomials(quartic=quartic, numerator=numerator, denominator=denominator)
 
 
@@ -134,9 +137,10 @@ def refine_distances(distances: np.ndarray, cosines: np.ndarray, squared_sides: 
         rows[[0, 1, 2], :, j] = 2 * (s_j - s_k * cosines).T
         rows[[0, 1, 2], :, k] = 2 * (s_k - s_j * cosines).T
         # J^-1 f = (f_0 r1 x r2 + f_1 r2 x r0 + f_2 r0 x r1) / det J (Cramer), skipped where J is singular.
-        adjugate_f = (f[:, 0:1] * _cross(rows[1], rows[2]) + f[:, 1:2] * _cross(rows[2], rows[0])
+        r1_x_r2 = _cross(rows[1], rows[2])
+        adjugate_f = (f[:, 0:1] * r1_x_r2 + f[:, 1:2] * _cross(rows[2], rows[0])
                       + f[:, 2:3] * _cross(rows[0], rows[1]))
-        determinant = np.einsum("bi,bi->b", rows[0], _cross(rows[1], rows[2]))
+        determinant = np.einsum("bi,bi->b", rows[0], r1_x_r2)
         regular = determinant != 0.0
         distances = distances - np.where(regular[:, None], adjugate_f, 0.0) / np.where(
             regular, determinant, 1.0)[:, None]
@@ -147,14 +151,14 @@ def rigid_from_triangles(world: np.ndarray, camera: np.ndarray) -> np.ndarray:
     """[R | t] (B, 3, 4) with camera_k = R world_k + t for congruent triangles (B, 3, 3): R = F_c F_w^T
     for the orthonormal frames F = [e1, e3 x e1, e3] of edges e1 ~ X2 - X1, e3 ~ (X2 - X1) x (X3 - X1)."""
 
-    def frame(triangle: np.ndarray) -> np.ndarray:
-        e1 = triangle[:, 1] - triangle[:, 0]
-        e3 = _cross(e1, triangle[:, 2] - triangle[:, 0])
-        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-        e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
-        return np.stack([e1, _cross(e3, e1), e3], axis=2)
-
-    R = frame(camera) @ np.swapaxes(frame(world), 1, 2)
+    # Both triangles' frames in one pass: (2B, 3, 3), the camera's first.
+    triangles = np.concatenate([camera, world])
+    e1 = triangles[:, 1] - triangles[:, 0]
+    e3 = _cross(e1, triangles[:, 2] - triangles[:, 0])
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e3 /= np.linalg.norm(e3, axis=1, keepdims=True)
+    frames = np.stack([e1, _cross(e3, e1), e3], axis=2)
+    R = frames[: len(camera)] @ np.swapaxes(frames[len(camera):], 1, 2)
     t = camera.mean(axis=1) - np.einsum("bij,bj->bi", R, world.mean(axis=1))
     return np.concatenate([R, t[:, :, None]], axis=2)
 
@@ -174,13 +178,16 @@ def p3p_batch(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> P3PSolutions
         u = _poly_value(polynomials.numerator, v) / _poly_value(polynomials.denominator, v)
         s1 = np.sqrt(b2[:, None] / (1.0 + v**2 - 2 * v * cos_13[:, None]))
         distances = np.stack([s1, u * s1, v * s1], axis=2)                     # (B, 4, 3)
-        sample_index, root = np.nonzero(real & np.all(np.isfinite(distances) & (distances > 0), axis=2))
-        distances = refine_distances(distances[sample_index, root],
-                                     np.stack([cos_12, cos_13, cos_23], axis=1)[sample_index],
-                                     np.stack([c2, b2, a2], axis=1)[sample_index])
-        poses = rigid_from_triangles(points[sample_index], distances[:, :, None] * rays[sample_index])
+        solution = np.flatnonzero(real & np.all(np.isfinite(distances) & (distances > 0), axis=2))
+        sample_index = solution // 4                                           # 4 roots per sample
+        # Rows by take (numpy 2's fancy row indexing of 2-D and 3-D arrays costs several times more).
+        distances = refine_distances(distances.reshape(-1, 3).take(solution, axis=0),
+                                     np.stack([cos_12, cos_13, cos_23], axis=1).take(sample_index, axis=0),
+                                     np.stack([c2, b2, a2], axis=1).take(sample_index, axis=0))
+        poses = rigid_from_triangles(points.take(sample_index, axis=0),
+                                     distances[:, :, None] * rays.take(sample_index, axis=0))
     finite = np.all(np.isfinite(poses), axis=(1, 2)) & np.all(distances > 0, axis=1)
-    return P3PSolutions(poses=poses[finite], sample_index=sample_index[finite])
+    return P3PSolutions(poses=poses.compress(finite, axis=0), sample_index=sample_index[finite])
 
 
 def p3p(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> list[CameraPose]:
@@ -249,7 +256,7 @@ def absolute_pose_ransac(
             f"absolute pose RANSAC found no pose with {EPNP_MIN_CORRESPONDENCES}+ inliers in {len(points)} "
             "2D-3D correspondences"
         )
-    refined = pnp_nonlinear(K, points[best_mask], uv[best_mask], best_pose).pose
+    refined = refine_pose(K, points[best_mask], uv[best_mask], best_pose)
     refined_mask = (
         projection_errors(K, np.concatenate([refined.R, refined.t[:, None]], axis=1), points, uv) < threshold
     )

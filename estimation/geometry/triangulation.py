@@ -3,6 +3,8 @@
 Observations are flat: observation o sees point `point_index[o]` in a camera with pose
 (`R[o]`, `t[o]`) at pixel `uv[o]`; every point has two or more observations. All points are solved
 together (one vectorized 4x4 or 3x3 system per point), so thousands of points take milliseconds.
+Rows of 2-D and 3-D arrays are gathered by `take` / `compress` (numpy 2's fancy and boolean row
+indexing of such arrays costs 3-10 times more; the values are the same).
 """
 
 from __future__ import annotations
@@ -11,13 +13,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from estimation.geometry.projection import project, reprojection_residuals
+from estimation.geometry.projection import as_camera, project, reprojection_residuals
 
 NONLINEAR_ITERATIONS = 10
 INITIAL_DAMPING = 1e-3
 STEP_TOLERANCE = 1e-8
 """Levenberg-Marquardt stops once every proposed step is below this fraction of its point's norm (scipy's
 default xtol): on the mapper's points further steps move them by less than 1e-8 relative."""
+IDENTITY_3 = np.eye(3)
+SOLVE_REGULARIZATION = 1e-12 * IDENTITY_3
+"""Added to each damped 3x3 system, so that a point seen along one ray still has a solution."""
 
 
 class Observations(NamedTuple):
@@ -78,7 +83,7 @@ def triangulate_linear(K: np.ndarray, obs: Observations) -> Triangulation:
 def _projection_jacobian(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """d pi(K (R X + t)) / dX = A (R_12 - p r_3^T) / z, (O, 2, 3): A = K[:2, :2], p = x_cam[:2] / z the
     normalized point, R_12 and r_3 the first two rows and the last row of R."""
-    x_cam = np.einsum("oij,oj->oi", obs.R, points[obs.point_index]) + obs.t
+    x_cam = np.einsum("oij,oj->oi", obs.R, points.take(obs.point_index, axis=0)) + obs.t
     z = np.where(np.abs(x_cam[:, 2]) < 1e-12, 1e-12, x_cam[:, 2])
     d_normalized = (obs.R[:, :2] - (x_cam[:, :2] / z[:, None])[:, :, None] * obs.R[:, 2:3]) / z[:, None, None]
     return np.einsum("ij,ojk->oik", K[:2, :2], d_normalized)
@@ -90,24 +95,28 @@ def triangulate_nonlinear(K: np.ndarray, obs: Observations, initial: np.ndarray,
     every step is below STEP_TOLERANCE relative or after `iterations`."""
     points = np.array(initial, float)
     damping = np.full(obs.num_points, INITIAL_DAMPING)
+    camera = as_camera(K)   # built once for every projection below
 
     def cost(residuals: np.ndarray) -> np.ndarray:
         return np.bincount(obs.point_index, weights=(residuals**2).sum(axis=1), minlength=obs.num_points)
 
-    residuals = reprojection_residuals(K, obs, points)
+    residuals = reprojection_residuals(camera, obs, points)
     current = cost(residuals)
     for _ in range(iterations):
         J = _projection_jacobian(K, obs, points)
-        JtJ = sum_per_point(np.einsum("oki,okj->oij", J, J), obs.point_index, obs.num_points)
-        Jtr = sum_per_point(np.einsum("oki,ok->oi", J, residuals), obs.point_index, obs.num_points)
+        # J^T J and J^T r of every observation, summed per point in one pass: (P, 9 + 3).
+        sums = sum_per_point(np.concatenate([np.einsum("oki,okj->oij", J, J).reshape(-1, 9),
+                                             np.einsum("oki,ok->oi", J, residuals)], axis=1),
+                             obs.point_index, obs.num_points)
+        JtJ, Jtr = sums[:, :9].reshape(-1, 3, 3), sums[:, 9:]
         diagonal = np.einsum("pii->pi", JtJ)
-        system = JtJ + (damping[:, None] * diagonal)[:, :, None] * np.eye(3)
-        step = np.linalg.solve(system + 1e-12 * np.eye(3), -Jtr[:, :, None])[:, :, 0]
+        system = JtJ + (damping[:, None] * diagonal)[:, :, None] * IDENTITY_3
+        step = np.linalg.solve(system + SOLVE_REGULARIZATION, -Jtr[:, :, None])[:, :, 0]
         if np.all(np.linalg.norm(step, axis=1) <= STEP_TOLERANCE * (np.linalg.norm(points, axis=1)
                                                                     + STEP_TOLERANCE)):
             break
         candidate = points + step
-        trial_residuals = reprojection_residuals(K, obs, candidate)
+        trial_residuals = reprojection_residuals(camera, obs, candidate)
         trial = cost(trial_residuals)
         better = trial < current
         points[better] = candidate[better]
@@ -123,7 +132,7 @@ def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, po
 
     `centers` (O, 3) is the camera centre of each observation.
     """
-    rays = points[obs_point_index] - centers
+    rays = points.take(obs_point_index, axis=0) - centers
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     order = np.argsort(obs_point_index, kind="stable")
     rays, owner = rays[order], obs_point_index[order]
@@ -150,11 +159,11 @@ def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray
     (the triangle inequality of angles): one pass over the observations decides every point but those
     with max a_o in [min_angle_deg / 2, min_angle_deg), whose `triangulation_angle_deg` is computed.
     """
-    rays = points[obs_point_index] - centers
+    rays = points.take(obs_point_index, axis=0) - centers
     rays /= np.sqrt(np.einsum("oi,oi->o", rays, rays))[:, None]
     reference = np.zeros(len(points), np.int64)
     reference[obs_point_index] = np.arange(len(obs_point_index))   # any one observation of each point
-    cosine = np.einsum("oi,oi->o", rays, rays[reference[obs_point_index]])
+    cosine = np.einsum("oi,oi->o", rays, rays.take(reference[obs_point_index], axis=0))
     angle = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
 
     def some_ray_beyond(angle_deg: float) -> np.ndarray:
@@ -173,8 +182,9 @@ def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray
 
 def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """||r_o|| in pixels, inf where the point is behind the observing camera or not finite, (O,)."""
-    projection = project(K, obs.R, obs.t, np.asarray(points, float)[obs.point_index])
-    error = np.linalg.norm(projection.uv - obs.uv, axis=1)
+    projection = project(K, obs.R, obs.t, np.asarray(points, float).take(obs.point_index, axis=0))
+    residuals = projection.uv - obs.uv
+    error = np.sqrt(np.einsum("oi,oi->o", residuals, residuals))   # the norm's own sum, in fewer calls
     return np.where((projection.depth > 0) & np.isfinite(error), error, np.inf)
 
 
@@ -208,7 +218,8 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     pair_obs = order[starts[owner] + np.stack([a, h - a * (a - 1) // 2])]   # (2, hypotheses)
     num_hypotheses = len(owner)
     hypothesis_obs = Observations(
-        R=obs.R[pair_obs.ravel()], t=obs.t[pair_obs.ravel()], uv=obs.uv[pair_obs.ravel()],
+        R=obs.R.take(pair_obs.ravel(), axis=0), t=obs.t.take(pair_obs.ravel(), axis=0),
+        uv=obs.uv.take(pair_obs.ravel(), axis=0),
         point_index=np.tile(np.arange(num_hypotheses), 2), num_points=num_hypotheses)
     candidates = triangulate_linear(K, hypothesis_obs).points
     centers = -np.einsum("oji,oj->oi", hypothesis_obs.R, hypothesis_obs.t)
@@ -219,14 +230,17 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     scored_obs = np.repeat(np.arange(len(obs.uv)), scored_per_obs)
     scored_hypothesis = (first_of_point[obs.point_index[scored_obs]] + np.arange(len(scored_obs))
                          - np.repeat(np.cumsum(scored_per_obs) - scored_per_obs, scored_per_obs))
-    expanded = Observations(R=obs.R[scored_obs], t=obs.t[scored_obs], uv=obs.uv[scored_obs],
+    expanded = Observations(R=obs.R.take(scored_obs, axis=0), t=obs.t.take(scored_obs, axis=0),
+                            uv=obs.uv.take(scored_obs, axis=0),
                             point_index=scored_hypothesis, num_points=num_hypotheses)
     agrees = observation_errors(K, expanded, candidates) < max_error_px
     support = np.bincount(scored_hypothesis, weights=agrees, minlength=num_hypotheses)
     support[~((pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
     # Best hypothesis per point: the first of the largest support (the order of the listed pairs).
     ranked = np.lexsort((h, -support, owner))
-    leaders = ranked[np.unique(owner[ranked], return_index=True)[1]]
+    first_of_owner = np.ones(len(ranked), bool)
+    first_of_owner[1:] = owner[ranked[1:]] != owner[ranked[:-1]]
+    leaders = ranked[first_of_owner]
     best_hypothesis = np.full(obs.num_points, -1, np.int64)
     best_hypothesis[owner[leaders]] = leaders
     best_of_obs = best_hypothesis[obs.point_index]
@@ -234,14 +248,14 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     inliers[scored_obs[agrees & (scored_hypothesis == best_of_obs[scored_obs])]] = True
     inliers &= (best_of_obs >= 0) & (support[best_of_obs] >= 2)
 
-    subset = Observations(obs.R[inliers], obs.t[inliers], obs.uv[inliers], obs.point_index[inliers],
-                          obs.num_points)
-    points = np.where((best_hypothesis >= 0)[:, None], candidates[best_hypothesis], np.nan)
+    subset = Observations(obs.R.compress(inliers, axis=0), obs.t.compress(inliers, axis=0),
+                          obs.uv.compress(inliers, axis=0), obs.point_index[inliers], obs.num_points)
+    points = np.where((best_hypothesis >= 0)[:, None], candidates.take(best_hypothesis, axis=0), np.nan)
     if inliers.any():
         points = triangulate_nonlinear(K, subset, points).points
     inliers = observation_errors(K, obs, points) < max_error_px
     inlier_counts = np.bincount(obs.point_index[inliers], minlength=obs.num_points)
-    all_centers = -np.einsum("oji,oj->oi", obs.R[inliers], obs.t[inliers])
+    all_centers = -np.einsum("oji,oj->oi", obs.R.compress(inliers, axis=0), obs.t.compress(inliers, axis=0))
     wide = triangulation_angle_reaches(all_centers, obs.point_index[inliers], points, min_angle_deg)
     valid = (inlier_counts >= 2) & wide
     return RobustTriangulation(points=points, inlier_mask=inliers & valid[obs.point_index], valid=valid)

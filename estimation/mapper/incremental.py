@@ -21,7 +21,6 @@ from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
-from scipy import sparse
 
 from estimation.bundle_adjustment.factor_graph import IntrinsicsCovariance, IntrinsicsRefinement
 from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
@@ -35,7 +34,7 @@ from estimation.mapper.initial_pair import (
     co_visible_pairs,
     pair_name,
 )
-from estimation.mapper.next_image import visibility_pyramid_scores
+from estimation.mapper.next_image import PyramidCells, pyramid_cells, visibility_pyramid_scores
 from estimation.mapper.scene import Scene
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
@@ -152,6 +151,30 @@ class _Timer:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
 
 
+class ObservationPairs(NamedTuple):
+    """Every pair of observations of one track, and the image pair they link."""
+
+    first: np.ndarray       # (Q,) observation ids
+    second: np.ndarray      # (Q,) observation ids, a later one of the same track
+    image_pair: np.ndarray  # (Q,) min(m, n) * num_images + max(m, n) of their images m, n
+
+
+def track_observation_pairs(tracks: Tracks) -> ObservationPairs:
+    """The pairs (a, b) of observations sharing a track, a before b: each observation with every later one
+    of its track (as a sorted listing), so that per-image-pair counts are one bincount."""
+    order = np.argsort(tracks.track_index, kind="stable")
+    per_track = np.bincount(tracks.track_index, minlength=tracks.num_tracks)
+    track_sorted = tracks.track_index[order]
+    later = np.cumsum(per_track)[track_sorted] - np.arange(len(order)) - 1   # of its track, after it
+    first = np.repeat(np.arange(len(order)), later)
+    offset = np.arange(len(first)) - np.repeat(np.cumsum(later) - later, later)
+    first, second = order[first], order[first + 1 + offset]
+    image_a, image_b = tracks.image_index[first], tracks.image_index[second]
+    num_images = len(tracks.image_names)
+    return ObservationPairs(first, second,
+                            np.minimum(image_a, image_b) * num_images + np.maximum(image_a, image_b))
+
+
 @dataclass
 class _Thresholds:
     """Registration thresholds of one model; `relax` lowers the inlier minimums once when registration
@@ -188,8 +211,11 @@ class _ModelBuilder:
         self.thresholds = _Thresholds(self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio)
         self.refinement_rounds = 0
         self.error_limit = config.filter.max_reprojection_px
+        self.observation_pairs = track_observation_pairs(tracks)
         # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
         self.image_size = (2.0 * self.scene.K[0, 2], 2.0 * self.scene.K[1, 2])
+        self._cells: PyramidCells | None = None
+        self._cells_uv: np.ndarray | None = None   # the working pixels _cells were computed from
 
     @property
     def tracks(self) -> Tracks:
@@ -289,9 +315,7 @@ class _ModelBuilder:
         has_point[scene.point_track[scene.point_alive]] = True
         visible = has_point[tracks.track_index] & waiting[tracks.image_index]
         counts = np.bincount(tracks.image_index[visible], minlength=len(waiting))
-        scores = visibility_pyramid_scores(
-            tracks.image_index[visible], tracks.uv[visible], len(waiting), *self.image_size
-        )
+        scores = visibility_pyramid_scores(self.pyramid_cells(), len(waiting), visible)
         for image in np.flatnonzero(waiting & (counts < self.mapper.min_pnp_correspondences)):
             self.failures[int(image)] = (
                 f"only {counts[image]} 2D-3D correspondences with the reconstructed "
@@ -300,12 +324,20 @@ class _ModelBuilder:
         ready = np.flatnonzero(waiting & (counts >= self.mapper.min_pnp_correspondences))
         return [int(m) for m in ready[np.argsort(-scores[ready], kind="stable")]]
 
+    def pyramid_cells(self) -> PyramidCells:
+        """Every observation's visibility pyramid cell, again only when the working pixels changed (the
+        intrinsics were refined)."""
+        if self._cells_uv is not self.tracks.uv:
+            self._cells = pyramid_cells(self.tracks.image_index, self.tracks.uv, *self.image_size)
+            self._cells_uv = self.tracks.uv
+        return self._cells
+
     def register(self, image: int) -> str | None:
         """Absolute pose of `image` from its 2D-3D correspondences; adds its inlier observations to their
         points. Returns why it failed, or None."""
         scene = self.scene
         obs_ids, point_ids = scene.correspondences_2d3d(image)
-        points, uv = scene.point_xyz[point_ids], self.tracks.uv[obs_ids]
+        points, uv = scene.point_xyz.take(point_ids, axis=0), self.tracks.uv.take(obs_ids, axis=0)
         ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.pnp_threshold})
         try:
             if self.mapper.absolute_pose == "p3p":
@@ -345,18 +377,15 @@ class _ModelBuilder:
         and filter the points they see."""
         scene = self.scene
         used = scene.used_observations()
-        images = self.tracks.image_index[used]
-        own_points = np.unique(scene.obs_point[used[images == image]])
-        shared = np.bincount(
-            images[np.isin(scene.obs_point[used], own_points)], minlength=len(scene.registered)
-        )
+        own = scene.points_seen_in([image])
+        shared = np.bincount(self.tracks.image_index[used[own[scene.obs_point[used]]]],
+                             minlength=len(scene.registered))
         shared[image] = 0
         ba = self.config.bundle_adjustment
         neighbours = np.argsort(-shared, kind="stable")[: ba.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
         scene.bundle_adjust(self.local_ba_config(), variable_images=window)
-        used = scene.used_observations()
-        touched = np.unique(scene.obs_point[used[np.isin(self.tracks.image_index[used], window)]])
+        touched = np.flatnonzero(scene.points_seen_in(window))
         scene.complete_tracks(self.max_error, touched)
         scene.merge_tracks(self.max_error)
         scene.filter_points(self.max_error, self.min_angle, touched)
@@ -365,32 +394,23 @@ class _ModelBuilder:
         """Triangulate again the untriangulated tracks of registered image pairs whose shared tracks are
         less than retriangulation_min_ratio triangulated (poses have improved, images were added).
         Returns the points added."""
-        scene, tracks = self.scene, self.tracks
+        scene, tracks, pairs = self.scene, self.tracks, self.observation_pairs
         num_images = len(scene.registered)
-        in_registered = scene.registered[tracks.image_index]
-        visibility = sparse.csr_matrix(
-            (
-                np.ones(in_registered.sum()),
-                (tracks.track_index[in_registered], tracks.image_index[in_registered]),
-            ),
-            shape=(tracks.num_tracks, num_images),
-        )
+        registered = scene.registered[tracks.image_index]
         used = scene.obs_point >= 0
-        triangulated = sparse.csr_matrix(
-            (np.ones(used.sum()), (tracks.track_index[used], tracks.image_index[used])),
-            shape=(tracks.num_tracks, num_images),
-        )
-        shared = (visibility.T @ visibility).toarray()
-        ratio = (triangulated.T @ triangulated).toarray() / np.maximum(shared, 1)
-        under = (shared > 0) & (ratio < self.mapper.retriangulation_min_ratio)
-        np.fill_diagonal(under, False)
+        both_registered = registered[pairs.first] & registered[pairs.second]
+        # A track seen in both images of a pair adds one observation pair to it (one observation per image).
+        shared = np.bincount(pairs.image_pair[both_registered], minlength=num_images**2)
+        triangulated = np.bincount(pairs.image_pair[both_registered & used[pairs.first] & used[pairs.second]],
+                                   minlength=num_images**2)
+        under = (shared > 0) & (triangulated / np.maximum(shared, 1) < self.mapper.retriangulation_min_ratio)
         if not under.any():
             return 0
         # A track qualifies when two of its registered images form an under-reconstructed pair.
-        hits = visibility.multiply(visibility @ sparse.csr_matrix(under.astype(float))).sum(axis=1)
-        candidates = np.flatnonzero(np.asarray(hits).ravel() > 0)
+        candidates = np.zeros(tracks.num_tracks, bool)
+        candidates[tracks.track_index[pairs.first[both_registered & under[pairs.image_pair]]]] = True
         return scene.triangulate_tracks(
-            candidates, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses
+            np.flatnonzero(candidates), self.max_error, self.min_angle, self.mapper.triangulation_hypotheses
         )
 
     def global_refinement(self, max_rounds: int) -> float:

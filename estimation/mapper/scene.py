@@ -84,6 +84,9 @@ class Scene:
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Adopt new intrinsics per image: the working pixels follow them."""
         self.cameras = cameras
+        # One Camera object for every image (fixed or shared intrinsics): the error checks project with it
+        # as is, instead of filling per-observation arrays of the same values (`Camera.take`).
+        self.shared_camera = cameras[0] if all(camera is cameras[0] for camera in cameras) else None
         source = Camera.take(cameras, self.tracks.image_index)
         working = transfer_pixels(source, Camera.from_K(self.K), self.observed_uv)
         self.tracks = replace(self.tracks, uv=working)
@@ -124,8 +127,17 @@ class Scene:
         return np.flatnonzero(self.obs_point >= 0)
 
     def point_observation_counts(self) -> np.ndarray:
-        used = self.obs_point[self.obs_point >= 0]
-        return np.bincount(used, minlength=len(self.point_alive))
+        # Free observations (-1) fall in bin 0 and are dropped: no mask and copy of the used ones.
+        return np.bincount(self.obs_point + 1, minlength=len(self.point_alive) + 1)[1:]
+
+    def points_seen_in(self, images: np.ndarray | list[int]) -> np.ndarray:
+        """(points,) bool: the points with an observation in one of `images` (a mask: no np.unique)."""
+        used = self.used_observations()
+        in_images = np.zeros(len(self.registered), bool)
+        in_images[np.asarray(images, np.int64)] = True
+        seen = np.zeros(len(self.point_alive), bool)
+        seen[self.obs_point[used[in_images[self.tracks.image_index[used]]]]] = True
+        return seen
 
     def add_points(self, xyz: np.ndarray, obs_ids: np.ndarray, new_point_of_obs: np.ndarray) -> np.ndarray:
         """New points xyz (n, 3), observation obs_ids[k] supporting point new_point_of_obs[k] in [0, n).
@@ -186,9 +198,9 @@ class Scene:
         """Flat Observations of the given track observations with their image's pose."""
         images = self.tracks.image_index[obs_ids]
         return Observations(
-            R=self.R[images],
-            t=self.t[images],
-            uv=self.tracks.uv[obs_ids],
+            R=self.R.take(images, axis=0),      # take: numpy 2's fancy row indexing costs several times more
+            t=self.t.take(images, axis=0),
+            uv=self.tracks.uv.take(obs_ids, axis=0),
             point_index=point_index,
             num_points=num_points,
         )
@@ -198,8 +210,11 @@ class Scene:
         against its point, or against point_ids[k] when given."""
         obs_ids = np.asarray(obs_ids, np.int64)
         points = self.obs_point[obs_ids] if point_ids is None else np.asarray(point_ids, np.int64)
-        obs = self.observations(obs_ids, points, len(self.point_alive))._replace(uv=self.observed_uv[obs_ids])
-        camera = Camera.take(self.cameras, self.tracks.image_index[obs_ids])
+        images = self.tracks.image_index[obs_ids]
+        obs = Observations(R=self.R.take(images, axis=0), t=self.t.take(images, axis=0),
+                           uv=self.observed_uv.take(obs_ids, axis=0), point_index=points,
+                           num_points=len(self.point_alive))
+        camera = self.shared_camera or Camera.take(self.cameras, images)
         return observation_errors(camera, obs, self.point_xyz)
 
     def noise_sigma(self, max_error_px: float) -> float:
@@ -219,12 +234,14 @@ class Scene:
         """Whether two viewing rays of each given live point (point_ids sorted, unique) are min_angle_deg
         or more apart (`triangulation_angle_reaches`)."""
         point_ids = np.asarray(point_ids, np.int64)
+        position = np.full(len(self.point_alive), -1, np.int64)       # point -> its index in point_ids
+        position[point_ids] = np.arange(len(point_ids))
         used = self.used_observations()
-        used = used[self._live_points(point_ids)[self.obs_point[used]]]
-        compact = np.searchsorted(point_ids, self.obs_point[used])
+        compact = position[self.obs_point[used]]
+        used, compact = used[compact >= 0], compact[compact >= 0]
         centers = -np.einsum("mji,mj->mi", self.R, self.t)        # per image: C = -R^T t
-        return triangulation_angle_reaches(centers[self.tracks.image_index[used]], compact,
-                                           self.point_xyz[point_ids], min_angle_deg)
+        return triangulation_angle_reaches(centers.take(self.tracks.image_index[used], axis=0), compact,
+                                           self.point_xyz.take(point_ids, axis=0), min_angle_deg)
 
     def visible_uv(self, image: int) -> np.ndarray:
         """Pixels of the image's observations whose track has a live point (its 2D-3D candidates)."""
@@ -253,11 +270,17 @@ class Scene:
         has[self.point_track[self.point_alive]] = True
         return has
 
-    def _main_point_of_track(self) -> np.ndarray:
-        """Track -> its live point with most observations, -1 for none."""
+    def _ranked_points(self) -> np.ndarray:
+        """The live points by track, within a track most observations first (ties: lower id): one stable
+        sort of the key track (most + 1) + (most - count) (two-key np.lexsort cost twice as much)."""
         alive = np.flatnonzero(self.point_alive)
         counts = self.point_observation_counts()[alive]
-        ranked = alive[np.lexsort((-counts, self.point_track[alive]))]
+        most = int(counts.max(initial=0))
+        return alive[np.argsort(self.point_track[alive] * (most + 1) + (most - counts), kind="stable")]
+
+    def _main_point_of_track(self) -> np.ndarray:
+        """Track -> its live point with most observations, -1 for none."""
+        ranked = self._ranked_points()
         point_of_track = np.full(self.tracks.num_tracks, -1, np.int64)
         point_of_track[self.point_track[ranked[::-1]]] = ranked[::-1]  # the first of each track wins
         return point_of_track
@@ -281,14 +304,16 @@ class Scene:
             & (self.obs_point < 0)
             & self.registered[self.tracks.image_index]
         )
-        tracks_of_obs, counts = np.unique(self.tracks.track_index[obs_ids], return_counts=True)
-        obs_ids = obs_ids[np.isin(self.tracks.track_index[obs_ids], tracks_of_obs[counts >= 2])]
+        per_track = np.bincount(self.tracks.track_index[obs_ids], minlength=self.tracks.num_tracks)
+        enough = per_track >= 2
+        obs_ids = obs_ids[enough[self.tracks.track_index[obs_ids]]]
         if len(obs_ids) == 0:
             return 0
-        track_list, point_index = np.unique(self.tracks.track_index[obs_ids], return_inverse=True)
+        # Point k is the k-th track with enough observations (in track order).
+        point_index = (np.cumsum(enough) - 1)[self.tracks.track_index[obs_ids]]
         result = triangulate_ransac(
             self.K,
-            self.observations(obs_ids, point_index, len(track_list)),
+            self.observations(obs_ids, point_index, int(enough.sum())),
             max_error_px,
             min_angle_deg,
             hypotheses_per_point,
@@ -316,13 +341,14 @@ class Scene:
         """(observations, point, error): each observation of obs_ids whose track has a live point (among
         point_ids when given) with the point of its track it reprojects closest to."""
         alive = np.flatnonzero(self._live_points(point_ids))
-        alive = alive[np.argsort(self.point_track[alive], kind="stable")]
-        tracks_sorted = self.point_track[alive]
-        track_of_obs = self.tracks.track_index[obs_ids]
-        begin = np.searchsorted(tracks_sorted, track_of_obs, side="left")
-        num_candidates = np.searchsorted(tracks_sorted, track_of_obs, side="right") - begin
-        if num_candidates.sum() == 0:
+        alive = alive[np.argsort(self.point_track[alive], kind="stable")]       # by track
+        per_track = np.bincount(self.point_track[alive], minlength=self.tracks.num_tracks)
+        obs_ids = obs_ids[per_track[self.tracks.track_index[obs_ids]] > 0]
+        if len(obs_ids) == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        track_of_obs = self.tracks.track_index[obs_ids]
+        begin = (np.cumsum(per_track) - per_track)[track_of_obs]               # its track's first in alive
+        num_candidates = per_track[track_of_obs]
         # One (observation, point) candidate per point of the observation's track.
         cand_obs = np.repeat(obs_ids, num_candidates)
         offsets = np.arange(num_candidates.sum()) - np.repeat(
@@ -339,9 +365,7 @@ class Scene:
         observation of both within max_error_px. Returns the number of merges."""
         merged = 0
         for _ in range(MAX_MERGE_ROUNDS):
-            alive = np.flatnonzero(self.point_alive)
-            counts = self.point_observation_counts()
-            ranked = alive[np.lexsort((-counts[alive], self.point_track[alive]))]
+            ranked = self._ranked_points()
             same_track = self.point_track[ranked[1:]] == self.point_track[ranked[:-1]]
             starts = np.concatenate([[True], ~same_track])  # first (largest) point of each track
             keep_ids = ranked[:-1][same_track & starts[:-1]]

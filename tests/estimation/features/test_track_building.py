@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimation.features.track_building import assemble_tracks
+from estimation.features.track_building import ImageAwareUnionFind, assemble_tracks
 
 NAMES = ["a.png", "b.png", "c.png", "d.png"]
 
@@ -49,3 +49,11 @@ def test_no_links_give_no_tracks():
     no_links = np.zeros((0, 2), np.int64)
     tracks = assemble_tracks(NAMES, np.array([0, 1]), np.zeros((2, 2)), np.zeros((2, 3)), no_links).tracks
     assert tracks.num_tracks == 0 and tracks.uv.shape == (0, 2)
+
+
+def test_union_find_labels_are_each_nodes_root():
+    rng = np.random.default_rng(3)
+    union_find = ImageAwareUnionFind(np.arange(500) % 40)
+    for a, b in rng.integers(0, 500, (400, 2)).tolist():
+        union_find.union(a, b)
+    np.testing.assert_array_equal(union_find.labels(), [union_find.find(node) for node in range(500)])

@@ -11,6 +11,7 @@ from estimation.geometry.pnp import (
     pnp_nonlinear,
     pnp_ransac,
     projection_errors,
+    refine_pose,
     reprojection_errors,
 )
 from estimation.synthetic import make_scene, rotation_about_axis
@@ -81,6 +82,18 @@ def test_nonlinear_pnp_recovers_a_perturbed_pose_exactly_without_noise():
     assert rotation_angle_deg(refined.pose.R, truth.R) < 1e-6
     np.testing.assert_allclose(refined.pose.t, truth.t, atol=1e-6)
     np.testing.assert_allclose(refined.pose.R @ refined.pose.R.T, np.eye(3), atol=1e-12)
+
+
+def test_refine_pose_is_the_pose_of_nonlinear_pnp_without_its_error_summary():
+    scene = make_scene(num_points=100, noise_px=0.5, seed=5)
+    points, uv, _ = correspondences(scene, 1)
+    start = CameraPose(R=rotation_about_axis(np.array([0.0, 1.0, 1.0]), 0.03) @ scene.poses[1].R,
+                       t=scene.poses[1].t - 0.05)
+    pose, refinement = refine_pose(scene.K, points, uv, start), pnp_nonlinear(scene.K, points, uv, start)
+    np.testing.assert_array_equal(pose.R, refinement.pose.R)
+    np.testing.assert_array_equal(pose.t, refinement.pose.t)
+    with pytest.raises(DegenerateConfigurationError):
+        refine_pose(scene.K, points[:5], uv[:5], start)
 
 
 def test_reprojection_errors_are_infinite_behind_the_camera():

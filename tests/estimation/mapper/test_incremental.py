@@ -16,6 +16,7 @@ from estimation.mapper.incremental import (
     SparseModel,
     reconstruct_models,
     run_incremental,
+    track_observation_pairs,
 )
 from estimation.mapper.scene import Scene
 from estimation.synthetic import make_object_scene, make_scene, observe, project, rotation_about_axis
@@ -555,3 +556,14 @@ def test_refining_intrinsics_the_local_bas_take_their_own_cap_and_the_refinement
     caps = record_iteration_caps(monkeypatch)
     run_incremental(scene.tracks, truth, CAPPED, refine=IntrinsicsRefinement(focal=True, distortion=True))
     assert caps == {"local": {4}, "global": {50}, "final": {50}}
+
+
+def test_track_observation_pairs_lists_each_pair_of_a_tracks_observations_once_with_its_image_pair():
+    # Observations in no track order: track 0 in images 2, 0, 1; track 1 in images 1, 3; track 2 in 0, 3.
+    tracks = Tracks(["a", "b", "c", "d"], np.array([1, 0, 2, 0, 1, 0, 2]), np.array([1, 2, 0, 0, 3, 1, 3]),
+                    np.zeros((7, 2)), np.zeros((3, 3), np.uint8))
+    pairs = track_observation_pairs(tracks)
+    listed = sorted(zip(pairs.first.tolist(), pairs.second.tolist(), pairs.image_pair.tolist(), strict=True))
+    # image pair (m, n), m < n, as m * 4 + n
+    assert listed == [(0, 4, 1 * 4 + 3), (1, 3, 0 * 4 + 2), (1, 5, 1 * 4 + 2), (2, 6, 0 * 4 + 3),
+                      (3, 5, 0 * 4 + 1)]

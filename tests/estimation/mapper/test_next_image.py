@@ -3,7 +3,7 @@ the occupied cells of every level exactly (one sort of Z-order codes serves all 
 
 import numpy as np
 
-from estimation.mapper.next_image import PYRAMID_LEVELS, visibility_pyramid_scores, z_order
+from estimation.mapper.next_image import PYRAMID_LEVELS, pyramid_cells, visibility_pyramid_scores, z_order
 
 
 def test_spread_points_outscore_as_many_clustered_points():
@@ -11,17 +11,20 @@ def test_spread_points_outscore_as_many_clustered_points():
     spread = rng.uniform([0, 0], [640, 480], (100, 2))
     clustered = rng.uniform([0, 0], [60, 40], (100, 2))
     uv = np.concatenate([spread, clustered])
-    scores = visibility_pyramid_scores(np.repeat([0, 1], 100), uv, 3, 640, 480)
+    scores = visibility_pyramid_scores(pyramid_cells(np.repeat([0, 1], 100), uv, 640, 480), 3)
     assert scores[0] > 2 * scores[1] > 0
     assert scores[2] == 0                                  # no visible point, no score
+    assert not visibility_pyramid_scores(pyramid_cells(np.zeros(2, int), uv[:2], 640, 480), 3,
+                                         np.zeros(2, bool)).any()
 
 
 def test_one_point_scores_one_cell_per_level_and_a_full_grid_scores_the_maximum():
-    one = visibility_pyramid_scores(np.array([0]), np.array([[10.0, 10.0]]), 1, 640, 480)
+    one = visibility_pyramid_scores(pyramid_cells(np.array([0]), np.array([[10.0, 10.0]]), 640, 480), 1)
     assert one[0] == sum(4**level for level in range(1, PYRAMID_LEVELS + 1))
     dim = 2**PYRAMID_LEVELS
     centres = (np.stack(np.meshgrid(np.arange(dim), np.arange(dim)), axis=-1).reshape(-1, 2) + 0.5) / dim
-    full = visibility_pyramid_scores(np.zeros(dim * dim, int), centres * [640, 480], 1, 640, 480)
+    full = visibility_pyramid_scores(pyramid_cells(np.zeros(dim * dim, int), centres * [640, 480], 640, 480),
+                                     1)
     assert full[0] == sum(16**level for level in range(1, PYRAMID_LEVELS + 1))
 
 
@@ -46,4 +49,10 @@ def test_scores_count_the_occupied_cells_of_each_level_as_the_definition():
         cells = np.floor(uv / [640, 480] * dim).astype(int)
         for m in range(6):
             expected[m] += dim * dim * len({tuple(c) for c in cells[image_index == m]})
-    np.testing.assert_array_equal(visibility_pyramid_scores(image_index, uv, 6, 640, 480), expected)
+    cells = pyramid_cells(image_index, uv, 640, 480)
+    np.testing.assert_array_equal(visibility_pyramid_scores(cells, 6), expected)
+    # The scores of a subset of the points are those of their own cells.
+    visible = rng.random(400) < 0.5
+    np.testing.assert_array_equal(visibility_pyramid_scores(cells, 6, visible),
+                                  visibility_pyramid_scores(pyramid_cells(image_index[visible], uv[visible],
+                                                                          640, 480), 6))

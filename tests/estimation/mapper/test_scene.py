@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from estimation.geometry.projection import Camera
 from estimation.mapper.scene import Scene, pixel_noise_sigma
 from estimation.synthetic import make_scene
 
@@ -125,3 +126,31 @@ def test_noise_sigma_is_measured_on_used_and_free_observations_within_the_limit(
     sigma = scene.noise_sigma(max_error_px=4.0)
     assert 0.2 < sigma < 0.45                       # 250 samples of a 0.3 px noise (points not refitted)
     assert scene.noise_sigma(max_error_px=1e-6) != scene.noise_sigma(max_error_px=4.0)
+
+
+def test_errors_of_a_shared_camera_equal_those_of_the_same_camera_given_per_image():
+    truth = make_scene(num_points=50, seed=21)
+    camera = Camera.from_K(truth.K, "simple-radial", k1=0.05)
+    shared = Scene(truth.tracks, camera)
+    per_image = Scene(truth.tracks, [dataclasses.replace(camera) for _ in truth.poses])
+    assert shared.shared_camera is camera and per_image.shared_camera is None
+    obs = np.concatenate([observations_of_track(truth, t) for t in range(10)])
+    for scene in (shared, per_image):
+        for m, pose in enumerate(truth.poses):
+            scene.register_image(m, pose)
+        scene.add_points(truth.points[:10] + 0.01, obs, truth.tracks.track_index[obs])
+    np.testing.assert_array_equal(shared.errors(obs), per_image.errors(obs))
+    assert np.all(shared.errors(obs) > 0)
+
+
+def test_points_seen_in_marks_the_points_observed_in_any_of_the_images(posed):
+    truth, scene = posed
+    track_0, track_1 = observations_of_track(truth, 0), observations_of_track(truth, 1)
+    in_image_0 = track_0[truth.tracks.image_index[track_0] != 4]      # seen in images 0-3
+    in_image_4 = track_1[truth.tracks.image_index[track_1] != 0]      # seen in images 1-4
+    first, second = scene.add_points(truth.points[:2], np.concatenate([in_image_0, in_image_4]),
+                                     np.repeat([0, 1], [len(in_image_0), len(in_image_4)]))
+    assert list(np.flatnonzero(scene.points_seen_in([0]))) == [first]
+    assert list(np.flatnonzero(scene.points_seen_in([4]))) == [second]
+    assert list(np.flatnonzero(scene.points_seen_in([0, 4]))) == [first, second]
+    assert list(np.flatnonzero(scene.points_seen_in([1]))) == [first, second]
