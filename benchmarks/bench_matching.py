@@ -27,7 +27,12 @@ sys.path.insert(0, str(ROOT))
 
 from estimation.config import SiftConfig  # noqa: E402
 from estimation.features.pairs import candidate_pairs  # noqa: E402
-from estimation.features.sift import PairWork, detect_features, match_and_verify_pairs  # noqa: E402
+from estimation.features.sift import (  # noqa: E402
+    WORKER_MODULES,
+    PairWork,
+    detect_features,
+    match_and_verify_pairs,
+)
 from estimation.io.images import list_images, load_rgb  # noqa: E402
 from estimation.parallel import worker_pool  # noqa: E402
 
@@ -45,12 +50,13 @@ def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
             # What `match_and_verify_pairs` waits for before its first item: the processes spawned and fed
             # the context (started side by side: parallel.WorkerPool).
             wall = time.perf_counter()
-            with worker_pool(count, modules=("estimation.features.sift",), context=work):
+            with worker_pool(count, modules=WORKER_MODULES, context=work):
                 print(f"workers {count}: the pool started in {time.perf_counter() - wall:.3f} s", flush=True)
         for _ in range(repeats):
             children = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu, wall = time.process_time(), time.perf_counter()
-            matches, _ = match_and_verify_pairs(work, pairs, count)
+            with worker_pool(count, modules=WORKER_MODULES) as pool:
+                matches, _ = match_and_verify_pairs(work, pairs, pool)
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
             after = resource.getrusage(resource.RUSAGE_CHILDREN)
             child_cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
