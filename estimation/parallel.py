@@ -91,8 +91,8 @@ def _initialize_worker(parent_pid: int, modules: tuple[str, ...], all_started: B
     _all_received = all_received
     # No process takes an item before all are spawned: ProcessPoolExecutor spawns one at a submit only
     # while none is idle, so a process done with its first item would leave the next one to be spawned
-    # later, outside `_main_module_hidden` and the one-BLAS-thread environment (seen under load: the
-    # start blocks while a process reads a large context, and the first one could finish its item).
+    # later, outside `_main_module_hidden` and the one-BLAS-thread environment (seen under load, when the
+    # processes read a large context as they started: the first one could finish its item).
     all_started.wait(timeout=START_TIMEOUT_SECONDS)
 
 
