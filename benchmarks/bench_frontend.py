@@ -22,6 +22,7 @@ import argparse
 import os
 import pickle
 import resource
+import subprocess
 import sys
 import threading
 import time
@@ -33,6 +34,16 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_WORK = Path("/tmp/sfmnerf-bench-frontend")
 SAMPLE_SECONDS = 0.05
 """Interval of the --timeline samples of /proc/stat."""
+
+
+def lego_folder(work: Path) -> Path:
+    """Lego's images and calibration.txt in `work`, made the first time by `bench_sfm.lego_set` in another
+    process (importing bench_sfm puts this checkout first on sys.path, where --code must come first)."""
+    folder = work / "lego"
+    if not (folder / "calibration.txt").exists():
+        make = f"from pathlib import Path; from bench_sfm import lego_set; lego_set(Path({str(work)!r}))"
+        subprocess.run([sys.executable, "-c", make], cwd=ROOT / "benchmarks", check=True)
+    return folder
 
 
 def cpu_ticks() -> tuple[int, int]:
@@ -109,20 +120,16 @@ def main() -> None:
     parser.add_argument("--save", type=Path, help="write the last run's result here (pickle)")
     parser.add_argument("--compare", type=Path, help="check the result bitwise against this saved one")
     args = parser.parse_args()
-    sys.path.insert(0, str(args.code))
-    sys.path.insert(1, str(ROOT / "benchmarks"))
-    from bench_sfm import lego_set
-
+    folder = lego_folder(args.work)
+    sys.path.insert(0, str(args.code))          # the worker processes inherit it
+    import estimation
     from estimation.config import ReconstructionConfig
     from estimation.features.sift import sift_tracks
     from estimation.io.images import list_images
 
-    folder = args.work / "lego"
-    if not (folder / "calibration.txt").exists():
-        lego_set(args.work)
     images, K = list_images(folder), np.loadtxt(folder / "calibration.txt")
     config = ReconstructionConfig()
-    print(f"front end of {args.code}; load {os.getloadavg()[0]:.2f}")
+    print(f"front end of {Path(estimation.__file__).parents[1]}; load {os.getloadavg()[0]:.2f}")
     for _ in range(args.repeats):
         timeline = Timeline() if args.timeline else None
         ticks, (cpu, children) = cpu_ticks(), own_cpu_seconds()
