@@ -48,8 +48,8 @@ def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
     work = PairWork.of(features, config)
     for count in workers:
         if count > 1:
-            # What `match_and_verify_pairs` waits for before its first item: the processes spawned and fed
-            # the context (started side by side: parallel.WorkerPool).
+            # The processes spawned and fed the context (a reconstruction starts them while it detects,
+            # then shares the context: parallel.WorkerPool).
             wall = time.perf_counter()
             with worker_pool(count, modules=WORKER_MODULES, context=work):
                 print(f"workers {count}: the pool started in {time.perf_counter() - wall:.3f} s", flush=True)
