@@ -3,11 +3,12 @@ descriptors, as `sift_tracks` does without verification (`match_and_verify_pairs
 
 The descriptors (`detect_features` with the default `SiftConfig`) and pairs (`candidate_pairs`) are made once;
 then the matching runs `--repeats` times for each `--workers` count (1: in this process; more: that many
-spawned processes, started, fed the descriptors and shut down within each run, as in a reconstruction; the
-seconds the pool takes to start are printed once per count). CPU seconds (`time.process_time` of this process
-plus its finished children's `RUSAGE_CHILDREN`) move little when other work shares the machine; wall seconds
-only mean something under the bench lock on an otherwise idle machine. Without a folder, the 90 lego views
-(../shared/data/lego_200) are composited on white into a temporary folder first.
+spawned processes, started, fed the descriptors and shut down within each run; in a reconstruction they start
+earlier, while the images are detected; the seconds the pool takes to start are printed once per count). CPU
+seconds (`time.process_time` of this process plus its finished children's `RUSAGE_CHILDREN`) move little when
+other work shares the machine; wall seconds only mean something under the bench lock on an otherwise idle
+machine. Without a folder, the 90 lego views (../shared/data/lego_200) are composited on white into a
+temporary folder first.
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_matching.py
     python benchmarks/bench_matching.py /tmp/prof/lego_work/lego --workers 1 --repeats 5
@@ -27,7 +28,12 @@ sys.path.insert(0, str(ROOT))
 
 from estimation.config import SiftConfig  # noqa: E402
 from estimation.features.pairs import candidate_pairs  # noqa: E402
-from estimation.features.sift import PairWork, detect_features, match_and_verify_pairs  # noqa: E402
+from estimation.features.sift import (  # noqa: E402
+    WORKER_MODULES,
+    PairWork,
+    detect_features,
+    match_and_verify_pairs,
+)
 from estimation.io.images import list_images, load_rgb  # noqa: E402
 from estimation.parallel import worker_pool  # noqa: E402
 
@@ -42,15 +48,16 @@ def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
     work = PairWork.of(features, config)
     for count in workers:
         if count > 1:
-            # What `match_and_verify_pairs` waits for before its first item: the processes spawned and fed
-            # the context (started side by side: parallel.WorkerPool).
+            # The processes spawned and fed the context (a reconstruction starts them while it detects,
+            # then shares the context: parallel.WorkerPool).
             wall = time.perf_counter()
-            with worker_pool(count, modules=("estimation.features.sift",), context=work):
+            with worker_pool(count, modules=WORKER_MODULES, context=work):
                 print(f"workers {count}: the pool started in {time.perf_counter() - wall:.3f} s", flush=True)
         for _ in range(repeats):
             children = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu, wall = time.process_time(), time.perf_counter()
-            matches, _ = match_and_verify_pairs(work, pairs, count)
+            with worker_pool(count, modules=WORKER_MODULES) as pool:
+                matches, _ = match_and_verify_pairs(work, pairs, pool)
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
             after = resource.getrusage(resource.RUSAGE_CHILDREN)
             child_cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime

@@ -41,6 +41,7 @@ def verification_inputs(work: Path) -> dict[str, np.ndarray]:
         from estimation.features.pairs import candidate_pairs
         from estimation.features.sift import PairWork, detect_features, match_and_verify_pairs
         from estimation.io.images import list_images, load_rgb
+        from estimation.parallel import WorkerPool
 
         folder = work / "lego"
         folder.mkdir(parents=True, exist_ok=True)
@@ -49,7 +50,7 @@ def verification_inputs(work: Path) -> dict[str, np.ndarray]:
         images = list_images(folder)
         features = [detect_features(load_rgb(path), config) for path in images.paths]
         pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
-        matches, _ = match_and_verify_pairs(PairWork.of(features, config), pairs, workers=1)
+        matches, _ = match_and_verify_pairs(PairWork.of(features, config), pairs, WorkerPool(1))
         verifiable = [pair for pair in pairs if len(matches[pair].ratio) >= TwoViewConfig().min_inliers]
         uv1 = [features[i].uv[matches[(i, j)].index_a] for i, j in verifiable]
         uv2 = [features[j].uv[matches[(i, j)].index_b] for i, j in verifiable]

@@ -5,7 +5,8 @@ Processes, not threads: one pair's RANSAC is thousands of small numpy calls that
 started with the "spawn" context, never by fork: the parent may already run torch's or OpenCV's threads
 (and the service's job processes do). Every process dies with the process that started it, so a killed
 job leaves none behind, and imports the modules it needs as soon as it starts. Data every item needs (the
-images' descriptors) is a pool's `context`, sent to each process once. Each process runs its BLAS on one
+images' descriptors) is a pool's `context`, sent to each process once (`WorkerPool.share`); it may come after
+the start, so that the processes start while the caller computes it. Each process runs its BLAS on one
 thread, the calling process too while it does a one-worker pool's items: the pool's processes are the
 parallelism, and a BLAS thread per core in each would oversubscribe the cores.
 """
@@ -17,7 +18,6 @@ import functools
 import importlib
 import multiprocessing
 import os
-import pickle
 import signal
 import sys
 import threading
@@ -35,7 +35,8 @@ CHUNKS_PER_WORKER = 8
 """Items are sent to the processes in this many chunks per process: few round trips, and a slow chunk
 at the end still leaves the others busy."""
 START_TIMEOUT_SECONDS = 120.0
-"""A process waits this long for the others to start; then the pool is broken (an error, not a hang)."""
+"""A process waits this long for the others to start, or to receive the context; then the pool is broken (an
+error, not a hang)."""
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 """Read by OpenBLAS, OpenMP and MKL when they load (numpy's BLAS cannot be limited after), so they are set
 in the environment the processes inherit."""
@@ -45,6 +46,8 @@ OPENBLAS_THREAD_FUNCTIONS = (("scipy_openblas_get_num_threads64_", "scipy_openbl
 plain OpenBLAS export them."""
 _context: Any = None
 """The pool's context, in a worker process."""
+_all_received: Barrier | None = None
+"""Passed by every process of the pool once it holds a newly shared context, in a worker process."""
 
 
 def available_cores() -> int:
@@ -79,18 +82,26 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
-def _initialize_worker(parent_pid: int, modules: tuple[str, ...], pickled_context: bytes,
-                       all_started: Barrier) -> None:
-    global _context
+def _initialize_worker(parent_pid: int, modules: tuple[str, ...], all_started: Barrier,
+                       all_received: Barrier) -> None:
+    global _all_received
     die_with_parent(parent_pid)
     for module in modules:
         importlib.import_module(module)
-    _context = pickle.loads(pickled_context)
+    _all_received = all_received
     # No process takes an item before all are spawned: ProcessPoolExecutor spawns one at a submit only
     # while none is idle, so a process done with its first item would leave the next one to be spawned
-    # later, outside `_main_module_hidden` and the one-BLAS-thread environment (seen under load: the
-    # start blocks while a process reads a large context, and the first one could finish its item).
+    # later, outside `_main_module_hidden` and the one-BLAS-thread environment (seen under load, when the
+    # processes read a large context as they started: the first one could finish its item).
     all_started.wait(timeout=START_TIMEOUT_SECONDS)
+
+
+def _receive_context(context: Any) -> None:
+    """Keeps `context` for the items to come, once every process holds it: a process waiting here takes no
+    other item, so each of the pool's processes takes exactly one of the `workers` copies sent."""
+    global _context
+    _context = context
+    _all_received.wait(timeout=START_TIMEOUT_SECONDS)
 
 
 def _call_with_context(function: Callable[..., Any], *args: Any) -> Any:
@@ -169,26 +180,33 @@ def _main_module_hidden() -> Iterator[None]:
 
 class WorkerPool:
     """`map` over items in `workers` spawned processes, or in the calling process when there is one worker
-    (or when this process may not have children: a daemonic multiprocessing worker). With a `context`,
-    every call gets it as its first argument."""
+    (or when this process may not have children: a daemonic multiprocessing worker). With a `context`
+    (given here or `share`d later), every call gets it as its first argument."""
 
     def __init__(self, workers: int, modules: tuple[str, ...] = (), context: Any = None) -> None:
         self.workers = workers if not multiprocessing.current_process().daemon else 1
-        self.context = context
+        self.context: Any = None
         self._executor: ProcessPoolExecutor | None = None
         if self.workers > 1:
             spawn = multiprocessing.get_context("spawn")
-            # The context travels pickled to bytes and is unpickled after the imports: unpickled with the
-            # start data, it would import its classes' modules while the parent waits on that process's
-            # pipe, so the processes would start one after the other (lego: 0.45 -> 0.29 s to start two,
-            # benchmarks/bench_matching.py).
             self._executor = ProcessPoolExecutor(
                 self.workers, mp_context=spawn, initializer=_initialize_worker,
-                initargs=(os.getpid(), modules, pickle.dumps(context), spawn.Barrier(self.workers)),
+                initargs=(os.getpid(), modules, spawn.Barrier(self.workers), spawn.Barrier(self.workers)),
             )
             with _main_module_hidden(), _environment(dict.fromkeys(BLAS_THREAD_VARIABLES, "1")):
                 for _ in range(self.workers):      # start every process now, not at the first map
                     self._executor.submit(os.getpid)
+        if context is not None:
+            self.share(context)
+
+    def share(self, context: Any) -> None:
+        """Makes `context` the first argument of every later call, in each process (sent once to each, after
+        its start: it is unpickled after the modules' imports, and the processes start side by side)."""
+        self.context = context
+        if self._executor is not None:
+            received = [self._executor.submit(_receive_context, context) for _ in range(self.workers)]
+            for future in received:
+                future.result()
 
     def map(self, function: Callable[..., Any], *sequences: Sequence[Any]) -> Iterator[Any]:
         """function(*args), or function(context, *args), for args in zip(*sequences), in order, each as soon

@@ -10,8 +10,9 @@ mutual check). With a TwoViewConfig every pair is verified geometrically (`two_v
 in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. `SiftConfig.workers`
 images are detected at once (threads: OpenCV releases the GIL), then as many query images are matched
 against their partners and their pairs verified at once, one query image per item (processes,
-`estimation.parallel`: the RANSAC loops hold the GIL); the result does not depend on the count. The
-surviving matches are joined into tracks by the image-aware union-find of `track_building`, most
+`estimation.parallel`: the RANSAC loops hold the GIL); the processes start (spawn, imports) while the
+threads detect, and receive every image's descriptors once after. The result does not depend on the count.
+The surviving matches are joined into tracks by the image-aware union-find of `track_building`, most
 distinctive matches (lowest ratio) first.
 """
 
@@ -42,12 +43,14 @@ from estimation.features.matching import (
 from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
 from estimation.io.images import ImageSet, load_rgb
-from estimation.parallel import resolve_workers, worker_pool
+from estimation.parallel import WorkerPool, resolve_workers, worker_pool
 from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry
 from estimation.types import ProgressCallback, Tracks
 
 DETECTION_SHARE = 0.4
 """Fraction of the SIFT progress spent detecting (the rest matching and verifying), for the progress bar."""
+WORKER_MODULES = ("estimation.features.sift",)
+"""What the worker processes import as they start: everything `match_and_verify` needs."""
 
 
 class ImageFeatures(NamedTuple):
@@ -161,12 +164,12 @@ def match_and_verify(work: PairWork, i: int, partners: list[int]
 Pair = tuple[int, int]
 
 
-def match_and_verify_pairs(work: PairWork, pairs: list[Pair], workers: int,
+def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
                            progress: Callable[[float], None] = lambda fraction: None,
                            ) -> tuple[dict[Pair, DescriptorMatches], dict[Pair, TwoViewGeometry]]:
     """The matches of every pair (i, j) and the geometry of each pair verified (`match_and_verify`), one
-    query image i with all its partners j per item, in `workers` processes; `progress` gets the fraction of
-    the work done."""
+    query image i with all its partners j per item, in the `pool` (`WORKER_MODULES` imported; `work` becomes
+    its context); `progress` gets the fraction of the work done."""
     partners_of: dict[int, list[int]] = defaultdict(list)
     for i, j in pairs:
         partners_of[i].append(j)
@@ -183,15 +186,15 @@ def match_and_verify_pairs(work: PairWork, pairs: list[Pair], workers: int,
     matches: dict[Pair, DescriptorMatches] = {}
     geometries: dict[Pair, TwoViewGeometry] = {}
     done, total = 0, max(1, sum(cost.values()))
-    with worker_pool(workers, modules=("estimation.features.sift",), context=work) as pool:
-        outcomes = pool.map(match_and_verify, queries, [partners_of[i] for i in queries])
-        for i, image_outcomes in zip(queries, outcomes, strict=True):
-            for j, (pair_matches, geometry) in zip(partners_of[i], image_outcomes, strict=True):
-                matches[(i, j)] = pair_matches
-                if geometry is not None:
-                    geometries[(i, j)] = geometry
-            done += cost[i]
-            progress(done / total)
+    pool.share(work)
+    outcomes = pool.map(match_and_verify, queries, [partners_of[i] for i in queries])
+    for i, image_outcomes in zip(queries, outcomes, strict=True):
+        for j, (pair_matches, geometry) in zip(partners_of[i], image_outcomes, strict=True):
+            matches[(i, j)] = pair_matches
+            if geometry is not None:
+                geometries[(i, j)] = geometry
+        done += cost[i]
+        progress(done / total)
     return matches, geometries
 
 
@@ -209,20 +212,22 @@ def sift_tracks(
     workers = resolve_workers(config.workers)
     seconds: dict[str, float] = {}
     started = time.perf_counter()
-    with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
-        detected = []
-        for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):
-            detected.append(image_features)
-            report("features", DETECTION_SHARE * len(detected) / len(images))
-    features, colors = [f for f, _ in detected], [c for _, c in detected]
-    seconds["detection"] = time.perf_counter() - started
+    # The processes start (spawn, imports) while the threads detect; they get the descriptors after.
+    with worker_pool(workers, modules=WORKER_MODULES) as pool:
+        with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
+            detected = []
+            for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):
+                detected.append(image_features)
+                report("features", DETECTION_SHARE * len(detected) / len(images))
+        features, colors = [f for f, _ in detected], [c for _, c in detected]
+        seconds["detection"] = time.perf_counter() - started
 
-    started = time.perf_counter()
-    pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
-    work = PairWork.of(features, config, two_view, ransac, K)
-    matches, geometries = match_and_verify_pairs(work, pairs, workers, lambda fraction: report(
-        "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction))
-    seconds["matching_and_verification"] = time.perf_counter() - started
+        started = time.perf_counter()
+        pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
+        work = PairWork.of(features, config, two_view, ransac, K)
+        matches, geometries = match_and_verify_pairs(work, pairs, pool, lambda fraction: report(
+            "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction))
+        seconds["matching_and_verification"] = time.perf_counter() - started
 
     offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])
     links, link_ratios, verified_per_pair = [], [], {}

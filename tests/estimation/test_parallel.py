@@ -1,5 +1,6 @@
 """Worker processes: the worker count, results in order and equal to the calling process's, the pool's
-context in every call, one BLAS thread per process, and no process outliving the one that started it."""
+context in every call (received once by each process, also when shared after the start), one BLAS thread
+per process, an error (not a hang) when a process dies, and no process outliving the one that started it."""
 
 from __future__ import annotations
 
@@ -10,7 +11,10 @@ import sys
 import textwrap
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
+
+import pytest
 
 from estimation.parallel import (
     WorkerPool,
@@ -41,6 +45,64 @@ def test_every_call_gets_the_pool_context_first_in_the_processes_and_in_the_call
     for workers in (2, 1):
         with worker_pool(workers, context=100) as pool:
             assert list(pool.map(divmod, range(1, 30))) == [divmod(100, n) for n in range(1, 30)]
+
+
+_received: list[int] = []
+"""Values of the `Received` objects unpickled in this process."""
+
+
+class Received:
+    """A context that counts its arrivals in each process (unpickled there: `__setstate__`)."""
+
+    def __init__(self, value: int) -> None:
+        self.value = value
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        _received.append(self.value)
+
+
+def _receipts(context: Received, _: int) -> tuple[int, int, list[int]]:
+    time.sleep(0.01)
+    return os.getpid(), context.value, list(_received)
+
+
+def test_a_context_shared_after_the_start_reaches_each_process_exactly_once():
+    with worker_pool(2) as pool:
+        for value in (7, 8):
+            pool.share(Received(value))
+            outcomes = list(pool.map(_receipts, range(40)))
+            assert {context for _, context, _ in outcomes} == {value}
+            assert len({pid for pid, _, _ in outcomes}) == 2
+            assert all(received == list(range(7, value + 1)) for _, _, received in outcomes)
+    pool = WorkerPool(1)
+    pool.share(Received(9))                                       # kept as it is, in this process
+    assert [context for _, context, _ in pool.map(_receipts, range(3))] == [9] * 3
+
+
+class Fatal:
+    """A context whose arrival kills the process it reaches."""
+
+    def __init__(self) -> None:
+        self.state = "pickled"                          # an empty state would not be set on arrival
+
+    def __setstate__(self, state: dict) -> None:
+        os._exit(3)
+
+
+def _exit(_: int) -> None:
+    os._exit(3)
+
+
+@pytest.mark.parametrize("crash", ["while receiving the context", "in an item"])
+def test_a_process_that_dies_breaks_the_pool_with_an_error_not_a_hang(crash):
+    started = time.monotonic()
+    with pytest.raises(BrokenProcessPool), worker_pool(2) as pool:
+        if crash == "in an item":
+            list(pool.map(_exit, range(4)))
+        else:
+            pool.share(Fatal())
+    assert time.monotonic() - started < 30             # not the 120 s a process waits for the others
 
 
 def _blas_threads(_: int) -> tuple[str | None, list[int]]:

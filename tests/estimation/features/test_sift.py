@@ -3,6 +3,7 @@ tracks that agree with known geometry."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from estimation.features.matching import match_descriptors
 from estimation.features.sift import detect_features, root_sift, sample_colors, sift_tracks
 from estimation.io.images import find_calibration, list_images, load_rgb
 from estimation.io.matchfile import load_match_tracks
+from estimation.parallel import WorkerPool, worker_pool
 from estimation.two_view.geometry import TwoViewGeometryType
 from tests.estimation.imports import REPOSITORY
 
@@ -119,6 +121,25 @@ def test_one_worker_detects_matches_and_verifies_exactly_as_two_do(shared_data, 
     assert set(serial.seconds_per_stage) == {"detection", "matching_and_verification"}
 
 
+def test_the_worker_processes_start_before_the_images_are_detected(tmp_path, monkeypatch):
+    """Their start (spawn, imports) overlaps detection; the descriptors reach them after."""
+    from estimation.features import sift
+
+    texture = textured_image(200, 160, seed=5)
+    for index in range(3):
+        cv2.imwrite(str(tmp_path / f"{index}.png"), np.roll(texture, 6 * index, axis=1))
+    detect, processes = sift._detect_in_file, []
+
+    def counting(path, config):
+        processes.append(len(multiprocessing.active_children()))
+        return detect(path, config)
+
+    monkeypatch.setattr(sift, "_detect_in_file", counting)
+    result = sift_tracks(list_images(tmp_path), SiftConfig(workers=2))
+    assert processes == [2, 2, 2]
+    assert sum(result.matches_per_pair.values()) > 0
+
+
 def test_sift_correspondences_agree_with_the_course_matches_epipolar_geometry(shared_data, unity_sift):
     images, result = unity_sift
     course = load_match_tracks(images).tracks
@@ -189,9 +210,10 @@ def test_a_gpu_matches_in_the_calling_process_and_the_workers_only_verify(monkey
     monkeypatch.setattr(sift, "array_namespace", lambda device: calls.append(device) or NUMPY)
     on_cpu = sift.PairWork(uv, descriptors, 0.8, 0.7, "cpu", TwoViewConfig(), RansacConfig(), K)
     on_gpu = sift.PairWork(uv, descriptors, 0.8, 0.7, "cuda", TwoViewConfig(), RansacConfig(), K)
-    cpu_matches, cpu_geometries = sift.match_and_verify_pairs(on_cpu, pairs, workers=1)
+    cpu_matches, cpu_geometries = sift.match_and_verify_pairs(on_cpu, pairs, WorkerPool(1))
     calls.clear()
-    gpu_matches, gpu_geometries = sift.match_and_verify_pairs(on_gpu, pairs, workers=2)
+    with worker_pool(2, modules=sift.WORKER_MODULES) as pool:
+        gpu_matches, gpu_geometries = sift.match_and_verify_pairs(on_gpu, pairs, pool)
     assert calls == ["cuda", "cuda"]                               # query images 0 and 1, here
     assert all(len(m.ratio) == 120 for m in gpu_matches.values())
     for pair in pairs:
