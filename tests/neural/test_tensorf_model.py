@@ -184,4 +184,4 @@ def test_the_distortion_loss_is_added_when_weighted():
     assert model.render_rays(origins, directions, 1.5, 5.0, WHITE, train=True).extra_loss is None
     model.config.distortion_weight = 0.1
     extra = model.render_rays(origins, directions, 1.5, 5.0, WHITE, train=True).extra_loss
-    assert extra is not None and float(extra) > 0
+    assert extra is not None and float(extra.detach()) > 0
