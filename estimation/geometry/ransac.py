@@ -69,14 +69,14 @@ def locally_optimized(model: np.ndarray, mask: np.ndarray, data: Sequence[np.nda
     count = int(mask.sum())
     for _ in range(refits if refit is not None else 0):
         try:
-            candidates = refit(*(np.compress(mask, array, axis=0) for array in data))
+            candidates = refit(*(array.compress(mask, axis=0) for array in data))
         except DegenerateConfigurationError:
             break
         if len(candidates) == 0:
             break
         masks = residuals(candidates, *data) < threshold
         counts = masks.sum(axis=1)
-        best = int(np.argmax(counts))
+        best = int(counts.argmax())
         if counts[best] < count:
             break
         converged = np.array_equal(masks[best], mask)
@@ -120,22 +120,22 @@ def ransac(
     while iterations < max(needed, config.min_iterations) and iterations < config.max_iterations:
         samples = random_samples(rng, num, sample_size, HYPOTHESES_PER_BATCH)
         iterations += HYPOTHESES_PER_BATCH
-        # np.take / np.compress pick the same rows as fancy / boolean indexing at a third of the cost.
-        models = minimal_solver(*(np.take(array, samples, axis=0) for array in data))
+        # take / compress pick the same rows as fancy / boolean indexing at a third of the cost.
+        models = minimal_solver(*(array.take(samples, axis=0) for array in data))
         if len(models) == 0:
             continue
         if num > PREVERIFICATION_POINTS:
             # Pre-verification: only hypotheses doing well on a random subset are scored on every row
             # (with no more rows than the subset, scoring every row costs the same, so no subset).
             subset = rng.choice(num, size=PREVERIFICATION_POINTS, replace=False)
-            subset_ratio = (residuals(models, *(np.take(array, subset, axis=0) for array in data))
+            subset_ratio = (residuals(models, *(array.take(subset, axis=0) for array in data))
                             < threshold).mean(axis=1)
-            models = np.compress(subset_ratio >= PREVERIFICATION_FRACTION * max(best_count, 0) / num, models,
-                                 axis=0)
+            passing = subset_ratio >= PREVERIFICATION_FRACTION * max(best_count, 0) / num
+            models = models.compress(passing, axis=0)
             if len(models) == 0:
                 continue
         masks, counts = score(models)
-        best = int(np.argmax(counts))
+        best = int(counts.argmax())
         if counts[best] > best_count:
             best_model, best_mask, best_count = locally_optimized(
                 models[best], masks[best], data, residuals, threshold, refit, config.local_refits)

@@ -21,6 +21,7 @@ from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.linalg import (
     complete_q,
     eigvals,
+    inv,
     levenberg_marquardt,
     rotation_from_rotvec,
     skew,
@@ -89,7 +90,7 @@ def _null_space_basis(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """(B, 4, 9) orthonormal basis of the null space of the five epipolar rows A: Q's last four columns in
     A^T = Q R (a complete QR: a third of the cost of eigh(A^T A), and no squared condition number)."""
     rows = epipolar_rows(x1, x2)
-    return np.swapaxes(complete_q(np.swapaxes(rows, -1, -2))[..., 5:], -1, -2)
+    return complete_q(rows.swapaxes(-1, -2))[..., 5:].swapaxes(-1, -2)
 
 
 def _cubic_constraints(E: np.ndarray) -> np.ndarray:
@@ -167,7 +168,7 @@ def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 
 def normalizer(K: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """uv -> x = K^-1 [u v 1] (dehomogenized), for points (..., 2), with K inverted once."""
-    principal_point, inverse_T = K[:2, 2], np.linalg.inv(K[:2, :2]).T
+    principal_point, inverse_T = K[:2, 2], inv(K[:2, :2]).T
     return lambda uv: (uv - principal_point) @ inverse_T
 
 
@@ -286,7 +287,7 @@ def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.nd
     # K's inverses taken once per pair, not once per batch, refit and scoring (as to_normalized and
     # fundamental_from_essential would: ~6000 inversions on lego's pairs).
     normalized1, normalized2 = normalizer(K1), normalizer(K2)
-    K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
+    K2_inv_T, K1_inv = inv(K2).T, inv(K1)
 
     def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
         return five_point_essential(normalized1(sample1), normalized2(sample2))

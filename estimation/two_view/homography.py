@@ -67,7 +67,7 @@ def ransac_homography(uv1: np.ndarray, uv2: np.ndarray, threshold_px: float, con
     each new best H re-fitted by the DLT on its inliers."""
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
     T1, T2 = (hartley_normalization(uv).T if len(uv) else np.eye(3) for uv in (uv1, uv2))
-    T2_inverse = np.linalg.inv(T2)          # once per pair, not once per batch of samples
+    T2_inverse = inv(T2)          # once per pair, not once per batch of samples
     result = ransac((uv1, uv2), lambda sample1, sample2: _dlt(sample1, sample2, T1, T2, T2_inverse),
                     MIN_CORRESPONDENCES,
                     transfer_error, threshold_px, config,
