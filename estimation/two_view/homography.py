@@ -25,13 +25,21 @@ class HomographyResult(NamedTuple):
 
 
 def _homography_rows(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Rows of A h = 0 from x2 x (H x1) = 0 for points (..., N, 2): (..., 2N, 9)."""
-    homogeneous = np.concatenate([x1, np.ones((*x1.shape[:-1], 1))], axis=-1)
-    zeros = np.zeros_like(homogeneous)
-    u2, v2 = x2[..., 0:1], x2[..., 1:2]
-    row_u = np.concatenate([zeros, -homogeneous, v2 * homogeneous], axis=-1)
-    row_v = np.concatenate([homogeneous, zeros, -u2 * homogeneous], axis=-1)
-    return np.concatenate([row_u, row_v], axis=-2)
+    """Rows of A h = 0 from x2 x (H x1) = 0 for points (..., N, 2): (..., 2N, 9), the N rows
+    (0, -x1~, v2 x1~) then the N rows (x1~, 0, -u2 x1~), x1~ = (u1, v1, 1)."""
+    # Written block by block into one array: a third less than concatenating the blocks (one copy each).
+    num = x1.shape[-2]
+    rows = np.zeros((*x1.shape[:-2], 2 * num, 9))
+    row_u, row_v = rows[..., :num, :], rows[..., num:, :]
+    np.negative(x1, out=row_u[..., 3:5])
+    row_u[..., 5] = -1.0
+    np.multiply(x2[..., 1:2], x1, out=row_u[..., 6:8])
+    row_u[..., 8] = x2[..., 1]
+    row_v[..., 0:2] = x1
+    row_v[..., 2] = 1.0
+    np.multiply(-x2[..., 0:1], x1, out=row_v[..., 6:8])
+    row_v[..., 8] = -x2[..., 0]
+    return rows
 
 
 def _dlt(x1: np.ndarray, x2: np.ndarray, T1: np.ndarray, T2: np.ndarray, T2_inverse: np.ndarray
