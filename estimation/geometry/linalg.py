@@ -15,6 +15,39 @@ LM_DIAGONAL_FLOOR = 1e-12
 """Smallest diagonal entry of J^T J that `levenberg_marquardt`'s damping scales."""
 
 
+# The two-view solvers call LAPACK on tiny matrices ~14,000 times per lego run, where numpy.linalg's wrappers
+# (type checks, an errstate context, result wrapping) cost 2-27 us a call beside the decomposition itself:
+# these call the same gufuncs directly (bitwise the same results) for float64 input. Where LAPACK fails
+# (NaN input, no convergence) the result is NaN, with numpy's RuntimeWarning, instead of a LinAlgError.
+
+
+def svd(a: np.ndarray, full_matrices: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """a = U diag(s) V^T for stacked a (..., m, n): (U, s, V^T), s descending, as np.linalg.svd."""
+    return (_umath_linalg.svd_f if full_matrices else _umath_linalg.svd_s)(a, signature="d->ddd")
+
+
+def eigh(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """a = V diag(w) V^T for stacked symmetric a (its lower triangle): (w ascending, V), as np.linalg.eigh."""
+    return _umath_linalg.eigh_lo(a, signature="d->dd")
+
+
+def eigvals(a: np.ndarray) -> np.ndarray:
+    """The complex w with det(a - w I) = 0 of stacked square a (..., n, n) -> (..., n)."""
+    return _umath_linalg.eigvals(a, signature="d->D")
+
+
+def inv(a: np.ndarray) -> np.ndarray:
+    """a^-1 for stacked square a."""
+    return _umath_linalg.inv(a, signature="d->d")
+
+
+def complete_q(a: np.ndarray) -> np.ndarray:
+    """Q (..., m, m) of a = Q R for stacked a (..., m, n) with m > n, as np.linalg.qr(a, "complete")[0]."""
+    reflectors = np.array(a, float)            # LAPACK's QR overwrites its input with the reflectors
+    tau = _umath_linalg.qr_r_raw(reflectors, signature="d->d")
+    return _umath_linalg.qr_complete(reflectors, tau, signature="dd->d")
+
+
 def null_vector(A: np.ndarray) -> np.ndarray:
     """x = argmin ||A x|| s.t. ||x|| = 1: the last right singular vector of A (..., m, n) -> (..., n).
 
@@ -23,7 +56,7 @@ def null_vector(A: np.ndarray) -> np.ndarray:
     """
     if A.shape[-2] == A.shape[-1] - 1:
         return minimal_null_vector(A)
-    return np.linalg.svd(A, full_matrices=A.shape[-2] < A.shape[-1])[2][..., -1, :]
+    return svd(A, full_matrices=A.shape[-2] < A.shape[-1])[2][..., -1, :]
 
 
 def solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -50,7 +83,7 @@ def minimal_null_vector(A: np.ndarray) -> np.ndarray:
     x[:, :-1] = solve_or_nan(systems[:, :, :-1], -systems[:, :, -1:])[..., 0]
     singular = np.isnan(x[:, 0])
     if singular.any():            # (an SVD of no systems still costs a LAPACK call's overhead)
-        x[singular] = np.linalg.svd(systems[singular])[2][:, -1, :]
+        x[singular] = svd(systems[singular])[2][:, -1, :]
     x /= np.sqrt((x * x).sum(axis=1, keepdims=True))
     return x.reshape(*A.shape[:-2], A.shape[-1])
 

@@ -18,7 +18,16 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.linalg import levenberg_marquardt, rotation_from_rotvec, skew, solve_or_nan
+from estimation.geometry.linalg import (
+    complete_q,
+    eigvals,
+    inv,
+    levenberg_marquardt,
+    rotation_from_rotvec,
+    skew,
+    solve_or_nan,
+    svd,
+)
 from estimation.geometry.ransac import ransac
 from estimation.geometry.triangulation import observations_for_pair, triangulate_linear
 from estimation.two_view.fundamental import eight_point, epipolar_rows, sampson_distance, sampson_residual
@@ -71,6 +80,9 @@ DIAGONAL = np.arange(3)
 ROOT_ROWS = np.arange(5)
 """`_yz_of_roots`' rows k, the action matrix's rows k + 1, which meet M's diagonal at column k + 1."""
 FIRST_ROW_COFACTOR_SIGNS = np.array([1.0, -1.0, 1.0])
+ESSENTIAL_SINGULAR_VALUES = np.diag([1.0, 1.0, 0.0])
+"""An essential matrix's singular values (up to scale), as the diagonal matrix `project_to_essential` puts
+between U and V^T."""
 """det E = sum_k (-1)^k E_0k M_0k, M_0k the minor of E_0k."""
 
 
@@ -78,7 +90,7 @@ def _null_space_basis(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """(B, 4, 9) orthonormal basis of the null space of the five epipolar rows A: Q's last four columns in
     A^T = Q R (a complete QR: a third of the cost of eigh(A^T A), and no squared condition number)."""
     rows = epipolar_rows(x1, x2)
-    return np.swapaxes(np.linalg.qr(np.swapaxes(rows, -1, -2), mode="complete")[0][..., 5:], -1, -2)
+    return complete_q(rows.swapaxes(-1, -2))[..., 5:].swapaxes(-1, -2)
 
 
 def _cubic_constraints(E: np.ndarray) -> np.ndarray:
@@ -107,7 +119,7 @@ def _cubic_constraints(E: np.ndarray) -> np.ndarray:
 def _real_roots(action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(sample, x) of every real eigenvalue x of the action matrices (B, 10, 10): M v = x v, v the basis
     monomials at a root; eigenvalues only (LAPACK skips the Schur vectors: ~2/3 of eig's cost)."""
-    values = np.linalg.eigvals(action)
+    values = eigvals(action)
     real = np.abs(values.imag) < REAL_ROOT_TOLERANCE * (1.0 + np.abs(values.real))
     sample, root = np.nonzero(real)
     return sample, values.real[sample, root]
@@ -156,7 +168,7 @@ def five_point_essential(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 
 def normalizer(K: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """uv -> x = K^-1 [u v 1] (dehomogenized), for points (..., 2), with K inverted once."""
-    principal_point, inverse_T = K[:2, 2], np.linalg.inv(K[:2, :2]).T
+    principal_point, inverse_T = K[:2, 2], inv(K[:2, :2]).T
     return lambda uv: (uv - principal_point) @ inverse_T
 
 
@@ -172,8 +184,8 @@ def fundamental_from_essential(E: np.ndarray, K1: np.ndarray, K2: np.ndarray) ->
 
 def project_to_essential(E: np.ndarray) -> np.ndarray:
     """The closest essential matrix up to scale: singular values replaced by (1, 1, 0)."""
-    U, _, Vt = np.linalg.svd(E)
-    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+    U, _, Vt = svd(E)
+    return U @ ESSENTIAL_SINGULAR_VALUES @ Vt
 
 
 class RelativePose(NamedTuple):
@@ -275,7 +287,7 @@ def ransac_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.nd
     # K's inverses taken once per pair, not once per batch, refit and scoring (as to_normalized and
     # fundamental_from_essential would: ~6000 inversions on lego's pairs).
     normalized1, normalized2 = normalizer(K1), normalizer(K2)
-    K2_inv_T, K1_inv = np.linalg.inv(K2).T, np.linalg.inv(K1)
+    K2_inv_T, K1_inv = inv(K2).T, inv(K1)
 
     def minimal(sample1: np.ndarray, sample2: np.ndarray) -> np.ndarray:
         return five_point_essential(normalized1(sample1), normalized2(sample2))

@@ -8,7 +8,7 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.linalg import null_vector
+from estimation.geometry.linalg import eigh, null_vector
 from estimation.geometry.ransac import ransac
 
 MIN_CORRESPONDENCES = 8
@@ -46,17 +46,27 @@ def hartley_normalization(uv: np.ndarray) -> Normalization:
 
 
 def epipolar_rows(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Rows of A f = 0 from x2^T F x1 = 0, for points (..., 2): (..., 9)."""
+    """Rows (u2 u1, u2 v1, u2, v2 u1, v2 v1, v2, u1, v1, 1) of A f = 0 from x2^T F x1 = 0, for points
+    (..., 2): (..., 9)."""
+    # Written column by column into one array: half the cost of np.stack's nine temporaries and copy.
     u1, v1, u2, v2 = x1[..., 0], x1[..., 1], x2[..., 0], x2[..., 1]
-    one = np.ones_like(u1)
-    return np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, one], axis=-1)
+    rows = np.empty((*x1.shape[:-1], 9))
+    np.multiply(u2, u1, out=rows[..., 0])
+    np.multiply(u2, v1, out=rows[..., 1])
+    rows[..., 2] = u2
+    np.multiply(v2, u1, out=rows[..., 3])
+    np.multiply(v2, v1, out=rows[..., 4])
+    rows[..., 5] = v2
+    rows[..., 6:8] = x1
+    rows[..., 8] = 1.0
+    return rows
 
 
 def _enforce_rank_two(F: np.ndarray) -> np.ndarray:
     """Closest rank-2 matrix in Frobenius norm: F (I - v v^T), v the right singular vector of F's smallest
     singular value, the eigenvector of F^T F's smallest eigenvalue (batched)."""
     # eigh of the 3 x 3 F^T F costs half the SVD of F (a batch of 64 minimal F: 65 vs 113 us).
-    v = np.linalg.eigh(np.swapaxes(F, -1, -2) @ F)[1][..., 0]
+    v = eigh(F.swapaxes(-1, -2) @ F)[1][..., 0]
     return F - (F @ v[..., None]) * v[..., None, :]
 
 
@@ -99,7 +109,7 @@ def sampson_residual(F: np.ndarray, uv1: np.ndarray, uv2: np.ndarray) -> np.ndar
     Fx1 = F[..., :2].reshape(-1, 2) @ uv1.T
     Fx1 += F[..., 2].reshape(-1, 1)
     Fx1 = Fx1.reshape(*models, 3, num)
-    Ftx2 = np.swapaxes(F[..., :2, :2], -1, -2).reshape(-1, 2) @ uv2.T
+    Ftx2 = F[..., :2, :2].swapaxes(-1, -2).reshape(-1, 2) @ uv2.T
     Ftx2 += F[..., 2, :2].reshape(-1, 1)
     Ftx2 = Ftx2.reshape(*models, 2, num)
     algebraic = Fx1[..., 0, :] * uv2[:, 0]

@@ -75,9 +75,9 @@ def opencv_essential(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray, K2: np.nd
         return project_to_essential(E)[None]
 
     candidates = E.reshape(-1, 3, 3)        # a degenerate sample may leave several roots
-    masks = residuals(candidates, uv1, uv2) < threshold_px
-    best = int(np.argmax(masks.sum(axis=1)))
-    E, _, _ = locally_optimized(candidates[best] / np.linalg.norm(candidates[best]), masks[best], (uv1, uv2),
+    scored = residuals(candidates, uv1, uv2)
+    best = int(np.argmax((scored < threshold_px).sum(axis=1)))
+    E, _, _ = locally_optimized(candidates[best] / np.linalg.norm(candidates[best]), scored[best], (uv1, uv2),
                                 residuals, threshold_px, refit, config.local_refits)
     distance = residuals(E[None], uv1, uv2)[0]
     return EssentialResult(E=E, inlier_mask=distance < threshold_px, sampson_px=distance,
@@ -104,7 +104,7 @@ def _locally_optimized_3x3(model: np.ndarray | None, name: str, uv1: np.ndarray,
     if model is None or model.shape != (3, 3):
         raise DegenerateConfigurationError(f"OpenCV's RANSAC found no {name} among {len(uv1)} "
                                            "correspondences")
-    model, _, _ = locally_optimized(model / np.linalg.norm(model), residuals(model, uv1, uv2) < threshold_px,
+    model, _, _ = locally_optimized(model / np.linalg.norm(model), residuals(model, uv1, uv2),
                                     (uv1, uv2), residuals, threshold_px,
                                     lambda inliers1, inliers2: solver(inliers1, inliers2)[None],
                                     config.local_refits)

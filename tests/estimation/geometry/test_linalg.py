@@ -1,4 +1,5 @@
-"""Null vectors of minimal systems (one row fewer than unknowns) by LU: as the SVD's, also where the
+"""The direct LAPACK calls (svd, eigh, eigvals, inv, complete_q) bitwise numpy.linalg's. Null vectors of
+minimal systems (one row fewer than unknowns) by LU: as the SVD's, also where the
 leading block is singular or the null vector's last entry is tiny; stacked solves leaving the singular
 systems NaN. Rotation vectors to matrices, and a small dense Levenberg-Marquardt reaching the minimum
 scipy's finds."""
@@ -8,11 +9,45 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from estimation.geometry.linalg import (
+    complete_q,
+    eigh,
+    eigvals,
+    inv,
     levenberg_marquardt,
     minimal_null_vector,
     rotation_from_rotvec,
     solve_or_nan,
+    svd,
 )
+
+
+def test_direct_lapack_calls_are_bitwise_numpy_linalg_on_stacks_and_single_matrices():
+    rng = np.random.default_rng(3)
+    for shape in [(3, 3), (64, 3, 3), (64, 10, 10)]:
+        a = rng.standard_normal(shape)
+        symmetric = a @ a.swapaxes(-1, -2)
+        for ours, numpys in zip(svd(a), np.linalg.svd(a), strict=True):
+            np.testing.assert_array_equal(ours, numpys)
+        for ours, numpys in zip(eigh(symmetric), np.linalg.eigh(symmetric), strict=True):
+            np.testing.assert_array_equal(ours, numpys)
+        np.testing.assert_array_equal(eigvals(a), np.linalg.eigvals(a))
+        np.testing.assert_array_equal(inv(a), np.linalg.inv(a))
+    tall = rng.standard_normal((200, 9))
+    thin = np.linalg.svd(tall, full_matrices=False)
+    for ours, numpys in zip(svd(tall, full_matrices=False), thin, strict=True):
+        np.testing.assert_array_equal(ours, numpys)
+
+
+def test_complete_q_is_numpys_and_leaves_its_input_alone():
+    a = np.random.default_rng(4).standard_normal((64, 5, 9)).swapaxes(-1, -2)      # a strided view
+    before = a.copy()
+    np.testing.assert_array_equal(complete_q(a), np.linalg.qr(a, mode="complete")[0])
+    np.testing.assert_array_equal(a, before)
+
+
+def test_eigvals_keeps_a_complex_pair_complex():
+    rotation = np.array([[0.0, -1.0], [1.0, 0.0]])
+    np.testing.assert_allclose(np.sort_complex(eigvals(rotation)), [-1j, 1j])
 
 
 def assert_unit_null_vectors(A: np.ndarray, x: np.ndarray) -> None:

@@ -11,6 +11,7 @@ from estimation.synthetic import make_scene
 from estimation.two_view.fundamental import (
     _enforce_rank_two,
     eight_point,
+    epipolar_rows,
     hartley_normalization,
     ransac_fundamental,
     sampson_distance,
@@ -113,3 +114,14 @@ def test_ransac_iterations_adapt_to_the_inlier_ratio():
     assert ransac_fundamental(*clean.tracks.pair_correspondences(0, 1)[1:], config).iterations == (
         HYPOTHESES_PER_BATCH)
     assert ransac_fundamental(*dirty.tracks.pair_correspondences(0, 1)[1:], config).iterations > 1000
+
+
+def test_epipolar_rows_dotted_with_f_are_x2t_f_x1_batched_and_single():
+    rng = np.random.default_rng(5)
+    F = rng.standard_normal((3, 3))
+    for shape in [(40, 2), (6, 8, 2)]:
+        x1, x2 = rng.standard_normal(shape), rng.standard_normal(shape)
+        one = np.ones((*shape[:-1], 1))
+        expected = np.einsum("...i,ij,...j->...", np.concatenate([x2, one], axis=-1), F,
+                             np.concatenate([x1, one], axis=-1))
+        np.testing.assert_allclose(epipolar_rows(x1, x2) @ F.ravel(), expected, atol=1e-12)

@@ -7,6 +7,7 @@ from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.synthetic import rotation_about_axis
 from estimation.two_view.homography import (
+    _homography_rows,
     homography_dlt,
     homography_translation,
     ransac_homography,
@@ -47,3 +48,13 @@ def test_the_translation_of_a_rotation_homography_is_zero_and_of_a_plane_its_bas
     t, n, d = np.array([0.3, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), 6.0     # plane z = 6
     plane = K @ (R + np.outer(t, n) / d) @ np.linalg.inv(K)
     assert homography_translation(plane, K, K) == pytest.approx(0.05, rel=0.05)
+
+
+def test_homography_rows_vanish_on_h_for_exact_correspondences_batched_and_single():
+    rng = np.random.default_rng(6)
+    uv1 = rng.uniform(0, 640, (3, 7, 2))
+    uv2 = np.stack([mapped(H_TRUE, uv) for uv in uv1])
+    rows = _homography_rows(uv1, uv2)
+    assert rows.shape == (3, 14, 9)
+    np.testing.assert_allclose(rows @ H_TRUE.ravel(), 0.0, atol=1e-8)
+    np.testing.assert_array_equal(_homography_rows(uv1[1], uv2[1]), rows[1])
