@@ -63,7 +63,7 @@ class ImageFeatures(NamedTuple):
 
     @property
     def descriptors(self) -> np.ndarray:
-        """The RootSIFT descriptors (N, 128) float32."""
+        """The RootSIFT descriptors (N, 128) float32, made at each access."""
         return root_sift(self.sift)
 
 
