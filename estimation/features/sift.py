@@ -23,6 +23,7 @@ from collections import defaultdict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from itertools import repeat
 from pathlib import Path
 from typing import NamedTuple
@@ -54,10 +55,16 @@ WORKER_MODULES = ("estimation.features.sift",)
 
 
 class ImageFeatures(NamedTuple):
-    """Keypoints (N, 2) full-resolution pixel uv and their RootSIFT descriptors (N, 128) float32."""
+    """Keypoints (N, 2) full-resolution pixel uv and their SIFT descriptors (N, 128) uint8, as OpenCV makes
+    them (its float descriptors are these whole numbers)."""
 
     uv: np.ndarray
-    descriptors: np.ndarray
+    sift: np.ndarray
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        """The RootSIFT descriptors (N, 128) float32, made at each access."""
+        return root_sift(self.sift)
 
 
 @dataclass(frozen=True)
@@ -92,13 +99,14 @@ def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
     sift = cv2.SIFT_create(nfeatures=config.max_features, contrastThreshold=config.contrast_threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, None)
     if descriptors is None:
-        return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+        return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
     # OpenCV's nfeatures keeps ties (and extra orientations) at the cut: enforce the budget exactly.
     strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[: config.max_features]
     keypoints, descriptors = [keypoints[k] for k in strongest], descriptors[strongest]
     uv_small = np.array([kp.pt for kp in keypoints], float).reshape(-1, 2)
     to_full = np.array([width / gray.shape[1], height / gray.shape[0]])
-    return ImageFeatures((uv_small + 0.5) * to_full - 0.5, root_sift(descriptors))
+    # OpenCV rounds its float descriptors to whole numbers 0-255 (saturate_cast<uchar>): uint8 keeps them.
+    return ImageFeatures((uv_small + 0.5) * to_full - 0.5, descriptors.astype(np.uint8))
 
 
 def _detect_in_file(path: Path, config: SiftConfig) -> tuple[ImageFeatures, np.ndarray]:
@@ -119,10 +127,11 @@ def sample_colors(rgb: np.ndarray, uv: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class PairWork:
     """What matching and verifying an image's pairs needs, sent once to each worker process: every image's
-    keypoints and descriptors, and the settings."""
+    keypoints and uint8 SIFT descriptors (a quarter of the float RootSIFT's bytes: 3.4 MB on lego), and the
+    settings."""
 
     uv: list[np.ndarray]
-    descriptors: list[DescriptorSet]
+    sift: list[np.ndarray]
     ratio: float
     max_distance: float
     device: str                          # "cpu" or "cuda" (`matching_device`)
@@ -135,8 +144,13 @@ class PairWork:
     def of(cls, features: list[ImageFeatures], config: SiftConfig, two_view: TwoViewConfig | None = None,
            ransac: RansacConfig = RansacConfig(), K: np.ndarray | None = None) -> PairWork:
         """The work of the detected `features` with `config`'s matching settings (`matching_device`)."""
-        return cls([f.uv for f in features], [descriptor_set(f.descriptors) for f in features], config.ratio,
-                   config.max_distance, matching_device(config.device), two_view, ransac, K)
+        return cls([f.uv for f in features], [f.sift for f in features], config.ratio, config.max_distance,
+                   matching_device(config.device), two_view, ransac, K)
+
+    @cached_property
+    def descriptors(self) -> list[DescriptorSet]:
+        """Every image's RootSIFT descriptors (`descriptor_set`), made in each process that matches."""
+        return [descriptor_set(root_sift(sift)) for sift in self.sift]
 
 
 def query_matches(work: PairWork, i: int, partners: list[int]) -> list[DescriptorMatches]:
@@ -181,7 +195,7 @@ def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
     if work.device != "cpu":
         # A GPU matches in this process (one device context, not one per worker process); the workers
         # only verify.
-        work = replace(work, descriptors=[], matched={i: query_matches(work, i, partners_of[i])
+        work = replace(work, sift=[], matched={i: query_matches(work, i, partners_of[i])
                                                       for i in queries})
     matches: dict[Pair, DescriptorMatches] = {}
     geometries: dict[Pair, TwoViewGeometry] = {}

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import pickle
 import subprocess
 import sys
 import textwrap
@@ -53,6 +54,34 @@ def test_keypoints_detected_downscaled_are_mapped_back_to_full_resolution_pixels
     assert np.mean(distance < 1.5) > 0.9
     naive = np.linalg.norm(mapped.uv[:, None] - reference.uv[None] * 3, axis=2).min(axis=1)
     assert np.median(naive) > np.median(distance) + 0.5
+
+
+def test_the_uint8_descriptors_are_opencvs_float_ones_and_give_their_rootsift_bitwise():
+    """The uint8 descriptors (a quarter of the bytes sent to the worker processes) lose nothing: OpenCV's
+    float SIFT descriptors are the same whole numbers, so RootSIFT of either is the same to the bit."""
+    gray = textured_image(240, 180, seed=5)[:, :, 0]
+    config = SiftConfig(max_features=300)
+    sift = cv2.SIFT_create(nfeatures=300, contrastThreshold=config.contrast_threshold)
+    keypoints, floats = sift.detectAndCompute(gray, None)
+    strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[:300]
+    features = detect_features(np.repeat(gray[:, :, None], 3, axis=2), config)
+    assert features.sift.dtype == np.uint8 and len(features.sift) > 100
+    np.testing.assert_array_equal(features.uv, np.array([keypoints[k].pt for k in strongest]))
+    np.testing.assert_array_equal(features.sift, floats[strongest])
+    assert features.descriptors.dtype == np.float32
+    assert features.descriptors.tobytes() == root_sift(floats[strongest]).tobytes()
+
+
+def test_the_worker_context_carries_uint8_sift_and_each_process_makes_the_same_rootsift_sets():
+    from estimation.features.matching import descriptor_set
+    from estimation.features.sift import PairWork
+
+    config = SiftConfig(max_features=200)
+    features = [detect_features(textured_image(200, 160, seed), config) for seed in (6, 7)]
+    work = pickle.loads(pickle.dumps(PairWork.of(features, config)))    # as a worker receives it
+    assert [sift.dtype for sift in work.sift] == [np.uint8, np.uint8]
+    for received, image in zip(work.descriptors, features, strict=True):
+        assert received.rows.tobytes() == descriptor_set(image.descriptors).rows.tobytes()
 
 
 def test_the_feature_budget_keeps_the_strongest_keypoints():
@@ -194,17 +223,17 @@ def test_a_gpu_matches_in_the_calling_process_and_the_workers_only_verify(monkey
     worker process; the pairs and their geometry are those of the CPU path. (No GPU needed: the device's
     namespace is numpy here, and a worker that matched would fail on the empty descriptor list.)"""
     from estimation.features import sift
-    from estimation.features.matching import NUMPY, descriptor_set
+    from estimation.features.matching import NUMPY
 
     rng = np.random.default_rng(3)
     points = rng.uniform([-1, -1, 4], [1, 1, 6], (120, 3))
     K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
     uv, descriptors = [], []
-    shared = root_sift(rng.integers(0, 256, (120, 128)).astype(np.float32))
+    shared = rng.integers(0, 256, (120, 128)).astype(np.uint8)
     for shift in (0.0, 0.3, 0.6):
         projected = (points + [shift, 0, 0]) @ K.T
         uv.append(projected[:, :2] / projected[:, 2:])
-        descriptors.append(descriptor_set(shared))
+        descriptors.append(shared)
     pairs = [(0, 1), (0, 2), (1, 2)]
     calls = []
     monkeypatch.setattr(sift, "array_namespace", lambda device: calls.append(device) or NUMPY)
