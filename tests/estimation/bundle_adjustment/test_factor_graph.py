@@ -1,5 +1,7 @@
 """Bundle adjustment against synthetic ground truth: convergence, gauge, robustness, local BA, bad input."""
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -360,6 +362,24 @@ def test_fixed_intrinsics_stay_as_given_and_distorted_pixels_are_undistorted_fir
     assert result.cameras == [TRUE_RADIAL] * 5
     assert result.final_rms_px < 1e-4
     assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 1e-4
+
+
+def test_one_shared_camera_object_adjusts_bitwise_as_equal_per_image_copies():
+    # A shared object is used as is (`observation_cameras`), copies per observation: the same arithmetic.
+    scene = make_scene(num_cameras=5, num_points=150, noise_px=0.5, seed=6, camera=TRUE_RADIAL)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3), keep=(0, 1, 2))
+    results = [
+        bundle_adjust(cameras, poses, points, *observations(scene), BundleAdjustmentConfig(),
+                      fixed_cameras=(0, 1, 2), scale_reference=None)
+        for cameras in ([TRUE_RADIAL] * 5, [replace(TRUE_RADIAL) for _ in range(5)])
+    ]
+    shared, copies = results
+    np.testing.assert_array_equal(shared.points, copies.points)
+    for a, b in zip(shared.poses, copies.poses, strict=True):
+        np.testing.assert_array_equal(a.R, b.R)
+        np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(shared.initial_residuals, copies.initial_residuals)
+    np.testing.assert_array_equal(shared.final_residuals, copies.final_residuals)
 
 
 def test_the_principal_point_is_refined_on_request_for_the_opencv_model():
