@@ -211,7 +211,7 @@ def _observed_residuals(
     rotations = np.stack([pose.R for pose in poses])
     translations = np.stack([pose.t for pose in poses])
     observations = Observations(
-        R=rotations[camera_index], t=translations[camera_index], uv=uv,
+        R=rotations.take(camera_index, axis=0), t=translations.take(camera_index, axis=0), uv=uv,
         point_index=point_index, num_points=len(points),
     )
     return observation_residuals(observed, observations, points)
@@ -683,10 +683,13 @@ def bundle_adjust(
     adjusted_poses = list(poses)
     for c in camera_keys.tolist():
         adjusted_poses[c] = camera_pose_from_gtsam(values.atPose3(c))
-    adjusted_points = points.copy()
-    if len(observed_points):
-        # extractPoint3 returns every Point3 in key order, i.e. in observed_points order.
-        adjusted_points[observed_points] = gtsam.utilities.extractPoint3(values)
+    # extractPoint3 returns every Point3 in key order, i.e. in observed_points order.
+    if len(observed_points) == len(points) > 0:   # every point observed (the mapper's case): no copy to fill
+        adjusted_points = gtsam.utilities.extractPoint3(values)
+    else:
+        adjusted_points = points.copy()
+        if len(observed_points):
+            adjusted_points[observed_points] = gtsam.utilities.extractPoint3(values)
     adjusted_cameras = list(cameras)
     if refines:
         bundler = _uses_bundler(cameras[0].model, refine.principal_point)

@@ -94,10 +94,15 @@ class Scene:
     def pose(self, image: int) -> CameraPose:
         return CameraPose(R=self.R[image].copy(), t=self.t[image].copy())
 
+    def _poses_of(self, images: list[int]) -> list[CameraPose]:
+        """The images' poses as views of one copy of their rows (two gathers instead of a copy per array)."""
+        rotations, translations = self.R.take(images, axis=0), self.t.take(images, axis=0)
+        return [CameraPose(R, t) for R, t in zip(rotations, translations, strict=True)]
+
     @property
     def poses(self) -> dict[int, CameraPose]:
         """Registered image -> pose, in registration order."""
-        return {m: self.pose(m) for m in self.order}
+        return dict(zip(self.order, self._poses_of(self.order), strict=True))
 
     def register_image(self, image: int, pose: CameraPose) -> None:
         if self.registered[image]:
@@ -442,13 +447,14 @@ class Scene:
         point_ids = np.flatnonzero(in_adjustment)
         point_index = (np.cumsum(in_adjustment) - 1).take(point_of_obs)   # point id -> its rank in point_ids
         result = bundle_adjust(
-            [self.cameras[m] for m in cameras], [self.pose(m) for m in cameras],
+            [self.cameras[m] for m in cameras], self._poses_of(cameras),
             self.point_xyz.take(point_ids, axis=0), position.take(self.tracks.image_index.take(used)),
             point_index, self.observed_uv.take(used, axis=0), config, fixed_cameras=fixed,
             scale_reference=scale_reference, refine=refine, intrinsics_covariance=intrinsics_covariance,
         )
-        for m, pose in zip(cameras, result.poses, strict=True):
-            self.set_pose(m, pose)
+        # All rows in one assignment each (89 per-image row writes cost ~0.1 ms a BA).
+        self.R[cameras] = np.stack([pose.R for pose in result.poses])
+        self.t[cameras] = np.stack([pose.t for pose in result.poses])
         self.point_xyz[point_ids] = result.points
         if refine.refines(self.cameras[0].model):
             refined = dict(zip(cameras, result.cameras, strict=True))
