@@ -206,15 +206,6 @@ class RobustTriangulation(NamedTuple):
     valid: np.ndarray         # (P,) bool: 2+ inliers seen at an angle of at least min_angle_deg
 
 
-def _ranked_hypotheses(owner: np.ndarray, support: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Hypotheses by point, within a point by support (whole numbers >= -1) descending, then by h: the
-    order of np.lexsort((h, -support, owner)) as one argsort of a combined integer key (a tenth of the
-    three-key lexsort's time). (owner, h) pairs are unique."""
-    most = int(support.max(initial=0))
-    width = int(h.max(initial=0)) + 1
-    return np.argsort((owner * (most + 2) + (most - support.astype(np.int64))) * width + h, kind="stable")
-
-
 def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, min_angle_deg: float,
                        hypotheses_per_point: int) -> RobustTriangulation:
     """Per point, argmax over pairs (a, b) of its observations of #{o : ||r_o(DLT(a, b))|| < max_error_px}
@@ -256,7 +247,7 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     support = np.bincount(scored_hypothesis, weights=agrees, minlength=num_hypotheses)
     support[~((pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
     # Best hypothesis per point: the first of the largest support (the order of the listed pairs).
-    ranked = _ranked_hypotheses(owner, support, h)
+    ranked = np.lexsort((h, -support, owner))
     first_of_owner = np.ones(len(ranked), bool)
     first_of_owner[1:] = owner[ranked[1:]] != owner[ranked[:-1]]
     leaders = ranked[first_of_owner]

@@ -6,7 +6,6 @@ import pytest
 from estimation.geometry.triangulation import (
     Observations,
     _projection_jacobian,
-    _ranked_hypotheses,
     observation_errors,
     observations_for_pair,
     ray_pair_angle_deg,
@@ -114,16 +113,6 @@ def test_the_angle_of_two_rays_per_point_is_triangulation_angle_deg_bitwise():
         general = triangulation_angle_deg(centers, np.tile(np.arange(500), 2), points)
     np.testing.assert_array_equal(pair, general)
     assert np.isnan(pair[7]) and np.all(np.isfinite(np.delete(pair, 7)))
-
-
-def test_hypotheses_are_ranked_as_the_three_key_lexsort():
-    rng = np.random.default_rng(4)
-    per_point = rng.integers(1, 7, 300)
-    owner = np.repeat(np.arange(300), per_point)
-    h = np.arange(len(owner)) - (np.cumsum(per_point) - per_point)[owner]
-    support = rng.integers(-1, 6, len(owner)).astype(float)
-    np.testing.assert_array_equal(_ranked_hypotheses(owner, support, h), np.lexsort((h, -support, owner)))
-    assert len(_ranked_hypotheses(np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64))) == 0
 
 
 def rays_at_angles(angles_deg: np.ndarray, point_index: np.ndarray, num_points: int):
