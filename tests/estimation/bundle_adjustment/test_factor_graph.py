@@ -8,6 +8,8 @@ import pytest
 
 from estimation.bundle_adjustment.factor_graph import (
     IntrinsicsRefinement,
+    _marked,
+    _pinhole_calibration,
     bundle_adjust,
     camera_pose_from_gtsam,
     camera_pose_to_gtsam,
@@ -362,6 +364,18 @@ def test_fixed_intrinsics_stay_as_given_and_distorted_pixels_are_undistorted_fir
     assert result.cameras == [TRUE_RADIAL] * 5
     assert result.final_rms_px < 1e-4
     assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 1e-4
+
+
+def test_marked_ids_are_the_sorted_unique_union_np_unique_gives():
+    ids = np.array([7, 2, 2, 9]), [0, 7]
+    marked = _marked(12, *ids)
+    assert marked.shape == (12,)
+    np.testing.assert_array_equal(np.flatnonzero(marked), np.unique(np.concatenate(ids)))
+
+
+def test_the_pinhole_calibration_is_the_cameras_K():
+    camera = Camera("opencv", fx=810.0, fy=805.0, cx=402.0, cy=297.0, skew=0.5, k1=-0.2)
+    np.testing.assert_array_equal(_pinhole_calibration(camera).K(), camera.K)
 
 
 def test_one_shared_camera_object_adjusts_bitwise_as_equal_per_image_copies():
