@@ -48,6 +48,7 @@ from estimation.geometry.projection import (
     as_camera,
     ideal_pixels,
     is_shared,
+    observation_cameras,
 )
 from estimation.geometry.projection import reprojection_residuals as observation_residuals
 from estimation.geometry.triangulation import Observations
@@ -105,7 +106,7 @@ class _ErrorInputs(NamedTuple):
     """What the reprojection residuals before a BA and after it (with the result's poses and points) are
     computed from, when first read."""
 
-    initial_observed: Camera  # the camera of each observation (Camera.take), before and after
+    initial_observed: Camera  # the camera of each observation (`observation_cameras`), before and after
     final_observed: Camera
     initial_poses: list[CameraPose]
     initial_points: np.ndarray
@@ -197,7 +198,7 @@ def reprojection_residuals(
     uv: np.ndarray,
 ) -> np.ndarray:
     """r_o = pi(camera_c, R_c X_p + t_c) - uv_o for every observation, (O, 2) pixels."""
-    observed = Camera.take(per_pose_cameras(camera, len(poses)), camera_index)
+    observed = observation_cameras(per_pose_cameras(camera, len(poses)), camera_index)
     return _observed_residuals(observed, poses, points, camera_index, point_index, uv)
 
 
@@ -205,11 +206,12 @@ def _observed_residuals(
     observed: Camera, poses: Sequence[CameraPose], points: np.ndarray, camera_index: np.ndarray,
     point_index: np.ndarray, uv: np.ndarray,
 ) -> np.ndarray:
-    """r_o = pi(observed_o, R_c X_p + t_c) - uv_o, observed_o the camera of observation o (Camera.take)."""
+    """r_o = pi(observed_o, R_c X_p + t_c) - uv_o, observed_o the camera of observation o
+    (`observation_cameras`)."""
     rotations = np.stack([pose.R for pose in poses])
     translations = np.stack([pose.t for pose in poses])
     observations = Observations(
-        R=rotations[camera_index], t=translations[camera_index], uv=uv,
+        R=rotations.take(camera_index, axis=0), t=translations.take(camera_index, axis=0), uv=uv,
         point_index=point_index, num_points=len(points),
     )
     return observation_residuals(observed, observations, points)
@@ -276,6 +278,14 @@ def _validate(
             raise InputError("bundle_adjust: the fixed and scale-reference cameras share a centre (no scale)")
 
 
+def _marked(size: int, *indices: np.ndarray | Sequence[int]) -> np.ndarray:
+    """(size,) bool, True at every index in `indices` (sorted unique ids by flatnonzero: no np.unique)."""
+    marked = np.zeros(size, bool)
+    for index in indices:
+        marked[np.asarray(index, np.int64)] = True
+    return marked
+
+
 def _pixel_noise(config: BundleAdjustmentConfig) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Robust.Create(
         gtsam.noiseModel.mEstimator.Huber.Create(config.huber_threshold_px / config.measurement_sigma_px),
@@ -300,26 +310,33 @@ def _projection_factors(
     pixel_noise = _pixel_noise(config)
     # One vectorized call per variable camera instead of one Python call per observation.
     by_camera = np.argsort(camera_index, kind="stable")
-    bounds = np.searchsorted(camera_index[by_camera], np.arange(num_cameras + 1))
-    point_keys = (num_cameras + point_index[by_camera]).astype(float)
-    measurements = np.ascontiguousarray(ideal[by_camera].T)
-    rows = np.ascontiguousarray(ideal[by_camera])   # a contiguous pixel per factor converts faster
+    bounds = np.searchsorted(camera_index.take(by_camera), np.arange(num_cameras + 1))
+    keys = num_cameras + point_index.take(by_camera)
+    point_keys, key_list = keys.astype(float), keys.tolist()
+    rows = ideal.take(by_camera, axis=0)   # a contiguous pixel per factor converts faster
+    measurements = np.ascontiguousarray(rows.T)
+    calibrations: dict[int, gtsam.Cal3_S2] = {}   # by Camera object: a shared camera's is built once
     # Bound once: the per-observation loop below is the BA's largest Python cost (~1 us per factor).
     add, triangulation_factor = graph.add, gtsam.TriangulationFactorCal3_S2
     for camera in np.flatnonzero(np.diff(bounds)).tolist():
         begin, end = bounds[camera], bounds[camera + 1]
-        K = cameras[camera].K
-        calibration = gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
+        calibration = calibrations.get(id(cameras[camera]))
+        if calibration is None:
+            calibration = calibrations[id(cameras[camera])] = _pinhole_calibration(cameras[camera])
         if camera in constant_poses:
             pinhole = gtsam.PinholeCameraCal3_S2(constant_poses[camera], calibration)
-            for key, measured in zip((num_cameras + point_index[by_camera[begin:end]]).tolist(),
-                                     rows[begin:end], strict=True):
+            for key, measured in zip(key_list[begin:end], rows[begin:end], strict=True):
                 add(triangulation_factor(pinhole, measured, pixel_noise, key))
         else:
             gtsam.utilities.insertProjectionFactors(
                 graph, camera, point_keys[begin:end], measurements[:, begin:end], pixel_noise, calibration
             )
     return graph
+
+
+def _pinhole_calibration(camera: Camera) -> gtsam.Cal3_S2:
+    """The GTSAM calibration of the camera's pinhole K (fx, fy, skew, cx, cy)."""
+    return gtsam.Cal3_S2(camera.fx, camera.fy, camera.skew, camera.cx, camera.cy)
 
 
 def _one_focal(model: str) -> bool:
@@ -623,16 +640,16 @@ def bundle_adjust(
     fixed_cameras = [int(c) for c in fixed_cameras]
     _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
-    observed = Camera.take(cameras, camera_index)   # the camera of each observation, read once
+    observed = observation_cameras(cameras, camera_index)   # the camera of each observation, read once
 
     num_cameras = len(poses)
     refines = refine.refines(cameras[0].model) and len(uv) > 0
     # With fixed intrinsics, fixed cameras are constants; the scale prior's anchor stays a variable.
     constant_cameras = set() if refines else set(fixed_cameras[1:] if use_scale_prior else fixed_cameras)
     extra_cameras = [*fixed_cameras, *([scale_reference] if use_scale_prior else [])]
-    camera_keys = np.setdiff1d(np.concatenate([camera_index, extra_cameras]).astype(np.int64),
-                               np.array(sorted(constant_cameras), np.int64))
-    observed_points = np.unique(point_index)
+    camera_keys = np.flatnonzero(_marked(num_cameras, camera_index, extra_cameras)
+                                 & ~_marked(num_cameras, list(constant_cameras)))
+    observed_points = np.flatnonzero(_marked(len(points), point_index))
     point_keys = num_cameras + observed_points
     # Calibration variable of each camera: its own, or the one they all share.
     calibration_of_camera = np.arange(num_cameras) if refine.per_image else np.zeros(num_cameras, np.int64)
@@ -654,7 +671,7 @@ def bundle_adjust(
     for c, pose in gtsam_poses.items():
         initial.insert(c, pose)
     insert_point = initial.insertPoint3   # bound once: one call per point
-    for key, point in zip(point_keys.tolist(), points[observed_points], strict=True):
+    for key, point in zip(point_keys.tolist(), points.take(observed_points, axis=0), strict=True):
         insert_point(key, point)
     for key in calibration_keys.tolist():
         first = int(np.flatnonzero(calibration_of_camera == key - calibration_offset)[0])
@@ -666,10 +683,13 @@ def bundle_adjust(
     adjusted_poses = list(poses)
     for c in camera_keys.tolist():
         adjusted_poses[c] = camera_pose_from_gtsam(values.atPose3(c))
-    adjusted_points = points.copy()
-    if len(observed_points):
-        # extractPoint3 returns every Point3 in key order, i.e. in observed_points order.
-        adjusted_points[observed_points] = gtsam.utilities.extractPoint3(values)
+    # extractPoint3 returns every Point3 in key order, i.e. in observed_points order.
+    if len(observed_points) == len(points) > 0:   # every point observed (the mapper's case): no copy to fill
+        adjusted_points = gtsam.utilities.extractPoint3(values)
+    else:
+        adjusted_points = points.copy()
+        if len(observed_points):
+            adjusted_points[observed_points] = gtsam.utilities.extractPoint3(values)
     adjusted_cameras = list(cameras)
     if refines:
         bundler = _uses_bundler(cameras[0].model, refine.principal_point)
@@ -683,7 +703,7 @@ def bundle_adjust(
         covariance = _intrinsics_covariance(graph, values, int(calibration_keys[0]), num_cameras,
                                             fixed_cameras, cameras[0].model, refine)
 
-    adjusted_observed = Camera.take(adjusted_cameras, camera_index) if refines else observed
+    adjusted_observed = observation_cameras(adjusted_cameras, camera_index) if refines else observed
     # Copies of what the caller may change before reading the error figures.
     error_inputs = _ErrorInputs(observed, adjusted_observed, list(poses), points.copy(), camera_index.copy(),
                                 point_index.copy(), uv.copy(), config)

@@ -155,6 +155,13 @@ class Camera:
         return Camera(model=models.pop(), **arrays)
 
 
+def observation_cameras(cameras: Sequence[Camera], index: np.ndarray) -> Camera:
+    """The camera of each element of `index`: the one Camera object itself when every camera is that object
+    (its scalar fields broadcast: the same values, no per-element arrays to fill), else `Camera.take`."""
+    first = cameras[0]
+    return first if all(camera is first for camera in cameras) else Camera.take(cameras, index)
+
+
 def as_camera(camera: Camera | np.ndarray) -> Camera:
     """A Camera as is; a 3x3 K as the pinhole camera it describes."""
     return camera if isinstance(camera, Camera) else Camera.from_K(camera)

@@ -150,6 +150,16 @@ def triangulation_angle_deg(centers: np.ndarray, obs_point_index: np.ndarray, po
     return np.degrees(np.arccos(np.clip(min_cosine, -1.0, 1.0)))
 
 
+def ray_pair_angle_deg(centers: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Per point, the angle between its two viewing rays X_p - C_p and X_p - C_{P+p} (degrees), (P,);
+    centers (2P, 3). What `triangulation_angle_deg` gives for two observations per point, bitwise,
+    without its sort and pair search."""
+    rays = np.concatenate([points, points]) - centers
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    cosine = np.minimum(np.einsum("oi,oi->o", rays[: len(points)], rays[len(points):]), 1.0)
+    return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
 def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray, points: np.ndarray,
                                 min_angle_deg: float) -> np.ndarray:
     """Per point, whether the largest angle between two of its viewing rays X - C_o reaches min_angle_deg,
@@ -223,7 +233,7 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
         point_index=np.tile(np.arange(num_hypotheses), 2), num_points=num_hypotheses)
     candidates = triangulate_linear(K, hypothesis_obs).points
     centers = -np.einsum("oji,oj->oi", hypothesis_obs.R, hypothesis_obs.t)
-    pair_angle = triangulation_angle_deg(centers, hypothesis_obs.point_index, candidates)
+    pair_angle = ray_pair_angle_deg(centers, candidates)   # hypothesis h: observations h and H + h
 
     # Score each hypothesis of p on every observation of p: observation o is repeated per hypothesis.
     scored_per_obs = per_point[obs.point_index]

@@ -1,11 +1,15 @@
 """Bundle adjustment against synthetic ground truth: convergence, gauge, robustness, local BA, bad input."""
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
 
 from estimation.bundle_adjustment.factor_graph import (
     IntrinsicsRefinement,
+    _marked,
+    _pinhole_calibration,
     bundle_adjust,
     camera_pose_from_gtsam,
     camera_pose_to_gtsam,
@@ -360,6 +364,36 @@ def test_fixed_intrinsics_stay_as_given_and_distorted_pixels_are_undistorted_fir
     assert result.cameras == [TRUE_RADIAL] * 5
     assert result.final_rms_px < 1e-4
     assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 1e-4
+
+
+def test_marked_ids_are_the_sorted_unique_union_np_unique_gives():
+    ids = np.array([7, 2, 2, 9]), [0, 7]
+    marked = _marked(12, *ids)
+    assert marked.shape == (12,)
+    np.testing.assert_array_equal(np.flatnonzero(marked), np.unique(np.concatenate(ids)))
+
+
+def test_the_pinhole_calibration_is_the_cameras_K():
+    camera = Camera("opencv", fx=810.0, fy=805.0, cx=402.0, cy=297.0, skew=0.5, k1=-0.2)
+    np.testing.assert_array_equal(_pinhole_calibration(camera).K(), camera.K)
+
+
+def test_one_shared_camera_object_adjusts_bitwise_as_equal_per_image_copies():
+    # A shared object is used as is (`observation_cameras`), copies per observation: the same arithmetic.
+    scene = make_scene(num_cameras=5, num_points=150, noise_px=0.5, seed=6, camera=TRUE_RADIAL)
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3), keep=(0, 1, 2))
+    results = [
+        bundle_adjust(cameras, poses, points, *observations(scene), BundleAdjustmentConfig(),
+                      fixed_cameras=(0, 1, 2), scale_reference=None)
+        for cameras in ([TRUE_RADIAL] * 5, [replace(TRUE_RADIAL) for _ in range(5)])
+    ]
+    shared, copies = results
+    np.testing.assert_array_equal(shared.points, copies.points)
+    for a, b in zip(shared.poses, copies.poses, strict=True):
+        np.testing.assert_array_equal(a.R, b.R)
+        np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(shared.initial_residuals, copies.initial_residuals)
+    np.testing.assert_array_equal(shared.final_residuals, copies.final_residuals)
 
 
 def test_the_principal_point_is_refined_on_request_for_the_opencv_model():

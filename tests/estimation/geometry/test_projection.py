@@ -9,6 +9,7 @@ from estimation.geometry.projection import (
     Camera,
     ideal_pixels,
     normalized_to_pixel,
+    observation_cameras,
     pixel_to_normalized,
     project,
     reprojection_residuals,
@@ -82,6 +83,24 @@ def test_taking_one_shared_camera_gives_per_point_arrays_of_its_values():
     for field in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "skew"):
         np.testing.assert_array_equal(getattr(taken, field), np.full(5, getattr(camera, field)))
     assert taken.model == "opencv"
+
+
+def test_observation_cameras_are_the_shared_camera_itself_or_taken_per_element():
+    shared = CAMERAS["opencv"]
+    assert observation_cameras([shared] * 3, np.array([2, 0, 1])) is shared
+    # Equal but distinct objects are taken per element.
+    cameras = [shared, Camera("opencv", fx=500.0, fy=505.0, cx=320.0, cy=240.0, k1=0.1)]
+    index = np.array([1, 0, 1])
+    taken = observation_cameras(cameras, index)
+    np.testing.assert_array_equal(taken.fx, Camera.take(cameras, index).fx)
+
+
+def test_a_shared_camera_projects_bitwise_as_its_per_point_arrays():
+    camera = CAMERAS["opencv"]
+    R, t, points = random_scene(seed=6, num=50)
+    taken = Camera.take([camera] * 2, np.zeros(50, np.int64))
+    np.testing.assert_array_equal(project(camera, R, t, points).uv, project(taken, R, t, points).uv)
+    np.testing.assert_array_equal(ideal_pixels(camera, points[:, :2]), ideal_pixels(taken, points[:, :2]))
 
 
 def test_reprojection_residuals_accept_a_3x3_K_as_the_pinhole_camera():

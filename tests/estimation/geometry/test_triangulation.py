@@ -8,6 +8,7 @@ from estimation.geometry.triangulation import (
     _projection_jacobian,
     observation_errors,
     observations_for_pair,
+    ray_pair_angle_deg,
     reprojection_residuals,
     sum_per_point,
     triangulate_linear,
@@ -100,6 +101,18 @@ def test_triangulation_angle_is_the_largest_angle_between_viewing_rays():
     angles = triangulation_angle_deg(centers, point_index, points)
     assert angles[0] == pytest.approx(90.0)
     assert angles[1] == pytest.approx(np.degrees(0.5e-6), rel=1e-3)
+
+
+def test_the_angle_of_two_rays_per_point_is_triangulation_angle_deg_bitwise():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(500, 3)) * 4.0
+    centers = rng.normal(size=(1000, 3))
+    centers[7] = points[7]   # a zero ray: NaN in both
+    with np.errstate(invalid="ignore"):
+        pair = ray_pair_angle_deg(centers, points)
+        general = triangulation_angle_deg(centers, np.tile(np.arange(500), 2), points)
+    np.testing.assert_array_equal(pair, general)
+    assert np.isnan(pair[7]) and np.all(np.isfinite(np.delete(pair, 7)))
 
 
 def rays_at_angles(angles_deg: np.ndarray, point_index: np.ndarray, num_points: int):
