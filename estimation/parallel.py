@@ -8,7 +8,9 @@ job leaves none behind, and imports the modules it needs as soon as it starts. D
 images' descriptors) is a pool's `context`, sent to each process once (`WorkerPool.share`); it may come after
 the start, so that the processes start while the caller computes it. Each process runs its BLAS on one
 thread, the calling process too while it does a one-worker pool's items: the pool's processes are the
-parallelism, and a BLAS thread per core in each would oversubscribe the cores.
+parallelism, and a BLAS thread per core in each would oversubscribe the cores. With `caller_works`, the
+calling process is one of the workers (one process fewer to start, where it would only wait for the others):
+the processes take the items from the front and the caller from the back, each item claimed once.
 """
 
 from __future__ import annotations
@@ -48,6 +50,9 @@ _context: Any = None
 """The pool's context, in a worker process."""
 _all_received: Barrier | None = None
 """Passed by every process of the pool once it holds a newly shared context, in a worker process."""
+_claims: Any = None
+"""The pool's shared (next item a process may take, first item the calling process took), in a worker
+process of a pool whose caller works too."""
 
 
 def available_cores() -> int:
@@ -83,12 +88,13 @@ def die_with_parent(parent_pid: int) -> None:
 
 
 def _initialize_worker(parent_pid: int, modules: tuple[str, ...], all_started: Barrier,
-                       all_received: Barrier) -> None:
-    global _all_received
+                       all_received: Barrier, claims: Any) -> None:
+    global _all_received, _claims
     die_with_parent(parent_pid)
     for module in modules:
         importlib.import_module(module)
     _all_received = all_received
+    _claims = claims
     # No process takes an item before all are spawned: ProcessPoolExecutor spawns one at a submit only
     # while none is idle, so a process done with its first item would leave the next one to be spawned
     # later, outside `_main_module_hidden` and the one-BLAS-thread environment (seen under load, when the
@@ -106,6 +112,19 @@ def _receive_context(context: Any) -> None:
 
 def _call_with_context(function: Callable[..., Any], *args: Any) -> Any:
     return function(_context, *args)
+
+
+class _Taken:
+    """A process's answer for an item the calling process took first."""
+
+
+def _claimed_call(function: Callable[..., Any], index: int, *args: Any) -> Any:
+    """function(*args) unless the calling process already took item `index` (then a _Taken)."""
+    with _claims.get_lock():
+        if index >= _claims[1]:
+            return _Taken()
+        _claims[0] = max(_claims[0], index + 1)
+    return function(*args)
 
 
 @functools.cache
@@ -179,22 +198,30 @@ def _main_module_hidden() -> Iterator[None]:
 
 
 class WorkerPool:
-    """`map` over items in `workers` spawned processes, or in the calling process when there is one worker
-    (or when this process may not have children: a daemonic multiprocessing worker). With a `context`
-    (given here or `share`d later), every call gets it as its first argument."""
+    """`map` over items in `workers` spawned processes (`caller_works`: `workers` - 1 and the calling process),
+    or in the calling process when there is one worker (or when this process may not have children: a
+    daemonic multiprocessing worker). With a `context` (given here or `share`d later), every call gets it as
+    its first argument."""
 
-    def __init__(self, workers: int, modules: tuple[str, ...] = (), context: Any = None) -> None:
+    def __init__(self, workers: int, modules: tuple[str, ...] = (), context: Any = None,
+                 caller_works: bool = False) -> None:
         self.workers = workers if not multiprocessing.current_process().daemon else 1
+        # The calling process as one of the workers: one process fewer to start (its interpreter and
+        # imports) where the caller would only wait for the others.
+        self.caller_works = caller_works and self.workers > 1
+        self.processes = self.workers - 1 if self.caller_works else self.workers
         self.context: Any = None
         self._executor: ProcessPoolExecutor | None = None
         if self.workers > 1:
             spawn = multiprocessing.get_context("spawn")
+            self._claims = spawn.Array("q", 2)
             self._executor = ProcessPoolExecutor(
-                self.workers, mp_context=spawn, initializer=_initialize_worker,
-                initargs=(os.getpid(), modules, spawn.Barrier(self.workers), spawn.Barrier(self.workers)),
+                self.processes, mp_context=spawn, initializer=_initialize_worker,
+                initargs=(os.getpid(), modules, spawn.Barrier(self.processes), spawn.Barrier(self.processes),
+                          self._claims),
             )
             with _main_module_hidden(), _environment(dict.fromkeys(BLAS_THREAD_VARIABLES, "1")):
-                for _ in range(self.workers):      # start every process now, not at the first map
+                for _ in range(self.processes):      # start every process now, not at the first map
                     self._executor.submit(os.getpid)
         if context is not None:
             self.share(context)
@@ -204,7 +231,7 @@ class WorkerPool:
         its start: it is unpickled after the modules' imports, and the processes start side by side)."""
         self.context = context
         if self._executor is not None:
-            received = [self._executor.submit(_receive_context, context) for _ in range(self.workers)]
+            received = [self._executor.submit(_receive_context, context) for _ in range(self.processes)]
             for future in received:
                 future.result()
 
@@ -215,10 +242,39 @@ class WorkerPool:
             if self.context is not None:
                 function = functools.partial(function, self.context)
             return map(functools.partial(_in_one_blas_thread, function), *sequences)
+        if self.caller_works:
+            return self._map_with_caller(function, list(zip(*sequences, strict=True)))
         if self.context is not None:
             function = functools.partial(_call_with_context, function)
         chunk = max(1, min(map(len, sequences)) // (CHUNKS_PER_WORKER * self.workers))
         return self._executor.map(function, *sequences, chunksize=chunk)
+
+    def _map_with_caller(self, function: Callable[..., Any], items: list[tuple]) -> Iterator[Any]:
+        """`map` with this process as a worker: every item is sent to the processes, which take them from the
+        front while this process takes them from the back, each item claimed once under a shared lock
+        (`_claimed_call`), until the two meet; results in order, each as soon as it and those before are
+        done. (Nothing is cancelled: a future cancelled in a pool that then breaks stops Python 3.11's
+        clean-up of the pool.)"""
+        remote = functools.partial(_call_with_context, function) if self.context is not None else function
+        local = functools.partial(function, self.context) if self.context is not None else function
+        claims = self._claims
+        claims[0], claims[1] = 0, len(items)
+        futures = [self._executor.submit(_claimed_call, remote, index, *args)
+                   for index, args in enumerate(items)]
+        local_results: dict[int, Any] = {}
+        done = 0
+        while True:
+            while done < len(items) and done not in local_results and futures[done].done():
+                yield futures[done].result()
+                done += 1
+            with claims.get_lock():
+                if claims[1] - 1 < claims[0]:
+                    break
+                claims[1] -= 1
+                index = claims[1]
+            local_results[index] = _in_one_blas_thread(local, *items[index])
+        for index in range(done, len(items)):
+            yield local_results[index] if index in local_results else futures[index].result()
 
     def shutdown(self) -> None:
         if self._executor is not None:
@@ -226,10 +282,11 @@ class WorkerPool:
 
 
 @contextmanager
-def worker_pool(workers: int, modules: tuple[str, ...] = (), context: Any = None) -> Iterator[WorkerPool]:
-    """A WorkerPool of `workers` processes (see `resolve_workers`) importing `modules` and holding `context`,
-    shut down after."""
-    pool = WorkerPool(workers, modules, context)
+def worker_pool(workers: int, modules: tuple[str, ...] = (), context: Any = None, caller_works: bool = False
+                ) -> Iterator[WorkerPool]:
+    """A WorkerPool of `workers` processes (see `resolve_workers`; one fewer with `caller_works`) importing
+    `modules` and holding `context`, shut down after."""
+    pool = WorkerPool(workers, modules, context, caller_works)
     try:
         yield pool
     finally:

@@ -10,8 +10,9 @@ mutual check). With a TwoViewConfig every pair is verified geometrically (`two_v
 in RANSAC and COLMAP's two-view geometry type); the inliers of its model survive. `SiftConfig.workers`
 images are detected at once (threads: OpenCV releases the GIL), then as many query images are matched
 against their partners and their pairs verified at once, one query image per item (processes,
-`estimation.parallel`: the RANSAC loops hold the GIL); the processes start (spawn, imports) while the
-threads detect, and receive every image's descriptors once after. The result does not depend on the count.
+`estimation.parallel`: the RANSAC loops hold the GIL; this process is one of them); the processes start
+(spawn, imports) while the threads detect, and receive every image's descriptors once after. The result does
+not depend on the count.
 The surviving matches are joined into tracks by the image-aware union-find of `track_building`, most
 distinctive matches (lowest ratio) first.
 """
@@ -227,7 +228,7 @@ def sift_tracks(
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     # The processes start (spawn, imports) while the threads detect; they get the descriptors after.
-    with worker_pool(workers, modules=WORKER_MODULES) as pool:
+    with worker_pool(workers, modules=WORKER_MODULES, caller_works=True) as pool:
         with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
             detected = []
             for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):

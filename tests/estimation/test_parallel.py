@@ -1,6 +1,7 @@
 """Worker processes: the worker count, results in order and equal to the calling process's, the pool's
 context in every call (received once by each process, also when shared after the start), one BLAS thread
-per process, an error (not a hang) when a process dies, and no process outliving the one that started it."""
+per process, an error (not a hang) when a process dies, and no process outliving the one that started it;
+with the calling process as one of the workers, the same."""
 
 from __future__ import annotations
 
@@ -39,6 +40,46 @@ def test_processes_return_what_the_calling_process_computes_in_order():
         assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
         assert len({os.getpid(), *pool.map(_pid, range(40))}) >= 2     # the work ran elsewhere
     assert list(WorkerPool(1).map(divmod, range(5), [2] * 5)) == [divmod(n, 2) for n in range(5)]
+
+
+def _pid_after(seconds: float) -> int:
+    time.sleep(seconds)
+    return os.getpid()
+
+
+def test_with_the_caller_working_one_process_fewer_starts_and_the_caller_takes_items_from_the_back():
+    with worker_pool(3, caller_works=True) as pool:
+        assert (pool.workers, pool.processes) == (3, 2)
+        assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
+        pids = list(pool.map(_pid_after, [0.02] * 40))
+    mine = [k for k, pid in enumerate(pids) if pid == os.getpid()]
+    assert mine and mine == list(range(mine[0], 40))      # a run at the back, no item twice or left out
+    assert len(set(pids)) == 3
+
+
+def test_with_the_caller_working_the_context_and_one_blas_thread_hold_in_the_caller_too():
+    environment, threads = _blas_threads(0)
+    with worker_pool(2, context=100, caller_works=True) as pool:
+        assert list(pool.map(divmod, range(1, 30))) == [divmod(100, n) for n in range(1, 30)]
+    with worker_pool(2, caller_works=True) as pool:
+        outcomes = list(pool.map(_blas_threads, range(8)))
+    assert all(set(child_threads) == {1} for _, child_threads in outcomes)
+    assert _blas_threads(0) == (environment, threads)
+
+
+def _exit_unless_in(caller: int, seconds: float) -> int:
+    """Ends this process unless it is `caller`, after `seconds`."""
+    time.sleep(seconds)
+    if os.getpid() != caller:
+        os._exit(3)
+    return caller
+
+
+def test_with_the_caller_working_a_process_that_dies_still_breaks_the_pool():
+    started = time.monotonic()
+    with pytest.raises(BrokenProcessPool), worker_pool(2, caller_works=True) as pool:
+        list(pool.map(_exit_unless_in, [os.getpid()] * 8, [0.05] * 8))
+    assert time.monotonic() - started < 30
 
 
 def test_every_call_gets_the_pool_context_first_in_the_processes_and_in_the_calling_process():
