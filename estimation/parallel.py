@@ -198,10 +198,10 @@ def _main_module_hidden() -> Iterator[None]:
 
 
 class WorkerPool:
-    """`map` over items in `workers` spawned processes (`caller_works`: `workers` - 1 and the calling process),
-    or in the calling process when there is one worker (or when this process may not have children: a
-    daemonic multiprocessing worker). With a `context` (given here or `share`d later), every call gets it as
-    its first argument."""
+    """`map` over items in `workers` spawned processes (`caller_works`: `workers` - 1 and the calling
+    process), or in the calling process when there is one worker (or when this process may not have children:
+    a daemonic multiprocessing worker). With a `context` (given here or `share`d later), every call gets it
+    as its first argument."""
 
     def __init__(self, workers: int, modules: tuple[str, ...] = (), context: Any = None,
                  caller_works: bool = False) -> None:
