@@ -214,7 +214,7 @@ class WorkerPool:
         self._executor: ProcessPoolExecutor | None = None
         if self.workers > 1:
             spawn = multiprocessing.get_context("spawn")
-            self._claims = spawn.Array("q", 2)
+            self._claims = spawn.Array("q", 2) if self.caller_works else None
             self._executor = ProcessPoolExecutor(
                 self.processes, mp_context=spawn, initializer=_initialize_worker,
                 initargs=(os.getpid(), modules, spawn.Barrier(self.processes), spawn.Barrier(self.processes),
@@ -239,15 +239,19 @@ class WorkerPool:
         """function(*args), or function(context, *args), for args in zip(*sequences), in order, each as soon
         as it and those before are done."""
         if self._executor is None:
-            if self.context is not None:
-                function = functools.partial(function, self.context)
-            return map(functools.partial(_in_one_blas_thread, function), *sequences)
+            return map(functools.partial(_in_one_blas_thread, self._here(function)), *sequences)
         if self.caller_works:
             return self._map_with_caller(function, list(zip(*sequences, strict=True)))
-        if self.context is not None:
-            function = functools.partial(_call_with_context, function)
         chunk = max(1, min(map(len, sequences)) // (CHUNKS_PER_WORKER * self.workers))
-        return self._executor.map(function, *sequences, chunksize=chunk)
+        return self._executor.map(self._in_processes(function), *sequences, chunksize=chunk)
+
+    def _here(self, function: Callable[..., Any]) -> Callable[..., Any]:
+        """`function` as this process calls it: with the context first, if there is one."""
+        return functools.partial(function, self.context) if self.context is not None else function
+
+    def _in_processes(self, function: Callable[..., Any]) -> Callable[..., Any]:
+        """`function` as the processes call it: with their copy of the context first, if there is one."""
+        return functools.partial(_call_with_context, function) if self.context is not None else function
 
     def _map_with_caller(self, function: Callable[..., Any], items: list[tuple]) -> Iterator[Any]:
         """`map` with this process as a worker: every item is sent to the processes, which take them from the
@@ -255,9 +259,7 @@ class WorkerPool:
         (`_claimed_call`), until the two meet; results in order, each as soon as it and those before are
         done. (Nothing is cancelled: a future cancelled in a pool that then breaks stops Python 3.11's
         clean-up of the pool.)"""
-        remote = functools.partial(_call_with_context, function) if self.context is not None else function
-        local = functools.partial(function, self.context) if self.context is not None else function
-        claims = self._claims
+        remote, local, claims = self._in_processes(function), self._here(function), self._claims
         claims[0], claims[1] = 0, len(items)
         futures = [self._executor.submit(_claimed_call, remote, index, *args)
                    for index, args in enumerate(items)]

@@ -153,6 +153,10 @@ class PairWork:
         """Every image's RootSIFT descriptors (`descriptor_set`), made in each process that matches."""
         return [descriptor_set(root_sift(sift)) for sift in self.sift]
 
+    def __getstate__(self) -> dict:
+        """What a worker process receives: never the float descriptors made here (4x the uint8 bytes)."""
+        return {name: value for name, value in self.__dict__.items() if name != "descriptors"}
+
 
 def query_matches(work: PairWork, i: int, partners: list[int]) -> list[DescriptorMatches]:
     """Image i's matches with each partner j (`match_one_to_many` on `work.device`)."""
@@ -238,8 +242,9 @@ def sift_tracks(
         seconds["detection"] = time.perf_counter() - started
 
         started = time.perf_counter()
-        pairs = candidate_pairs(images.names, [f.descriptors for f in features], config)
         work = PairWork.of(features, config, two_view, ransac, K)
+        # This process matches too (the pool's caller works): its RootSIFT sets serve both.
+        pairs = candidate_pairs(images.names, [d.descriptors for d in work.descriptors], config)
         matches, geometries = match_and_verify_pairs(work, pairs, pool, lambda fraction: report(
             "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction))
         seconds["matching_and_verification"] = time.perf_counter() - started
