@@ -13,8 +13,11 @@ from estimation.config import ReconstructionConfig
     ("mapper", "growth_refinement_rounds", 0),
     ("mapper", "pnp_threshold_noise_factor", -1.0),
     ("mapper", "relaxed_registration_factor", 1.5),
+    ("mapper", "refinement_max_iterations", 0),
+    ("bundle_adjustment", "local_max_iterations", 0),
+    ("bundle_adjustment", "local_max_iterations_refining", 0),
 ])
-def test_an_out_of_range_mapper_setting_is_refused_naming_its_field(section, field, value):
+def test_an_out_of_range_mapper_or_ba_setting_is_refused_naming_its_field(section, field, value):
     with pytest.raises(pydantic.ValidationError) as refused:
         ReconstructionConfig(**{section: {field: value}})
     assert [error["loc"] for error in refused.value.errors()] == [(section, field)]
