@@ -23,6 +23,11 @@ Sets (../shared/data):
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets fountain --max-reprojection-sigmas 0
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap --seeds 0,1,2,3,4,5,6,7,8,9   # RANSAC seeds
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap --mapper '{"relaxed_registration_factor": 0.9}'
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --repeats 5   # median seconds
+
+One run's seconds move by ~10 % from run to run on a 2-core machine (pycolmap's too); with --repeats N,
+ours and pycolmap run N times each, one after the other, and the first seed's row gives the median seconds
+of each and the median of the N paired ratios.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import shutil  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
+from dataclasses import dataclass, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -219,6 +224,9 @@ def main() -> None:
                         help="ours: comma-separated RANSAC seeds, a run and a row each (pycolmap runs once)")
     parser.add_argument("--mapper", type=json.loads, default=None,
                         help="ours: MapperConfig fields as JSON (example in the docstring)")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="time ours (first seed) and pycolmap this many times, one after the other: "
+                        "the first seed's row gives the median seconds and the median of the paired ratios")
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()}")
     header = ("| set | method | registered | rot mean deg | rot max deg | centre mean | centre max | points "
@@ -245,8 +253,24 @@ def main() -> None:
                                    args.workers, args.estimator, seed, args.mapper) for seed in seeds}
             skip_colmap = args.no_pycolmap or key == "unity"
             theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
+            pairs = [(runs[seeds[0]].seconds, theirs.seconds if theirs else float("nan"))]
+            for _ in range(1, args.repeats):
+                again = run_ours(bench, work / f"ours_{key}_repeat", args.max_reprojection_sigmas,
+                                 args.workers, args.estimator, seeds[0], args.mapper)
+                pairs.append((again.seconds, float("nan") if skip_colmap
+                              else run_pycolmap(bench, work / f"colmap_{key}").seconds))
+            if args.repeats > 1:
+                ours_seconds, their_seconds = np.array(pairs).T
+                print(f"{bench.name}: seconds per repeat, ours {np.round(ours_seconds, 2).tolist()}, "
+                      f"pycolmap {np.round(their_seconds, 2).tolist()}, ratios "
+                      f"{np.round(ours_seconds / their_seconds, 2).tolist()}", flush=True)
+                runs[seeds[0]] = replace(runs[seeds[0]], seconds=float(np.median(ours_seconds)))
+                if theirs:
+                    theirs = replace(theirs, seconds=float(np.median(their_seconds)))
+            paired_ratio = float(np.median([mine / reference for mine, reference in pairs]))
             for seed, ours in runs.items():
-                ratio = f"{ours.seconds / theirs.seconds:.2f}" if theirs else "-"
+                ratio = "-" if theirs is None else (
+                    f"{paired_ratio if seed == seeds[0] else ours.seconds / theirs.seconds:.2f}")
                 method = "ours" if len(seeds) == 1 else f"ours (seed {seed})"
                 rows.append(f"| {bench.name} | {method} | {len(ours.poses)}/{total} | "
                             + " | ".join(pose_error_cells(ours, bench.truth))

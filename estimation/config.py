@@ -5,10 +5,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 
-class RansacConfig(BaseModel):
+class StrictConfig(BaseModel):
+    """A configuration that refuses unknown fields: a misspelt setting is an error naming it, not a silent
+    default (as neural.TrainConfig)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class RansacConfig(StrictConfig):
     """Robust estimation settings of the RANSAC driver (estimation.geometry.ransac), for every estimator."""
 
     threshold_px: float = Field(1.0, gt=0, description="Inlier threshold in pixels (Sampson / reprojection).")
@@ -22,7 +29,7 @@ class RansacConfig(BaseModel):
     seed: int = Field(0, description="Seed of the random sampler, for repeatable runs.")
 
 
-class BundleAdjustmentConfig(BaseModel):
+class BundleAdjustmentConfig(StrictConfig):
     """Levenberg-Marquardt bundle adjustment settings (GTSAM)."""
 
     max_iterations: int = Field(100, ge=1, description="Maximum Levenberg-Marquardt iterations.")
@@ -104,7 +111,7 @@ class BundleAdjustmentConfig(BaseModel):
     )
 
 
-class FilterConfig(BaseModel):
+class FilterConfig(StrictConfig):
     """Which triangulated points are kept."""
 
     max_reprojection_px: float = Field(4.0, gt=0, description="Drop points whose error exceeds this.")
@@ -123,7 +130,7 @@ class FilterConfig(BaseModel):
     )
 
 
-class SiftConfig(BaseModel):
+class SiftConfig(StrictConfig):
     """SIFT features and matching (used when no match files are given)."""
 
     max_features: int = Field(8192, ge=100, description="Feature budget: most keypoints kept per image.")
@@ -155,7 +162,7 @@ class SiftConfig(BaseModel):
     )
 
 
-class TwoViewConfig(BaseModel):
+class TwoViewConfig(StrictConfig):
     """Geometric verification of an image pair and its two-view geometry type (COLMAP's)."""
 
     relative_pose: Literal["five-point", "eight-point"] = Field(
@@ -184,7 +191,7 @@ class TwoViewConfig(BaseModel):
     )
 
 
-class MapperConfig(BaseModel):
+class MapperConfig(StrictConfig):
     """The incremental mapper: initial pair, registration, triangulation, refinement, several models."""
 
     min_initial_pair_inliers: int = Field(
@@ -292,7 +299,7 @@ class MapperConfig(BaseModel):
     )
 
 
-class CameraConfig(BaseModel):
+class CameraConfig(StrictConfig):
     """The camera model, where its first focal length comes from, and what the bundle adjustment refines.
 
     With a calibration file, its K is held fixed and only the model's distortion is refined; without
@@ -339,7 +346,7 @@ class CameraConfig(BaseModel):
     )
 
 
-class ReconstructionConfig(BaseModel):
+class ReconstructionConfig(StrictConfig):
     """Everything `estimation.reconstruct` needs besides the images folder."""
 
     features: Literal["auto", "matches", "sift"] = Field(

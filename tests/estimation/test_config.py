@@ -1,5 +1,5 @@
-"""ReconstructionConfig: a value out of range is refused with the field's full name (what the CLI and the
-REST service show the user)."""
+"""ReconstructionConfig: a value out of range, or a field it does not have, is refused with the field's full
+name (what the CLI and the REST service show the user)."""
 
 import pydantic
 import pytest
@@ -23,7 +23,6 @@ def test_an_out_of_range_mapper_or_ba_setting_is_refused_naming_its_field(sectio
     assert [error["loc"] for error in refused.value.errors()] == [(section, field)]
 
 
-
 @pytest.mark.parametrize(("field", "value"), [
     ("optimizer", "dogleg"),
     ("mapper_optimizer", "newton"),
@@ -39,3 +38,16 @@ def test_sift_device_accepts_only_auto_cpu_or_cuda():
     with pytest.raises(pydantic.ValidationError) as refused:
         ReconstructionConfig(sift={"device": "mps"})
     assert [error["loc"] for error in refused.value.errors()] == [("sift", "device")]
+
+
+@pytest.mark.parametrize(("settings", "location"), [
+    ({"mapper": {"min_pnp_inlier": 5}}, ("mapper", "min_pnp_inlier")),          # min_pnp_inliers misspelt
+    ({"bundle_adjustment": {"huber_px": 1.0}}, ("bundle_adjustment", "huber_px")),
+    ({"two_view": {"min_inliers": 15, "ratio": 0.8}}, ("two_view", "ratio")),   # a SiftConfig field
+    ({"siftt": {}}, ("siftt",)),
+])
+def test_an_unknown_setting_is_refused_naming_it_instead_of_being_ignored(settings, location):
+    with pytest.raises(pydantic.ValidationError) as refused:
+        ReconstructionConfig.model_validate(settings)
+    errors = refused.value.errors()
+    assert [(error["loc"], error["type"]) for error in errors] == [(location, "extra_forbidden")]
