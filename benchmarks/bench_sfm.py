@@ -186,18 +186,23 @@ def run_pycolmap(bench: BenchSet, work: Path) -> Outcome:
     pycolmap.extract_features(database, bench.images, image_names=image_names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               device=pycolmap.Device.cpu)
+    extracted = time.perf_counter()
     pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+    matched = time.perf_counter()
     models = pycolmap.incremental_mapping(database, bench.images, work / "sparse", options=options)
     seconds = time.perf_counter() - start
+    stages = {"extraction": extracted - start, "matching and verification": matched - extracted,
+              "mapping": start + seconds - matched}
     if not models:
-        return Outcome({}, 0, 0.0, seconds)
+        return Outcome({}, 0, 0.0, seconds, stage_seconds=stages)
     model = max(models.values(), key=lambda m: m.num_reg_images())
     poses = {}
     for image in model.images.values():
         if image.has_pose:
             cam_from_world = image.cam_from_world()
             poses[image.name] = CameraPose(R=cam_from_world.rotation.matrix(), t=cam_from_world.translation)
-    return Outcome(poses, model.num_points3D(), float(model.compute_mean_track_length()), seconds)
+    return Outcome(poses, model.num_points3D(), float(model.compute_mean_track_length()), seconds,
+                   stage_seconds=stages)
 
 
 def pose_error_cells(outcome: Outcome, truth: dict[str, CameraPose] | None) -> list[str]:
@@ -287,6 +292,8 @@ def main() -> None:
                             + f" | {theirs.points} | {theirs.mean_track_length:.2f} | - | - | "
                             f"{theirs.seconds:.1f} | |")
                 print(rows[-1], flush=True)
+                stages = ", ".join(f"{stage} {value:.2f}" for stage, value in theirs.stage_seconds.items())
+                print(f"pycolmap, seconds per stage (of its first run): {stages}", flush=True)
     print(f"load average after: {os.getloadavg()}")
     print("\n".join(rows))
 
