@@ -119,6 +119,9 @@ def main() -> None:
     parser.add_argument("--timeline", action="store_true", help="print the busy cores every 50 ms")
     parser.add_argument("--save", type=Path, help="write the last run's result here (pickle)")
     parser.add_argument("--compare", type=Path, help="check the result bitwise against this saved one")
+    parser.add_argument("--defer-planarity", action="store_true",
+                        help="leave the pairs' planarity tests (H) out, as `reconstruct` does (they run "
+                        "beside its mapper)")
     args = parser.parse_args()
     folder = lego_folder(args.work)
     sys.path.insert(0, str(args.code))          # the worker processes inherit it
@@ -134,7 +137,9 @@ def main() -> None:
         timeline = Timeline() if args.timeline else None
         ticks, (cpu, children) = cpu_ticks(), own_cpu_seconds()
         start = time.perf_counter()
-        result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K)
+        planarity = {"defer_planarity": True} if args.defer_planarity else {}
+        result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
+                             **planarity)
         wall = time.perf_counter() - start
         after_cpu, after_children = own_cpu_seconds()
         busy = (cpu_ticks()[0] - ticks[0]) / os.sysconf("SC_CLK_TCK")

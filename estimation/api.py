@@ -9,8 +9,9 @@ import os
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +32,9 @@ from estimation.io.images import (
 from estimation.io.matchfile import find_match_files, load_match_tracks
 from estimation.mapper.incremental import ReprojectionSummary, SparseModel, reconstruct_models
 from estimation.types import ProgressCallback, Tracks
+
+if TYPE_CHECKING:
+    from estimation.features.planarity import PairTypes
 
 SPARSE_DIR = "sparse"
 MODELS_DIR = "models"
@@ -81,11 +85,30 @@ class ReconstructionResult:
 
 @dataclass(frozen=True)
 class FeatureTracks:
-    """Tracks and where they came from ("matches" files or "sift"), with counts for the report."""
+    """Tracks and where they came from ("matches" files or "sift"), with counts for the report. With SIFT,
+    each verified pair's two-view type by (i, j), i < j (`features.planarity`): with `extract_tracks`'s
+    `defer_planarity`, the tests of some may still run until `finished`."""
 
     tracks: Tracks
     source: str
     details: dict
+    pair_types: PairTypes | None = None
+
+    def finished(self) -> FeatureTracks:
+        """These tracks with every verified pair's geometry in details["two_view_geometry_per_pair"] (the
+        planarity tests waited for, the worker processes ended)."""
+        if self.pair_types is None:
+            return self
+        names = self.tracks.image_names
+        per_pair = {f"{names[i]}|{names[j]}": {"type": geometry.type.value, "inliers": geometry.num_inliers,
+                                                "h_e_inlier_ratio": round(geometry.h_e_inlier_ratio, 4)}
+                    for (i, j), geometry in self.pair_types.geometries().items()}
+        return replace(self, details={**self.details, "two_view_geometry_per_pair": per_pair})
+
+    def close(self) -> None:
+        """Ends the worker processes of planarity tests still running (`finished` ends them too)."""
+        if self.pair_types is not None:
+            self.pair_types.close()
 
 
 def _scaled(progress: ProgressCallback | None, start: float, end: float) -> ProgressCallback:
@@ -108,10 +131,12 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 
 def extract_tracks(
     images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
-    K: np.ndarray | None = None,
+    K: np.ndarray | None = None, defer_planarity: bool = False,
 ) -> FeatureTracks:
     """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
-    pairs are verified with E when K is given, else with F."""
+    pairs are verified with E when K is given, else with F. `defer_planarity`: the pairs' planarity tests
+    (`features.planarity`) run in the front end's worker process beside what the caller does next, until
+    the result is `finished` (or `close`d)."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -121,27 +146,29 @@ def extract_tracks(
         details = {"rows": parsed.num_rows, "merged_rows": parsed.num_merged_rows,
                    "rejected_links": parsed.num_rejected_links}
         return FeatureTracks(parsed.tracks, source, details)
-    from estimation.features.sift import sift_tracks  # OpenCV is only needed here
+    from estimation.features.planarity import PairTypes
+    from estimation.features.sift import sift_pool, sift_tracks  # OpenCV is only needed here
 
-    result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
-                         progress=report)
+    pool = sift_pool(config.sift)
+    try:
+        result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
+                             progress=report, pool=pool, defer_planarity=defer_planarity)
+    except BaseException:
+        pool.shutdown()
+        raise
+    pair_types = PairTypes(result.two_view, result.untested_uv, K, config.two_view, config.ransac, pool)
     details = {
         "keypoints_per_image": dict(zip(images.names, result.keypoints_per_image, strict=True)),
         "matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                              for (i, j), n in result.matches_per_pair.items()},
         "verified_matches_per_pair": {f"{images.names[i]}|{images.names[j]}": n
                                       for (i, j), n in result.verified_per_pair.items()},
-        "two_view_geometry_per_pair": {
-            f"{images.names[i]}|{images.names[j]}": {
-                "type": geometry.type.value, "inliers": geometry.num_inliers,
-                "h_e_inlier_ratio": round(geometry.h_e_inlier_ratio, 4),
-            }
-            for (i, j), geometry in result.two_view.items()
-        },
+        "two_view_geometry_per_pair": {},           # `FeatureTracks.finished`
         "rejected_links": result.num_rejected_links,
         "seconds_per_stage": result.seconds_per_stage,
     }
-    return FeatureTracks(result.tracks, source, details)
+    features = FeatureTracks(result.tracks, source, details, pair_types)
+    return features if defer_planarity else features.finished()
 
 
 def resolve_camera_model(camera: CameraConfig, calibrated: bool, distortion_known: bool = False) -> str:
@@ -384,16 +411,18 @@ def reconstruct(
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]
     with _timed(seconds, "features"):
         calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
+        # The planarity tests run beside the mapper, which leaves the other cores idle.
         features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end),
-                                  K=calibration_K)
-    index_of = {name: m for m, name in enumerate(images.names)}
-    pair_types = {tuple(sorted(index_of[name] for name in pair.split("|"))): geometry["type"]
-                  for pair, geometry in features.details.get("two_view_geometry_per_pair", {}).items()}
+                                  K=calibration_K, defer_planarity=True)
 
     camera = initial.cameras if initial.refine.per_image else initial.cameras[0]
-    models = tuple(reconstruct_models(features.tracks, camera, config,
-                                      progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
-                                      refine=initial.refine, pair_types=pair_types))
+    try:
+        models = tuple(reconstruct_models(features.tracks, camera, config,
+                                          progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
+                                          refine=initial.refine, pair_types=features.pair_types))
+        features = features.finished()
+    finally:
+        features.close()
     model = models[0]
     seconds.update({name: float(value) for name, value in model.stats.stage_seconds.items()})
 

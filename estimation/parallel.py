@@ -26,7 +26,7 @@ import threading
 import time
 import types
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from multiprocessing.synchronize import Barrier
 from typing import Any
@@ -244,6 +244,19 @@ class WorkerPool:
             return self._map_with_caller(function, list(zip(*sequences, strict=True)))
         chunk = max(1, min(map(len, sequences)) // (CHUNKS_PER_WORKER * self.workers))
         return self._executor.map(self._in_processes(function), *sequences, chunksize=chunk)
+
+    def submit(self, function: Callable[..., Any], *args: Any) -> Future:
+        """function(*args) (without the context) in one of the processes, without waiting for it: work beside
+        the caller's own, which `result()` collects; done at once in this process where the pool has no
+        processes."""
+        if self._executor is not None:
+            return self._executor.submit(function, *args)
+        future: Future = Future()
+        try:
+            future.set_result(_in_one_blas_thread(function, *args))
+        except Exception as error:
+            future.set_exception(error)
+        return future
 
     def _here(self, function: Callable[..., Any]) -> Callable[..., Any]:
         """`function` as this process calls it: with the context first, if there is one."""

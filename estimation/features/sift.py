@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from itertools import repeat
@@ -45,8 +46,8 @@ from estimation.features.matching import (
 from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
 from estimation.io.images import ImageSet, load_rgb
-from estimation.parallel import WorkerPool, resolve_workers, worker_pool
-from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry
+from estimation.parallel import WorkerPool, resolve_workers
+from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry, verify_epipolar
 from estimation.types import ProgressCallback, Tracks
 
 DETECTION_SHARE = 0.4
@@ -79,6 +80,8 @@ class SiftResult:
     num_rejected_links: int
     two_view: dict[tuple[int, int], TwoViewGeometry] = field(default_factory=dict)   # verified pairs
     seconds_per_stage: dict[str, float] = field(default_factory=dict)   # detection, matching_and_verification
+    # with defer_planarity: the pixels of the matches (in i, in j) of each pair whose planarity is untested
+    untested_uv: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
 
 def root_sift(descriptors: np.ndarray) -> np.ndarray:
@@ -140,13 +143,15 @@ class PairWork:
     ransac: RansacConfig
     K: np.ndarray | None
     matched: dict[int, list[DescriptorMatches]] | None = None   # per query image, when matched beforehand
+    test_planarity: bool = True          # False: `verify_epipolar` only (see sift_tracks' defer_planarity)
 
     @classmethod
     def of(cls, features: list[ImageFeatures], config: SiftConfig, two_view: TwoViewConfig | None = None,
-           ransac: RansacConfig = RansacConfig(), K: np.ndarray | None = None) -> PairWork:
+           ransac: RansacConfig = RansacConfig(), K: np.ndarray | None = None, test_planarity: bool = True
+           ) -> PairWork:
         """The work of the detected `features` with `config`'s matching settings (`matching_device`)."""
         return cls([f.uv for f in features], [f.sift for f in features], config.ratio, config.max_distance,
-                   matching_device(config.device), two_view, ransac, K)
+                   matching_device(config.device), two_view, ransac, K, test_planarity=test_planarity)
 
     @cached_property
     def descriptors(self) -> list[DescriptorSet]:
@@ -168,12 +173,13 @@ def match_and_verify(work: PairWork, i: int, partners: list[int]
                      ) -> list[tuple[DescriptorMatches, TwoViewGeometry | None]]:
     """Image i's matches with each partner j (`work.matched`'s, else `query_matches`) and, with
     `work.two_view`, the two-view geometry of each pair with at least min_inliers matches (None for the
-    others). Only the type and the inliers are used (the initial pair's E is estimated and polished again
-    by the mapper): E is not polished here."""
+    others; its planarity untested unless `work.test_planarity`). Only the type and the inliers are used
+    (the initial pair's E is estimated and polished again by the mapper): E is not polished here."""
     matches = work.matched[i] if work.matched is not None else query_matches(work, i, partners)
     if work.two_view is None:
         return [(pair_matches, None) for pair_matches in matches]
-    return [(pair_matches, estimate_two_view_geometry(
+    verify = estimate_two_view_geometry if work.test_planarity else verify_epipolar
+    return [(pair_matches, verify(
                 work.uv[i][pair_matches.index_a], work.uv[j][pair_matches.index_b], K1=work.K, K2=work.K,
                 config=work.two_view, ransac=work.ransac, refine_essential=False)
              if len(pair_matches.ratio) >= work.two_view.min_inliers else None)
@@ -181,6 +187,25 @@ def match_and_verify(work: PairWork, i: int, partners: list[int]
 
 
 Pair = tuple[int, int]
+
+
+def sift_pool(config: SiftConfig) -> WorkerPool:
+    """The worker processes of `sift_tracks` (config.workers, this process one of them), started now; the
+    caller shuts them down."""
+    return WorkerPool(resolve_workers(config.workers), modules=WORKER_MODULES, caller_works=True)
+
+
+@contextmanager
+def _given_or_own(pool: WorkerPool | None, config: SiftConfig) -> Iterator[WorkerPool]:
+    """`pool`, left running, or a `sift_pool` of the block's own, shut down after it."""
+    if pool is not None:
+        yield pool
+        return
+    own = sift_pool(config)
+    try:
+        yield own
+    finally:
+        own.shutdown()
 
 
 def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
@@ -224,15 +249,20 @@ def sift_tracks(
     ransac: RansacConfig = RansacConfig(),
     K: np.ndarray | None = None,
     progress: ProgressCallback | None = None,
+    pool: WorkerPool | None = None,
+    defer_planarity: bool = False,
 ) -> SiftResult:
     """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
-    merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1."""
+    merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1.
+    `pool`: the worker processes to use (a `sift_pool`, left running; default: one of this call's own).
+    `defer_planarity`: H is left out (the tracks do not depend on it); `untested_uv` holds what
+    `features.planarity` needs to test it later."""
     report = progress or (lambda stage, fraction: None)
     workers = resolve_workers(config.workers)
     seconds: dict[str, float] = {}
     started = time.perf_counter()
     # The processes start (spawn, imports) while the threads detect; they get the descriptors after.
-    with worker_pool(workers, modules=WORKER_MODULES, caller_works=True) as pool:
+    with _given_or_own(pool, config) as pool:
         with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
             detected = []
             for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):
@@ -242,7 +272,7 @@ def sift_tracks(
         seconds["detection"] = time.perf_counter() - started
 
         started = time.perf_counter()
-        work = PairWork.of(features, config, two_view, ransac, K)
+        work = PairWork.of(features, config, two_view, ransac, K, test_planarity=not defer_planarity)
         # This process matches too (the pool's caller works): its RootSIFT sets serve both.
         pairs = candidate_pairs(images.names, [d.descriptors for d in work.descriptors], config)
         matches, geometries = match_and_verify_pairs(work, pairs, pool, lambda fraction: report(
@@ -281,4 +311,6 @@ def sift_tracks(
         num_rejected_links=assembly.num_rejected_links,
         two_view=geometries,
         seconds_per_stage=seconds,
+        untested_uv={(i, j): (work.uv[i][matches[(i, j)].index_a], work.uv[j][matches[(i, j)].index_b])
+                     for (i, j), geometry in geometries.items() if not geometry.planarity_tested},
     )

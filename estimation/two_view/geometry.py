@@ -7,11 +7,15 @@ degenerate; E is trusted when K is known and E explains almost all of F's inlier
 F otherwise. When H explains most of those inliers (max_h_inlier_ratio) the pair is planar or a pure
 rotation; with K, the two are told apart by H's normalized singular values (baseline over plane distance
 below max_rotation_translation: panoramic).
+
+It is made in two steps: `verify_epipolar` (F, E: the inliers, and whether the pair is degenerate,
+calibrated or uncalibrated), then `classify_planarity` (H: whether it is planar or panoramic instead). The
+second never changes the inliers, so the front end may leave it for later (`features.planarity`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from functools import partial
 
@@ -60,6 +64,7 @@ class TwoViewGeometry:
     num_inliers_f: int
     num_inliers_e: int
     num_inliers_h: int
+    planarity_tested: bool = True    # False: H not estimated yet (`classify_planarity` may change the type)
 
     @property
     def num_inliers(self) -> int:
@@ -85,11 +90,19 @@ def _robust(estimate, *args):
         return None
 
 
-def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray | None, K2: np.ndarray | None,
-                               config: TwoViewConfig, ransac: RansacConfig, refine_essential: bool = True
-                               ) -> TwoViewGeometry:
-    """F (8-point), E (5-point, or E = K^T F K under relative_pose "eight-point"; only with K) and H
-    (4-point) in RANSAC at max_error_px, and the pair's type from their inlier counts.
+def _search(ransac: RansacConfig, share: float, sample_size: int) -> RansacConfig:
+    """The RANSAC settings that find, with the configured confidence, a model explaining `share` of the
+    matches: a model needs that many inliers to change the decision, so no more samples."""
+    needed = required_iterations(min(share, 1.0), sample_size, ransac.confidence, ransac.max_iterations)
+    return ransac.model_copy(update={"max_iterations": needed})
+
+
+def verify_epipolar(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray | None, K2: np.ndarray | None,
+                    config: TwoViewConfig, ransac: RansacConfig, refine_essential: bool = True
+                    ) -> TwoViewGeometry:
+    """F (8-point) and E (5-point, or E = K^T F K under relative_pose "eight-point"; only with K) in RANSAC
+    at max_error_px: the pair's inliers and its type as far as they decide it (degenerate, calibrated or
+    uncalibrated); the planarity test (H) is left to `classify_planarity` (`planarity_tested` False).
 
     `config.estimator` says whose RANSAC (the project's or OpenCV's); `refine_essential`: polish the
     5-point E non-linearly on its inliers (`polish_essential`); needed where E's pose is used (the initial
@@ -112,15 +125,9 @@ def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray 
     F, f_mask = fundamental.F, fundamental.inlier_mask
     num_f = int(f_mask.sum())
 
-    def searching_for(share: float, sample_size: int) -> RansacConfig:
-        """The RANSAC settings that find, with the configured confidence, a model explaining `share` of
-        the matches: a model needs that many inliers to change the decision, so no more samples."""
-        needed = required_iterations(min(share, 1.0), sample_size, ransac.confidence, ransac.max_iterations)
-        return ransac.model_copy(update={"max_iterations": needed})
-
-    E, e_mask, H, h_mask = None, none, None, none
+    E, e_mask = None, none
     if calibrated and config.relative_pose == "five-point":
-        search = searching_for(config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE)
+        search = _search(ransac, config.min_e_f_inlier_ratio * num_f / len(uv1), FIVE_POINT_SAMPLE)
         estimator = opencv_essential if opencv else partial(ransac_essential, refine=False)
         essential = _robust(estimator, uv1, uv2, K1, K2, threshold, search)
         if essential is not None and refine_essential:
@@ -132,22 +139,44 @@ def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray 
         e_mask = sampson_distance(fundamental_from_essential(E, K1, K2), uv1, uv2) < threshold
     num_e = int(e_mask.sum())
     use_e = E is not None and num_e >= config.min_inliers and num_e >= config.min_e_f_inlier_ratio * num_f
-    num_reference = num_e if use_e else num_f
-    homography = _robust(opencv_homography if opencv else ransac_homography, uv1, uv2, threshold,
-                         searching_for(config.max_h_inlier_ratio * num_reference / len(uv1), H_SAMPLE))
-    if homography is not None:
-        H, h_mask = homography.H, homography.inlier_mask
-    num_h = int(h_mask.sum())
+    return TwoViewGeometry(
+        type=TwoViewGeometryType.CALIBRATED if use_e else TwoViewGeometryType.UNCALIBRATED,
+        inlier_mask=e_mask if use_e else f_mask, F=F, E=E, H=None, num_inliers_f=num_f, num_inliers_e=num_e,
+        num_inliers_h=0, planarity_tested=False)
 
-    def result(type_: TwoViewGeometryType, mask: np.ndarray) -> TwoViewGeometry:
-        return TwoViewGeometry(type=type_, inlier_mask=mask, F=F, E=E, H=H, num_inliers_f=num_f,
-                               num_inliers_e=num_e, num_inliers_h=num_h)
 
+def classify_planarity(geometry: TwoViewGeometry, uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray | None,
+                       K2: np.ndarray | None, config: TwoViewConfig, ransac: RansacConfig) -> TwoViewGeometry:
+    """H (4-point) in RANSAC at max_error_px on the pair of `verify_epipolar`: planar or panoramic
+    (planar_or_panoramic without E) when it explains over max_h_inlier_ratio of the inliers the type rests
+    on. The inliers stay the same: only the type can change, so the tracks never depend on this test."""
+    if geometry.planarity_tested:
+        return geometry
+    uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
+    threshold = config.max_error_px
+    ransac = ransac.model_copy(update={"threshold_px": threshold})
+    use_e = geometry.type == TwoViewGeometryType.CALIBRATED
+    num_reference = geometry.num_inliers_e if use_e else geometry.num_inliers_f
+    estimator = opencv_homography if config.estimator == "opencv" else ransac_homography
+    homography = _robust(estimator, uv1, uv2, threshold,
+                         _search(ransac, config.max_h_inlier_ratio * num_reference / len(uv1), H_SAMPLE))
+    H = homography.H if homography is not None else None
+    num_h = int(homography.inlier_mask.sum()) if homography is not None else 0
+    type_ = geometry.type
     if num_h > config.max_h_inlier_ratio * num_reference:
         if not use_e:
-            return result(TwoViewGeometryType.PLANAR_OR_PANORAMIC, f_mask)
-        rotation = homography_translation(H, K1, K2) < config.max_rotation_translation
-        return result(TwoViewGeometryType.PANORAMIC if rotation else TwoViewGeometryType.PLANAR, e_mask)
-    if use_e:
-        return result(TwoViewGeometryType.CALIBRATED, e_mask)
-    return result(TwoViewGeometryType.UNCALIBRATED, f_mask)
+            type_ = TwoViewGeometryType.PLANAR_OR_PANORAMIC
+        elif homography_translation(H, K1, K2) < config.max_rotation_translation:
+            type_ = TwoViewGeometryType.PANORAMIC
+        else:
+            type_ = TwoViewGeometryType.PLANAR
+    return replace(geometry, type=type_, H=H, num_inliers_h=num_h, planarity_tested=True)
+
+
+def estimate_two_view_geometry(uv1: np.ndarray, uv2: np.ndarray, K1: np.ndarray | None, K2: np.ndarray | None,
+                               config: TwoViewConfig, ransac: RansacConfig, refine_essential: bool = True
+                               ) -> TwoViewGeometry:
+    """F, E and H in RANSAC and the pair's type from their inlier counts: `verify_epipolar`, then
+    `classify_planarity`."""
+    geometry = verify_epipolar(uv1, uv2, K1, K2, config, ransac, refine_essential)
+    return classify_planarity(geometry, uv1, uv2, K1, K2, config, ransac)

@@ -7,7 +7,12 @@ from estimation.config import RansacConfig, TwoViewConfig
 from estimation.geometry.alignment import relative_pose, rotation_angle_deg
 from estimation.synthetic import make_scene, project, rotation_about_axis
 from estimation.two_view.essential import choose_relative_pose
-from estimation.two_view.geometry import TwoViewGeometryType, estimate_two_view_geometry
+from estimation.two_view.geometry import (
+    TwoViewGeometryType,
+    classify_planarity,
+    estimate_two_view_geometry,
+    verify_epipolar,
+)
 from estimation.types import CameraPose
 
 K = np.array([[600.0, 0.0, 400.0], [0.0, 600.0, 300.0], [0.0, 0.0, 1.0]])
@@ -95,3 +100,28 @@ def test_random_correspondences_are_degenerate(estimator):
     config = TwoViewConfig(max_error_px=1.0, estimator=estimator)
     geometry = estimate_two_view_geometry(uv1, uv2, K, K, config, RansacConfig())
     assert geometry.type == TwoViewGeometryType.DEGENERATE and geometry.num_inliers == 0
+
+
+def test_the_planarity_test_alone_relabels_a_plane_and_keeps_its_inliers():
+    rng = np.random.default_rng(1)
+    points = visible_points(rng, 300)
+    points[:, 2] = 6.0 + 0.3 * points[:, 0]                 # the tilted wall above
+    second = CameraPose.from_center(rotation_about_axis([0, 1, 0], np.deg2rad(-8)), np.array([1.0, 0, 0]))
+    uv1, uv2, _ = two_views(points, second, seed=1)
+    config, ransac = TwoViewConfig(), RansacConfig()
+    epipolar = verify_epipolar(uv1, uv2, K, K, config, ransac)
+    assert epipolar.type == TwoViewGeometryType.CALIBRATED and not epipolar.planarity_tested
+    assert epipolar.H is None
+    classified = classify_planarity(epipolar, uv1, uv2, K, K, config, ransac)
+    assert classified.type == TwoViewGeometryType.PLANAR and classified.planarity_tested
+    np.testing.assert_array_equal(classified.inlier_mask, epipolar.inlier_mask)
+    whole = estimate_two_view_geometry(uv1, uv2, K, K, config, ransac)
+    assert whole.type == classified.type and whole.num_inliers_h == classified.num_inliers_h
+    np.testing.assert_array_equal(whole.H, classified.H)
+
+
+def test_a_degenerate_pair_needs_no_planarity_test():
+    rng = np.random.default_rng(4)
+    uv1, uv2 = rng.uniform(0, 800, (40, 2)), rng.uniform(0, 800, (40, 2))
+    geometry = verify_epipolar(uv1, uv2, K, K, TwoViewConfig(max_error_px=1.0), RansacConfig())
+    assert geometry.type == TwoViewGeometryType.DEGENERATE and geometry.planarity_tested

@@ -1,0 +1,85 @@
+"""The verified pairs' planarity tests (`two_view.geometry.classify_planarity`: H in RANSAC), run by the front
+end's worker process while the mapper works.
+
+The test can only relabel a pair planar or panoramic (so that it does not start a model); it never changes
+a pair's inliers, so the tracks are made without it. In the front end, where both cores are busy, it took
+~0.35 of lego's ~6 CPU s; the mapper that follows runs on one core, and the front end's worker process is
+still there, its modules imported. The mapper looks up only its initial-pair candidates' types (31 on lego),
+and one looked up before the worker is done is tested in this process (the same result: each test's RANSAC
+is seeded). `geometries()` waits for the rest (the report lists every pair).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import suppress
+
+import numpy as np
+
+from estimation.config import RansacConfig, TwoViewConfig
+from estimation.parallel import WorkerPool
+from estimation.two_view.geometry import TwoViewGeometry, classify_planarity
+
+Pair = tuple[int, int]
+
+
+def classify_pairs(geometries: list[TwoViewGeometry], uv: list[tuple[np.ndarray, np.ndarray]],
+                   K: np.ndarray | None, config: TwoViewConfig, ransac: RansacConfig
+                   ) -> list[TwoViewGeometry]:
+    """`classify_planarity` of each pair (its geometry and the pixels of its matches in both images)."""
+    return [classify_planarity(geometry, uv1, uv2, K, K, config, ransac)
+            for geometry, (uv1, uv2) in zip(geometries, uv, strict=True)]
+
+
+class PairTypes(Mapping[Pair, str]):
+    """Each verified pair's two-view type by (i, j), i < j. The pairs whose planarity is untested are tested
+    in `pool` (handed over: `close` shuts it down) beside the caller's work, or in this process at a lookup
+    that comes first; `geometries()` gives them all."""
+
+    def __init__(self, geometries: dict[Pair, TwoViewGeometry],
+                 untested_uv: dict[Pair, tuple[np.ndarray, np.ndarray]], K: np.ndarray | None,
+                 config: TwoViewConfig, ransac: RansacConfig, pool: WorkerPool) -> None:
+        self._geometries = {(min(pair), max(pair)): geometry for pair, geometry in geometries.items()}
+        self._uv = {(min(pair), max(pair)): uv for pair, uv in untested_uv.items()}
+        self._settings = (K, config, ransac)
+        self._untested = [pair for pair, geometry in self._geometries.items()
+                          if not geometry.planarity_tested]
+        self._pool: WorkerPool | None = pool
+        self._background = None
+        if self._untested:
+            with suppress(BrokenProcessPool):     # a dead worker: the pairs are tested in this process
+                self._background = pool.submit(classify_pairs, [self._geometries[p] for p in self._untested],
+                                               [self._uv[pair] for pair in self._untested], *self._settings)
+
+    def _tested(self, pair: Pair) -> TwoViewGeometry:
+        geometry = self._geometries[pair]
+        if not geometry.planarity_tested:
+            geometry = classify_pairs([geometry], [self._uv[pair]], *self._settings)[0]
+            self._geometries[pair] = geometry
+        return geometry
+
+    def __getitem__(self, pair: Pair) -> str:
+        return self._tested(pair).type.value
+
+    def __iter__(self) -> Iterator[Pair]:
+        return iter(self._geometries)
+
+    def __len__(self) -> int:
+        return len(self._geometries)
+
+    def geometries(self) -> dict[Pair, TwoViewGeometry]:
+        """Every pair's geometry, its planarity tested: the worker's results (waited for; tested here instead
+        if its process died); the pool is shut down."""
+        if self._background is not None:
+            with suppress(BrokenProcessPool):      # a dead worker: they are tested below, in this process
+                self._geometries.update(zip(self._untested, self._background.result(), strict=True))
+            self._background = None
+        self.close()
+        return {pair: self._tested(pair) for pair in self._geometries}
+
+    def close(self) -> None:
+        """Shuts the pool down (after the test it is running, if any)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
