@@ -35,7 +35,7 @@ from estimation.features.sift import (  # noqa: E402
     match_and_verify_pairs,
 )
 from estimation.io.images import list_images, load_rgb  # noqa: E402
-from estimation.parallel import worker_pool  # noqa: E402
+from estimation.parallel import WorkerPool  # noqa: E402
 
 
 def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
@@ -51,12 +51,12 @@ def time_matching(folder: Path, workers: list[int], repeats: int) -> None:
             # The processes spawned and fed the context (a reconstruction starts them while it detects,
             # then shares the context: parallel.WorkerPool).
             wall = time.perf_counter()
-            with worker_pool(count, modules=WORKER_MODULES, context=work):
+            with WorkerPool(count, modules=WORKER_MODULES, context=work):
                 print(f"workers {count}: the pool started in {time.perf_counter() - wall:.3f} s", flush=True)
         for _ in range(repeats):
             children = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu, wall = time.process_time(), time.perf_counter()
-            with worker_pool(count, modules=WORKER_MODULES) as pool:
+            with WorkerPool(count, modules=WORKER_MODULES) as pool:
                 matches, _ = match_and_verify_pairs(work, pairs, pool)
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
             after = resource.getrusage(resource.RUSAGE_CHILDREN)

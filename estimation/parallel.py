@@ -201,7 +201,7 @@ class WorkerPool:
     """`map` over items in `workers` spawned processes (`caller_works`: `workers` - 1 and the calling
     process), or in the calling process when there is one worker (or when this process may not have children:
     a daemonic multiprocessing worker). With a `context` (given here or `share`d later), every call gets it
-    as its first argument."""
+    as its first argument. As a context manager, it is shut down after the block."""
 
     def __init__(self, workers: int, modules: tuple[str, ...] = (), context: Any = None,
                  caller_works: bool = False) -> None:
@@ -291,18 +291,12 @@ class WorkerPool:
         for index in range(done, len(items)):
             yield local_results[index] if index in local_results else futures[index].result()
 
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, *exception: object) -> None:
+        self.shutdown()
+
     def shutdown(self) -> None:
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)
-
-
-@contextmanager
-def worker_pool(workers: int, modules: tuple[str, ...] = (), context: Any = None, caller_works: bool = False
-                ) -> Iterator[WorkerPool]:
-    """A WorkerPool of `workers` processes (see `resolve_workers`; one fewer with `caller_works`) importing
-    `modules` and holding `context`, shut down after."""
-    pool = WorkerPool(workers, modules, context, caller_works)
-    try:
-        yield pool
-    finally:
-        pool.shutdown()

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from itertools import repeat
@@ -195,19 +195,6 @@ def sift_pool(config: SiftConfig) -> WorkerPool:
     return WorkerPool(resolve_workers(config.workers), modules=WORKER_MODULES, caller_works=True)
 
 
-@contextmanager
-def _given_or_own(pool: WorkerPool | None, config: SiftConfig) -> Iterator[WorkerPool]:
-    """`pool`, left running, or a `sift_pool` of the block's own, shut down after it."""
-    if pool is not None:
-        yield pool
-        return
-    own = sift_pool(config)
-    try:
-        yield own
-    finally:
-        own.shutdown()
-
-
 def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
                            progress: Callable[[float], None] = lambda fraction: None,
                            ) -> tuple[dict[Pair, DescriptorMatches], dict[Pair, TwoViewGeometry]]:
@@ -261,8 +248,9 @@ def sift_tracks(
     workers = resolve_workers(config.workers)
     seconds: dict[str, float] = {}
     started = time.perf_counter()
-    # The processes start (spawn, imports) while the threads detect; they get the descriptors after.
-    with _given_or_own(pool, config) as pool:
+    # The processes start (spawn, imports) while the threads detect; they get the descriptors after. A given
+    # pool keeps running after this call, a pool of its own is shut down.
+    with nullcontext(pool) if pool is not None else sift_pool(config) as pool:
         with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
             detected = []
             for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):

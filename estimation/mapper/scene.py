@@ -22,7 +22,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from estimation.config import BundleAdjustmentConfig
-from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared, transfer_pixels
+from estimation.geometry.projection import (
+    Camera,
+    CameraInput,
+    as_camera,
+    is_shared,
+    observation_cameras,
+    transfer_pixels,
+)
 from estimation.geometry.triangulation import (
     Observations,
     observation_errors,
@@ -84,9 +91,6 @@ class Scene:
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Adopt new intrinsics per image: the working pixels follow them."""
         self.cameras = cameras
-        # One Camera object for every image (fixed or shared intrinsics): the error checks project with it
-        # as is, instead of filling per-observation arrays of the same values (`Camera.take`).
-        self.shared_camera = cameras[0] if all(camera is cameras[0] for camera in cameras) else None
         source = Camera.take(cameras, self.tracks.image_index)
         working = transfer_pixels(source, Camera.from_K(self.K), self.observed_uv)
         self.tracks = replace(self.tracks, uv=working)
@@ -219,7 +223,7 @@ class Scene:
         obs = Observations(R=self.R.take(images, axis=0), t=self.t.take(images, axis=0),
                            uv=self.observed_uv.take(obs_ids, axis=0), point_index=points,
                            num_points=len(self.point_alive))
-        camera = self.shared_camera or Camera.take(self.cameras, images)
+        camera = observation_cameras(self.cameras, images)
         return observation_errors(camera, obs, self.point_xyz)
 
     def noise_sigma(self, max_error_px: float) -> float:

@@ -153,8 +153,7 @@ def classify_planarity(geometry: TwoViewGeometry, uv1: np.ndarray, uv2: np.ndarr
     if geometry.planarity_tested:
         return geometry
     uv1, uv2 = np.asarray(uv1, float), np.asarray(uv2, float)
-    threshold = config.max_error_px
-    ransac = ransac.model_copy(update={"threshold_px": threshold})
+    threshold = config.max_error_px      # the H estimators take it as is (not from `ransac`)
     use_e = geometry.type == TwoViewGeometryType.CALIBRATED
     num_reference = geometry.num_inliers_e if use_e else geometry.num_inliers_f
     estimator = opencv_homography if config.estimator == "opencv" else ransac_homography

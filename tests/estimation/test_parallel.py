@@ -23,7 +23,6 @@ from estimation.parallel import (
     available_cores,
     blas_threads,
     resolve_workers,
-    worker_pool,
 )
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -35,7 +34,7 @@ def test_zero_workers_means_one_per_available_core():
 
 
 def test_processes_return_what_the_calling_process_computes_in_order():
-    with worker_pool(2, modules=("estimation.two_view.geometry",)) as pool:
+    with WorkerPool(2, modules=("estimation.two_view.geometry",)) as pool:
         assert pool.workers == 2
         assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
         assert len({os.getpid(), *pool.map(_pid, range(40))}) >= 2     # the work ran elsewhere
@@ -48,7 +47,7 @@ def _pid_after(seconds: float) -> int:
 
 
 def test_with_the_caller_working_one_process_fewer_starts_and_the_caller_takes_items_from_the_back():
-    with worker_pool(3, caller_works=True) as pool:
+    with WorkerPool(3, caller_works=True) as pool:
         assert (pool.workers, pool.processes) == (3, 2)
         assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
         pids = list(pool.map(_pid_after, [0.02] * 40))
@@ -59,9 +58,9 @@ def test_with_the_caller_working_one_process_fewer_starts_and_the_caller_takes_i
 
 def test_with_the_caller_working_the_context_and_one_blas_thread_hold_in_the_caller_too():
     environment, threads = _blas_threads(0)
-    with worker_pool(2, context=100, caller_works=True) as pool:
+    with WorkerPool(2, context=100, caller_works=True) as pool:
         assert list(pool.map(divmod, range(1, 30))) == [divmod(100, n) for n in range(1, 30)]
-    with worker_pool(2, caller_works=True) as pool:
+    with WorkerPool(2, caller_works=True) as pool:
         outcomes = list(pool.map(_blas_threads, range(8)))
     assert all(set(child_threads) == {1} for _, child_threads in outcomes)
     assert _blas_threads(0) == (environment, threads)
@@ -77,14 +76,14 @@ def _exit_unless_in(caller: int, seconds: float) -> int:
 
 def test_with_the_caller_working_a_process_that_dies_still_breaks_the_pool():
     started = time.monotonic()
-    with pytest.raises(BrokenProcessPool), worker_pool(2, caller_works=True) as pool:
+    with pytest.raises(BrokenProcessPool), WorkerPool(2, caller_works=True) as pool:
         list(pool.map(_exit_unless_in, [os.getpid()] * 8, [0.05] * 8))
     assert time.monotonic() - started < 30
 
 
 def test_every_call_gets_the_pool_context_first_in_the_processes_and_in_the_calling_process():
     for workers in (2, 1):
-        with worker_pool(workers, context=100) as pool:
+        with WorkerPool(workers, context=100) as pool:
             assert list(pool.map(divmod, range(1, 30))) == [divmod(100, n) for n in range(1, 30)]
 
 
@@ -109,7 +108,7 @@ def _receipts(context: Received, _: int) -> tuple[int, int, list[int]]:
 
 
 def test_a_context_shared_after_the_start_reaches_each_process_exactly_once():
-    with worker_pool(2) as pool:
+    with WorkerPool(2) as pool:
         for value in (7, 8):
             pool.share(Received(value))
             outcomes = list(pool.map(_receipts, range(40)))
@@ -138,7 +137,7 @@ def _exit(_: int) -> None:
 @pytest.mark.parametrize("crash", ["while receiving the context", "in an item"])
 def test_a_process_that_dies_breaks_the_pool_with_an_error_not_a_hang(crash):
     started = time.monotonic()
-    with pytest.raises(BrokenProcessPool), worker_pool(2) as pool:
+    with pytest.raises(BrokenProcessPool), WorkerPool(2) as pool:
         if crash == "in an item":
             list(pool.map(_exit, range(4)))
         else:
@@ -154,7 +153,7 @@ def _blas_threads(_: int) -> tuple[str | None, list[int]]:
 def test_items_run_on_one_blas_thread_and_the_calling_process_keeps_its_own():
     environment, threads = _blas_threads(0)
     assert threads, "numpy's OpenBLAS is found"
-    with worker_pool(2) as pool:
+    with WorkerPool(2) as pool:
         for child_environment, child_threads in pool.map(_blas_threads, range(4)):
             assert child_environment == "1" and child_threads and set(child_threads) == {1}
     assert list(WorkerPool(1).map(_blas_threads, range(2))) == [(environment, [1] * len(threads))] * 2
@@ -183,7 +182,7 @@ def test_every_process_is_spawned_before_any_takes_an_item(monkeypatch):
         return future
 
     monkeypatch.setattr(ProcessPoolExecutor, "submit", slow_start)
-    with worker_pool(2) as pool:
+    with WorkerPool(2) as pool:
         assert set(pool.map(_slow_blas_environment, range(40))) == {"1"}
 
 

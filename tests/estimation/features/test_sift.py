@@ -20,7 +20,7 @@ from estimation.features.matching import match_descriptors
 from estimation.features.sift import detect_features, root_sift, sample_colors, sift_tracks
 from estimation.io.images import find_calibration, list_images, load_rgb
 from estimation.io.matchfile import load_match_tracks
-from estimation.parallel import WorkerPool, worker_pool
+from estimation.parallel import WorkerPool
 from estimation.two_view.geometry import TwoViewGeometryType
 from tests.estimation.imports import REPOSITORY
 
@@ -242,7 +242,7 @@ def test_a_gpu_matches_in_the_calling_process_and_the_workers_only_verify(monkey
     on_gpu = sift.PairWork(uv, descriptors, 0.8, 0.7, "cuda", TwoViewConfig(), RansacConfig(), K)
     cpu_matches, cpu_geometries = sift.match_and_verify_pairs(on_cpu, pairs, WorkerPool(1))
     calls.clear()
-    with worker_pool(2, modules=sift.WORKER_MODULES) as pool:
+    with WorkerPool(2, modules=sift.WORKER_MODULES) as pool:
         gpu_matches, gpu_geometries = sift.match_and_verify_pairs(on_gpu, pairs, pool)
     assert calls == ["cuda", "cuda"]                               # query images 0 and 1, here
     assert all(len(m.ratio) == 120 for m in gpu_matches.values())

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from estimation.geometry.projection import Camera
+from estimation.geometry.projection import Camera, observation_cameras
 from estimation.mapper.scene import Scene, pixel_noise_sigma
 from estimation.synthetic import make_scene
 
@@ -133,8 +133,10 @@ def test_errors_of_a_shared_camera_equal_those_of_the_same_camera_given_per_imag
     camera = Camera.from_K(truth.K, "simple-radial", k1=0.05)
     shared = Scene(truth.tracks, camera)
     per_image = Scene(truth.tracks, [dataclasses.replace(camera) for _ in truth.poses])
-    assert shared.shared_camera is camera and per_image.shared_camera is None
     obs = np.concatenate([observations_of_track(truth, t) for t in range(10)])
+    images = truth.tracks.image_index[obs]
+    assert observation_cameras(shared.cameras, images) is camera               # used as is
+    assert observation_cameras(per_image.cameras, images).fx.shape == images.shape
     for scene in (shared, per_image):
         for m, pose in enumerate(truth.poses):
             scene.register_image(m, pose)
