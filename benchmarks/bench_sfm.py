@@ -38,6 +38,7 @@ os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap: warnings and errors 
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import multiprocessing  # noqa: E402
 import resource  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
@@ -128,6 +129,9 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
     start, cpu, children = time.perf_counter(), time.process_time(), child_cpu_seconds()
     result = reconstruct(bench.images, out, config)
     seconds = time.perf_counter() - start
+    # The worker process may still be exiting (reconstruct does not wait for it): its CPU counts once reaped.
+    for child in multiprocessing.active_children():
+        child.join()
     cpu_seconds = (time.process_time() - cpu, child_cpu_seconds() - children)
     names = result.model.image_names
     return Outcome(poses={names[m]: pose for m, pose in result.model.poses.items()},

@@ -297,6 +297,7 @@ class WorkerPool:
     def __exit__(self, *exception: object) -> None:
         self.shutdown()
 
-    def shutdown(self) -> None:
+    def shutdown(self, wait: bool = True) -> None:
+        """Ends the processes (queued calls cancelled); `wait`: until they have exited."""
         if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor.shutdown(wait=wait, cancel_futures=True)

@@ -8,6 +8,7 @@ height of a rotated photo swap), so pixels, K and every output refer to the upri
 from __future__ import annotations
 
 import json
+import struct
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -34,6 +35,9 @@ FULL_FRAME_DIAGONAL_MM = float(np.hypot(36.0, 24.0))
 """The 35 mm equivalent focal length is defined on the diagonal of a 36x24 mm frame (CIPA DC-008)."""
 MM_PER_RESOLUTION_UNIT = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}
 """EXIF FocalPlaneResolutionUnit -> millimetres (1: none, read as inches as the standard's default)."""
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_CHUNK_HEADER = struct.Struct(">I4s")
+"""A PNG chunk's data length and type; its data and a 4-byte CRC follow."""
 
 
 @dataclass(frozen=True)
@@ -61,10 +65,37 @@ def _sort_key(path: Path) -> tuple[int, float, str]:
     return (0, int(stem), path.name) if stem.isdigit() else (1, 0.0, path.name)
 
 
-def _upright_size(image: Image.Image) -> tuple[int, int]:
+def _png_exif_after_pixels(path: Path) -> bool:
+    """Whether the PNG file has an eXIf chunk after its first IDAT (pixel data) chunk, read from the chunk
+    headers alone."""
+    with open(path, "rb") as file:
+        if file.read(len(PNG_SIGNATURE)) != PNG_SIGNATURE:
+            return False
+        seen_pixels = False
+        while len(header := file.read(PNG_CHUNK_HEADER.size)) == PNG_CHUNK_HEADER.size:
+            length, kind = PNG_CHUNK_HEADER.unpack(header)
+            if kind == b"eXIf" and seen_pixels:
+                return True
+            if kind == b"IEND":
+                return False
+            seen_pixels |= kind == b"IDAT"
+            file.seek(length + 4, 1)
+    return False
+
+
+def _exif(image: Image.Image, path: Path) -> Image.Exif:
+    """The EXIF of the image opened from `path`, its pixels not decoded: PIL decodes a whole PNG to look
+    for an eXIf chunk after the pixel data (0.05 s for lego's 90 small PNGs), so it is asked only when the
+    chunk headers show one there."""
+    if image.format == "PNG" and "exif" not in image.info and not _png_exif_after_pixels(path):
+        return Image.Exif()
+    return image.getexif()
+
+
+def _upright_size(image: Image.Image, path: Path) -> tuple[int, int]:
     """(width, height) of the image as displayed: swapped when its EXIF orientation turns it 90 degrees."""
     width, height = image.size
-    rotated = image.getexif().get(ExifTags.Base.Orientation) in ROTATED_ORIENTATIONS
+    rotated = _exif(image, path).get(ExifTags.Base.Orientation) in ROTATED_ORIENTATIONS
     return (height, width) if rotated else (width, height)
 
 
@@ -73,7 +104,7 @@ def image_size(path: Path) -> tuple[int, int]:
     InputError if it is not a readable image."""
     try:
         with Image.open(path) as image:
-            return _upright_size(image)
+            return _upright_size(image, path)
     except (UnidentifiedImageError, OSError) as error:
         raise InputError(f"{path}: not a readable PNG/JPEG image ({error})") from None
 
@@ -210,8 +241,8 @@ def exif_focal(path: Path, field_of_view_deg: tuple[float, float]) -> ExifFocal:
     try:
         with Image.open(path) as image:
             raw_width, raw_height = image.size
-            width, height = _upright_size(image)
-            exif = image.getexif().get_ifd(ExifTags.IFD.Exif)
+            width, height = _upright_size(image, path)
+            exif = _exif(image, path).get_ifd(ExifTags.IFD.Exif)
     except (UnidentifiedImageError, OSError) as error:
         raise InputError(f"{path}: not a readable PNG/JPEG image ({error})") from None
     tags = ExifTags.Base

@@ -75,3 +75,13 @@ def test_the_pairs_are_tested_here_when_the_worker_process_died(pairs):
     types = pair_types(pairs, pool)
     tested = {pair: geometry.type for pair, geometry in types.geometries().items()}
     assert tested == {pair: geometry.type for pair, geometry in expected(pairs).items()}
+
+
+def test_the_worker_process_ends_once_the_results_are_in(pairs):
+    pool = WorkerPool(2, modules=MODULES, caller_works=True)
+    (process,) = pool._executor._processes.values()
+    pair_types(pairs, pool).geometries()   # not waiting for the process to exit (the caller goes on)
+    deadline = time.monotonic() + 30       # the pool's thread reaps it: join() here would race that thread
+    while process.exitcode is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert process.exitcode == 0

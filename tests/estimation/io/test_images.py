@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import re
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -175,3 +178,42 @@ def test_exif_orientation_is_applied_to_the_size_and_the_pixels(tmp_path):
     rgb = load_rgb(images.paths[0])
     assert rgb.shape == (60, 40, 3)
     assert rgb[5, -5].mean() > 200 and rgb[5, 5].mean() < 50       # the white quadrant is now top-right
+
+
+def png_bytes_with_exif_after_pixels(orientation: int) -> bytes:
+    """A 60x40 PNG whose orientation is in an eXIf chunk after its pixel data (PIL writes eXIf before it)."""
+    buffer = io.BytesIO()
+    Image.fromarray(np.zeros((40, 60, 3), np.uint8)).save(buffer, format="PNG")
+    exif = Image.Exif()
+    exif[ExifTags.Base.Orientation] = orientation
+    data = exif.tobytes()
+    chunk = struct.pack(">I", len(data)) + b"eXIf" + data + struct.pack(">I", zlib.crc32(b"eXIf" + data))
+    whole = buffer.getvalue()
+    end = whole.rindex(b"IEND") - 4                     # IEND's length field starts its chunk
+    return whole[:end] + chunk + whole[end:]
+
+
+@pytest.mark.parametrize("after_pixels", [False, True])
+def test_a_png_orientation_is_applied_wherever_its_exif_chunk_lies(tmp_path, after_pixels):
+    for name in ("1.png", "2.png"):
+        if after_pixels:
+            (tmp_path / name).write_bytes(png_bytes_with_exif_after_pixels(orientation=6))
+        else:
+            exif = Image.Exif()
+            exif[ExifTags.Base.Orientation] = 6
+            Image.fromarray(np.zeros((40, 60, 3), np.uint8)).save(tmp_path / name, exif=exif)
+    images = list_images(tmp_path)
+    assert (images.width, images.height) == (40, 60)
+    assert load_rgb(images.paths[0]).shape == (60, 40, 3)
+
+
+def test_listing_pngs_reads_their_headers_not_their_pixels(tmp_path):
+    # The pixel data cut short: listing still works (the pixels are read, and the cut found, at loading).
+    whole = (save_image(tmp_path / "1.png", width=64, height=48)).read_bytes()
+    save_image(tmp_path / "2.png", width=64, height=48)
+    idat = whole.index(b"IDAT")
+    (tmp_path / "1.png").write_bytes(whole[: idat + 12])
+    images = list_images(tmp_path)
+    assert (images.width, images.height) == (64, 48)
+    with pytest.raises(InputError, match="1.png: not a readable"):
+        load_rgb(images.paths[0])
