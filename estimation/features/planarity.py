@@ -80,7 +80,7 @@ class PairTypes(Mapping[Pair, str]):
         return {pair: self._tested(pair) for pair in self._geometries}
 
     def close(self, wait: bool = True) -> None:
-        """Shuts the pool down (after the test it is running, if any); `wait`: until its process has exited."""
+        """Shuts the pool down (after the test it is running, if any); `wait`: until its process exited."""
         if self._pool is not None:
             self._pool.shutdown(wait)
             self._pool = None
