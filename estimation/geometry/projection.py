@@ -44,7 +44,10 @@ DISTORTION_PARAMETERS = {"pinhole": (), "simple-radial": ("k1",), "radial": ("k1
                          "opencv": ("k1", "k2", "p1", "p2")}
 """Distortion coefficients each model may hold non-zero."""
 UNDISTORT_ITERATIONS = 20
-"""Newton steps inverting the distortion; converges to ~1e-12 well inside the image for |k1| < 0.5."""
+"""Most Newton steps inverting the distortion; converges to ~1e-12 well inside the image for |k1| < 0.5."""
+UNDISTORT_TOLERANCE = 1e-14
+"""Newton stops when no point moves more than this (normalized coordinates, ~1): the next step would be
+~1e-28, below rounding."""
 MIN_DEPTH = 1e-12
 """Depths closer to zero than this are clamped (a point on the camera plane projects far away)."""
 
@@ -183,42 +186,62 @@ class Projection(NamedTuple):
     depth: np.ndarray    # (N,)
 
 
+class DistortedCoordinates(NamedTuple):
+    """distort's x_d, y_d of coordinates x, y, with the r^2 and radial factor they came from."""
+
+    x: np.ndarray
+    y: np.ndarray
+    r2: np.ndarray
+    radial: np.ndarray
+
+
+def distorted_coordinates(camera: Camera, x: np.ndarray, y: np.ndarray) -> DistortedCoordinates:
+    """x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2), y_d = y (1 + k1 r^2 + k2 r^4) +
+    p1 (r^2 + 2 y^2) + 2 p2 x y."""
+    r2 = x * x + y * y
+    radial = 1.0 + camera.k1 * r2 + camera.k2 * r2 * r2
+    xy = x * y
+    return DistortedCoordinates(x * radial + 2 * camera.p1 * xy + camera.p2 * (r2 + 2 * x * x),
+                                y * radial + camera.p1 * (r2 + 2 * y * y) + 2 * camera.p2 * xy, r2, radial)
+
+
 def distort(camera: Camera, x: np.ndarray) -> np.ndarray:
     """x_d = x (1 + k1 r^2 + k2 r^4) + [2 p1 x y + p2 (r^2 + 2 x^2), p1 (r^2 + 2 y^2) + 2 p2 x y], (N, 2)."""
     if camera.model == "pinhole":          # no coefficients: x_d = x
         return x
-    x, y = x[..., 0], x[..., 1]
-    r2 = x * x + y * y
-    radial = 1.0 + camera.k1 * r2 + camera.k2 * r2 * r2
-    xy = x * y
-    return np.stack([x * radial + 2 * camera.p1 * xy + camera.p2 * (r2 + 2 * x * x),
-                     y * radial + camera.p1 * (r2 + 2 * y * y) + 2 * camera.p2 * xy], axis=-1)
-
-
-def _distortion_jacobian(camera: Camera, x: np.ndarray) -> np.ndarray:
-    """d x_d / d x, (N, 2, 2)."""
-    x, y = x[..., 0], x[..., 1]
-    r2 = x * x + y * y
-    radial = 1.0 + camera.k1 * r2 + camera.k2 * r2 * r2
-    d_radial = 2 * camera.k1 + 4 * camera.k2 * r2          # d radial / d(x or y) = d_radial * (x or y)
-    dxd_dx = radial + d_radial * x * x + 2 * camera.p1 * y + 6 * camera.p2 * x
-    dxd_dy = d_radial * x * y + 2 * camera.p1 * x + 2 * camera.p2 * y
-    dyd_dx = d_radial * x * y + 2 * camera.p1 * x + 2 * camera.p2 * y
-    dyd_dy = radial + d_radial * y * y + 6 * camera.p1 * y + 2 * camera.p2 * x
-    return np.stack([np.stack([dxd_dx, dxd_dy], -1), np.stack([dyd_dx, dyd_dy], -1)], -2)
+    distorted = distorted_coordinates(camera, x[..., 0], x[..., 1])
+    return np.stack([distorted.x, distorted.y], axis=-1)
 
 
 def undistort(camera: Camera, x_distorted: np.ndarray, iterations: int = UNDISTORT_ITERATIONS) -> np.ndarray:
-    """x with distort(x) = x_d, by Newton's method from x = x_d (vectorized), (N, 2)."""
+    """x with distort(x) = x_d, by Newton's method from x = x_d (vectorized), (N, 2); it stops once every
+    step is below UNDISTORT_TOLERANCE."""
     x_distorted = np.asarray(x_distorted, float)
     if camera.model == "pinhole":
         return x_distorted.copy()
-    x = x_distorted.copy()
+    k1, k2, p1, p2 = camera.k1, camera.k2, camera.p1, camera.p2
+    target_x, target_y = x_distorted[..., 0], x_distorted[..., 1]
+    x, y = target_x.copy(), target_y.copy()
+    # The step J^-1 (distort(x) - x_d) with the 2 x 2 Jacobian J = [[a, b], [b, d]] inverted in closed form,
+    # distortion and Jacobian from one evaluation of r^2: np.linalg.solve on (N, 2, 2) stacks and twenty
+    # fixed steps took 4.8 of an uncalibrated lego run's 12 s (107 calls on ~20,000 observations).
     for _ in range(iterations):
-        residual = distort(camera, x) - x_distorted
-        step = np.linalg.solve(_distortion_jacobian(camera, x), residual[..., None])[..., 0]
-        x = x - step
-    return x
+        distorted = distorted_coordinates(camera, x, y)
+        residual_x, residual_y, r2, radial = distorted.x - target_x, distorted.y - target_y, *distorted[2:]
+        d_radial = 2 * k1 + 4 * k2 * r2          # d radial / d(x or y) = d_radial * (x or y)
+        a = radial + d_radial * x * x + 2 * p1 * y + 6 * p2 * x
+        b = d_radial * x * y + 2 * p1 * x + 2 * p2 * y
+        d = radial + d_radial * y * y + 6 * p1 * y + 2 * p2 * x
+        with np.errstate(divide="ignore", invalid="ignore"):      # a singular J leaves that point NaN
+            inverse_det = 1.0 / (a * d - b * b)
+        step_x = (d * residual_x - b * residual_y) * inverse_det
+        step_y = (a * residual_y - b * residual_x) * inverse_det
+        x -= step_x
+        y -= step_y
+        if np.abs(step_x).max(initial=0.0) <= UNDISTORT_TOLERANCE and np.abs(step_y).max(
+                initial=0.0) <= UNDISTORT_TOLERANCE:
+            break
+    return np.stack([x, y], axis=-1)
 
 
 def normalized_to_pixel(camera: Camera, x: np.ndarray) -> np.ndarray:
