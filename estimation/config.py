@@ -68,6 +68,12 @@ class BundleAdjustmentConfig(StrictConfig):
         "final): each starts near its optimum, where Gauss-Newton's steps are the ones LM takes (lego, "
         "RANSAC seed 0: its 106 BAs replayed, 1.56 -> 1.26 CPU s; one 4-image refinement falls back to LM).",
     )
+    mapper_refining_optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
+        "levenberg_marquardt", description="optimizer of the mapper's BAs that refine intrinsics: they start "
+        "from a focal length prior, not near their optimum, where Gauss-Newton's undamped first step "
+        "threw points behind the cameras (GTSAM printing a CheiralityException line for each: 186 on "
+        "lego without calibration.txt) before it fell back to Levenberg-Marquardt.",
+    )
     ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
         "points_first",
         description="Elimination order: points_first eliminates every point before any camera (the Schur "

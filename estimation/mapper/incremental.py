@@ -261,7 +261,8 @@ class _ModelBuilder:
         """The settings of one of the mapper's BAs: mapper_optimizer, stopping at relative_error_tol or
         after max_iterations; a global one eliminates in mapper_global_ordering."""
         ba = self.config.bundle_adjustment
-        update = {"relative_error_tol": relative_error_tol, "optimizer": ba.mapper_optimizer,
+        optimizer = ba.mapper_refining_optimizer if self.refines_intrinsics() else ba.mapper_optimizer
+        update = {"relative_error_tol": relative_error_tol, "optimizer": optimizer,
                   "max_iterations": max_iterations}
         if not local:
             update["ordering"] = ba.mapper_global_ordering
