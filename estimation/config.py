@@ -64,9 +64,10 @@ class BundleAdjustmentConfig(StrictConfig):
         "levenberg_marquardt from the start when a step raises the cost or the system is indeterminate.",
     )
     mapper_optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
-        "gauss_newton", description="optimizer of the incremental mapper's BAs (local, refinement, "
-        "final): each starts near its optimum, where Gauss-Newton's steps are the ones LM takes (lego, "
-        "RANSAC seed 0: its 106 BAs replayed, 1.56 -> 1.26 CPU s; one 4-image refinement falls back to LM).",
+        "gauss_newton", description="optimizer of the incremental mapper's BAs with fixed intrinsics (local, "
+        "refinement, final; mapper_refining_optimizer for the others): each starts near its optimum, "
+        "where Gauss-Newton's steps are the ones LM takes (lego, RANSAC seed 0: its 106 BAs replayed, "
+        "1.56 -> 1.26 CPU s; one 4-image refinement falls back to LM).",
     )
     mapper_refining_optimizer: Literal["levenberg_marquardt", "gauss_newton"] = Field(
         "levenberg_marquardt", description="optimizer of the mapper's BAs that refine intrinsics: they start "
