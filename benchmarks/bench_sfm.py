@@ -1,6 +1,7 @@
 """Structure from Motion end to end, ours (`estimation.reconstruct`) beside pycolmap on the same images.
 
-For each set, both run from the image files with the same fixed intrinsics: ours with SIFT (or the
+For each set, both run from the image files with the same fixed intrinsics (with --uncalibrated, from
+the same focal length prior instead, each refining it with a radial distortion): ours with SIFT (or the
 course's match files for Unity Hall), pycolmap with its own pipeline (SIFT extraction, exhaustive matching,
 incremental mapping, intrinsics held fixed). The table gives registered images, the mean and max rotation
 error and camera-centre error against the ground truth after a similarity alignment of the registered
@@ -24,6 +25,7 @@ Sets (../shared/data):
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap --seeds 0,1,2,3,4,5,6,7,8,9   # RANSAC seeds
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap --mapper '{"relaxed_registration_factor": 0.9}'
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --repeats 5   # median seconds
+    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --uncalibrated  # from the prior
 
 One run's seconds move by ~10 % from run to run on a 2-core machine (pycolmap's too); with --repeats N,
 ours and pycolmap run N times each, one after the other, and the first seed's row gives the median seconds
@@ -74,6 +76,7 @@ class BenchSet:
     K: np.ndarray
     truth: dict[str, CameraPose] | None
     features: str = "sift"
+    calibrated: bool = True      # False: `images` has no calibration.txt; both methods refine a prior
 
 
 @dataclass(frozen=True)
@@ -88,6 +91,7 @@ class Outcome:
     ceres_left: float = float("nan")
     stage_seconds: dict[str, float] | None = None
     cpu_seconds: tuple[float, float] | None = None     # this process's, its worker processes'
+    focal_px: float = float("nan")                      # the refined focal length (uncalibrated runs)
 
 
 def lego_set(work: Path) -> BenchSet:
@@ -109,6 +113,17 @@ def lego_set(work: Path) -> BenchSet:
             K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1]])
     np.savetxt(folder / "calibration.txt", K)
     return BenchSet("lego_200 (90)", folder, K, truth)
+
+
+def uncalibrated_copy(bench: BenchSet, work: Path) -> BenchSet:
+    """The set's images linked into `work` without calibration.txt (no EXIF either): focal length from
+    the 1.2 max(w, h) prior, refined with a radial distortion by both methods; K stays the truth."""
+    folder = work / f"{bench.images.name}_uncalibrated"
+    folder.mkdir(parents=True, exist_ok=True)
+    for path in bench.images.iterdir():
+        if path.suffix.lower() in IMAGE_SUFFIXES and not (folder / path.name).exists():
+            (folder / path.name).symlink_to(path.resolve())
+    return replace(bench, name=f"{bench.name} uncalibrated", images=folder, calibrated=False)
 
 
 def strecha_set(name: str) -> BenchSet:
@@ -140,7 +155,8 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
                    rms_px=result.report["reprojection_error_px"]["after_ba"]["rms"],
                    ceres_left=ceres_cost_left(out / "sparse"),
                    stage_seconds={**result.report["seconds_per_stage"],
-                                  **result.report["features"].get("seconds_per_stage", {})})
+                                  **result.report["features"].get("seconds_per_stage", {})},
+                   focal_px=float(result.K[0, 0]))
 
 
 def child_cpu_seconds() -> float:
@@ -171,7 +187,9 @@ def ceres_cost_left(sparse: Path) -> float:
 
 
 def run_pycolmap(bench: BenchSet, work: Path) -> Outcome:
-    """pycolmap's extraction, exhaustive matching and incremental mapping with K fixed."""
+    """pycolmap's extraction, exhaustive matching and incremental mapping with K fixed; uncalibrated, with
+    COLMAP's defaults (SIMPLE_RADIAL from its 1.2 max(w, h) prior, focal length and k refined, principal
+    point held at the centre)."""
     import pycolmap
 
     if work.exists():
@@ -181,11 +199,15 @@ def run_pycolmap(bench: BenchSet, work: Path) -> Outcome:
     params = [K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET, K[1, 2] + COLMAP_PIXEL_OFFSET]
     image_names = sorted(p.name for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     database = work / "database.db"
-    reader = pycolmap.ImageReaderOptions(camera_model="PINHOLE", camera_params=",".join(map(str, params)))
     options = pycolmap.IncrementalPipelineOptions()
-    options.ba_refine_focal_length = False
-    options.ba_refine_principal_point = False
-    options.ba_refine_extra_params = False
+    if bench.calibrated:
+        reader = pycolmap.ImageReaderOptions(camera_model="PINHOLE",
+                                             camera_params=",".join(map(str, params)))
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+    else:
+        reader = pycolmap.ImageReaderOptions(camera_model="SIMPLE_RADIAL")
     start = time.perf_counter()
     pycolmap.extract_features(database, bench.images, image_names=image_names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
@@ -206,7 +228,7 @@ def run_pycolmap(bench: BenchSet, work: Path) -> Outcome:
             cam_from_world = image.cam_from_world()
             poses[image.name] = CameraPose(R=cam_from_world.rotation.matrix(), t=cam_from_world.translation)
     return Outcome(poses, model.num_points3D(), float(model.compute_mean_track_length()), seconds,
-                   stage_seconds=stages)
+                   stage_seconds=stages, focal_px=float(next(iter(model.cameras.values())).params[0]))
 
 
 def pose_error_cells(outcome: Outcome, truth: dict[str, CameraPose] | None) -> list[str]:
@@ -233,6 +255,9 @@ def main() -> None:
                         help="ours: comma-separated RANSAC seeds, a run and a row each (pycolmap runs once)")
     parser.add_argument("--mapper", type=json.loads, default=None,
                         help="ours: MapperConfig fields as JSON (example in the docstring)")
+    parser.add_argument("--uncalibrated", action="store_true",
+                        help="lego, fountain, herzjesu without calibration.txt: both methods refine a focal "
+                        "length prior (ours: simple-radial; pycolmap: SIMPLE_RADIAL, COLMAP's defaults)")
     parser.add_argument("--repeats", type=int, default=1,
                         help="time ours (first seed) and pycolmap this many times, one after the other: "
                         "the first seed's row gives the median seconds and the median of the paired ratios")
@@ -256,6 +281,8 @@ def main() -> None:
                                  None, features="matches")
             else:
                 raise SystemExit(f"unknown set {key!r}")
+            if args.uncalibrated and key != "unity":
+                bench = uncalibrated_copy(bench, work)
             total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             seeds = [int(seed) for seed in args.seeds.split(",")]
             runs = {seed: run_ours(bench, work / f"ours_{key}_{seed}", args.max_reprojection_sigmas,
@@ -290,6 +317,13 @@ def main() -> None:
                 print(f"ours, seconds per stage (detection, matching_and_verification: inside features): "
                       f"{stages}; CPU s {ours.cpu_seconds[0]:.2f} + {ours.cpu_seconds[1]:.2f} in worker "
                       f"processes", flush=True)
+            if not bench.calibrated:
+                truth_focal = (bench.K[0, 0] + bench.K[1, 1]) / 2
+                found = [(method, outcome.focal_px) for method, outcome in
+                         (("ours", runs[seeds[0]]), ("pycolmap", theirs)) if outcome is not None]
+                print(f"{bench.name}: focal length (truth {truth_focal:.1f} px) " + ", ".join(
+                    f"{method} {focal:.1f} px ({100 * (focal / truth_focal - 1):+.2f} %)"
+                    for method, focal in found), flush=True)
             if theirs:
                 rows.append(f"| {bench.name} | pycolmap | {len(theirs.poses)}/{total} | "
                             + " | ".join(pose_error_cells(theirs, bench.truth))
