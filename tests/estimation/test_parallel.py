@@ -66,18 +66,22 @@ def test_with_the_caller_working_the_context_and_one_blas_thread_hold_in_the_cal
     assert _blas_threads(0) == (environment, threads)
 
 
-def _exit_unless_in(caller: int, seconds: float) -> int:
-    """Ends this process unless it is `caller`, after `seconds`."""
-    time.sleep(seconds)
+def _exit_unless_in(caller: int, marker: str) -> int:
+    """Ends this process, leaving `marker`, unless it is `caller`; the caller waits for the marker (at most
+    20 s), so that it cannot take every item before a slow-starting process takes one."""
     if os.getpid() != caller:
+        Path(marker).touch()
         os._exit(3)
+    deadline = time.monotonic() + 20
+    while not os.path.exists(marker) and time.monotonic() < deadline:
+        time.sleep(0.01)
     return caller
 
 
-def test_with_the_caller_working_a_process_that_dies_still_breaks_the_pool():
+def test_with_the_caller_working_a_process_that_dies_still_breaks_the_pool(tmp_path):
     started = time.monotonic()
     with pytest.raises(BrokenProcessPool), WorkerPool(2, caller_works=True) as pool:
-        list(pool.map(_exit_unless_in, [os.getpid()] * 8, [0.05] * 8))
+        list(pool.map(_exit_unless_in, [os.getpid()] * 8, [str(tmp_path / "died")] * 8))
     assert time.monotonic() - started < 30
 
 
