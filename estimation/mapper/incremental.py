@@ -258,8 +258,9 @@ class _ModelBuilder:
 
     def mapper_ba_config(self, relative_error_tol: float, max_iterations: int,
                          local: bool = False) -> BundleAdjustmentConfig:
-        """The settings of one of the mapper's BAs: mapper_optimizer, stopping at relative_error_tol or
-        after max_iterations; a global one eliminates in mapper_global_ordering."""
+        """The settings of one of the mapper's BAs: mapper_optimizer (mapper_refining_optimizer when it
+        refines intrinsics), stopping at relative_error_tol or after max_iterations; a global one
+        eliminates in mapper_global_ordering."""
         ba = self.config.bundle_adjustment
         optimizer = ba.mapper_refining_optimizer if self.refines_intrinsics() else ba.mapper_optimizer
         update = {"relative_error_tol": relative_error_tol, "optimizer": optimizer,
