@@ -41,16 +41,23 @@ def test_processes_return_what_the_calling_process_computes_in_order():
     assert list(WorkerPool(1).map(divmod, range(5), [2] * 5)) == [divmod(n, 2) for n in range(5)]
 
 
-def _pid_after(seconds: float) -> int:
+def _pid_after(caller: int, markers: str, seconds: float) -> int:
+    """This process's id after `seconds`; a process leaves a marker named by its id in `markers` first, and
+    the caller waits (at most 20 s) for two, so that each process takes items however slowly it started."""
+    if os.getpid() != caller:
+        (Path(markers) / str(os.getpid())).touch()
+    deadline = time.monotonic() + 20
+    while os.getpid() == caller and len(os.listdir(markers)) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
     time.sleep(seconds)
     return os.getpid()
 
 
-def test_with_the_caller_working_one_process_fewer_starts_and_the_caller_takes_items_from_the_back():
+def test_with_the_caller_working_one_process_fewer_starts_and_the_caller_takes_items_from_the_back(tmp_path):
     with WorkerPool(3, caller_works=True) as pool:
         assert (pool.workers, pool.processes) == (3, 2)
         assert list(pool.map(divmod, range(40), [7] * 40)) == [divmod(n, 7) for n in range(40)]
-        pids = list(pool.map(_pid_after, [0.02] * 40))
+        pids = list(pool.map(_pid_after, [os.getpid()] * 40, [str(tmp_path)] * 40, [0.02] * 40))
     mine = [k for k, pid in enumerate(pids) if pid == os.getpid()]
     assert mine and mine == list(range(mine[0], 40))      # a run at the back, no item twice or left out
     assert len(set(pids)) == 3
