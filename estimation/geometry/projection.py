@@ -227,7 +227,8 @@ def undistort(camera: Camera, x_distorted: np.ndarray, iterations: int = UNDISTO
     # fixed steps took 4.8 of an uncalibrated lego run's 12 s (107 calls on ~20,000 observations).
     for _ in range(iterations):
         distorted = distorted_coordinates(camera, x, y)
-        residual_x, residual_y, r2, radial = distorted.x - target_x, distorted.y - target_y, *distorted[2:]
+        residual_x, residual_y = distorted.x - target_x, distorted.y - target_y
+        r2, radial = distorted.r2, distorted.radial
         d_radial = 2 * k1 + 4 * k2 * r2          # d radial / d(x or y) = d_radial * (x or y)
         a = radial + d_radial * x * x + 2 * p1 * y + 6 * p2 * x
         b = d_radial * x * y + 2 * p1 * x + 2 * p2 * y

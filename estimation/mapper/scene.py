@@ -91,7 +91,7 @@ class Scene:
     def use_cameras(self, cameras: list[Camera]) -> None:
         """Adopt new intrinsics per image: the working pixels follow them."""
         self.cameras = cameras
-        source = Camera.take(cameras, self.tracks.image_index)
+        source = observation_cameras(cameras, self.tracks.image_index)
         working = transfer_pixels(source, Camera.from_K(self.K), self.observed_uv)
         self.tracks = replace(self.tracks, uv=working)
 
