@@ -145,7 +145,12 @@ class SiftConfig(StrictConfig):
         3200, ge=64, description="Detect on the image downscaled to this longest side; keypoints mapped back."
     )
     contrast_threshold: float = Field(
-        0.02, gt=0, description="OpenCV SIFT contrastThreshold (0.02 = COLMAP's peak threshold 0.02 / 3)."
+        0.0236, gt=0, description="OpenCV SIFT contrastThreshold: a keypoint's interpolated DoG contrast "
+        "(intensities 0..1) must reach contrast_threshold / 3. Not COLMAP's 0.02 (its peak threshold 0.02 / "
+        "3): OpenCV first skips DoG samples with |D| <= floor(contrast_threshold / 3 * 0.5 * 255) (0..255 "
+        "units), 0 below 0.02353, so every nonzero extremum is refined. At 0.0236 the skip is on: lego's "
+        "90 views detect in 0.86 instead of 1.82 CPU s with 1.3 % fewer keypoints (the weakest); a "
+        "full-size fountain-P11 view keeps the same 8192 keypoints in 1.9 instead of 2.6 s.",
     )
     ratio: float = Field(0.8, gt=0, lt=1, description="Lowe's ratio test threshold.")
     max_distance: float = Field(
