@@ -215,6 +215,12 @@ class MapperConfig(StrictConfig):
     preferred_initial_pair_angle_deg: float = Field(
         8.0, gt=0, description="Of a batch's passing candidates, those reaching this median angle win."
     )
+    initial_pair_max_error_px: float = Field(
+        1.0, gt=0, description="Sampson threshold of the initial pair's relative pose (relative_pose "
+        "five-point): E is estimated again in RANSAC on the pair's verified inliers (two_view.max_error_px, "
+        "4 px, decides those) at this threshold and polished, so the pose rests on the matches that fit it "
+        "tightly (kept from verification when fewer than min_initial_pair_inliers do).",
+    )
     initial_pair_candidates: int = Field(
         10, ge=1, description="Passing initial-pair candidates (most shared tracks first) compared when "
         "none reaches preferred_initial_pair_angle_deg; failed ones are skipped until the graph has no pair.",
