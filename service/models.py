@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -185,7 +185,11 @@ class NerfOut(BaseModel):
     links: dict[str, str] = Field(default_factory=dict)
 
 
-Vector3 = list[float]
+MAX_COORDINATE = 1e6
+"""Largest |value| of a render request's eye, look_at, up and c2w entries: poses live in the scene's own
+frame (a radius of a few units); far beyond it the look-at maths overflows (norms of ~1e156)."""
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
+Vector3 = list[Coordinate]
 
 
 class RenderRequest(BaseModel):
@@ -212,7 +216,7 @@ class RenderRequest(BaseModel):
         }
     )
 
-    c2w: list[list[float]] | None = Field(None, description="4x4 camera-to-world, OpenGL camera axes.")
+    c2w: list[list[Coordinate]] | None = Field(None, description="4x4 camera-to-world, OpenGL camera axes.")
     eye: Vector3 | None = Field(None, min_length=3, max_length=3)
     look_at: Vector3 | None = Field(None, min_length=3, max_length=3)
     up: Vector3 | None = Field(None, min_length=3, max_length=3)

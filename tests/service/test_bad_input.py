@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -236,11 +237,24 @@ def test_bad_log_offset_answers_422(client):
         {"c2w": np.eye(4).tolist(), "eye": [0, 0, 1], "look_at": [0, 0, 0], "width": 10, "height": 10},
         {"c2w": np.eye(4).tolist(), "width": 0, "height": 10},
         {"c2w": np.eye(4).tolist(), "width": 10, "height": 10, "fx": 5, "fov_x_deg": 40},
+        {"c2w": (np.eye(4) * 1e300).tolist(), "width": 10, "height": 10},
     ],
-    ids=["no-camera", "eye-is-target", "up-along-view", "c2w-3x3", "two-cameras", "zero-width", "fx-and-fov"],
+    ids=["no-camera", "eye-is-target", "up-along-view", "c2w-3x3", "two-cameras", "zero-width", "fx-and-fov",
+         "c2w-beyond-the-scene"],
 )
 def test_a_bad_render_request_answers_422(client, body):
     assert client.post(f"/v1/nerf/{UNKNOWN_ID}/render", json=body).status_code == 422
+
+
+def test_a_camera_far_beyond_the_scene_answers_422_naming_the_field(client):
+    """Coordinates of ~1e156 made the look-at maths overflow (numpy's RuntimeWarning) before the
+    degenerate camera was refused; now the field's bound refuses them first."""
+    body = {"eye": [-3.7e148, -1.6e156, 9.2], "look_at": [6.9e16, 600, 8.3e15], "width": 10, "height": 10}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        response = client.post(f"/v1/nerf/{UNKNOWN_ID}/render", json=body)
+    assert response.status_code == 422
+    assert {tuple(error["loc"][1:3]) for error in response.json()["detail"]} >= {("eye", 0), ("eye", 1)}
 
 
 def test_render_with_a_non_json_body_answers_422(client):
