@@ -227,6 +227,19 @@ def test_an_object_capture_in_shuffled_file_order_with_30_percent_outliers_regis
     assert np.bincount(model.obs_point).mean() > 3        # tracks continue beyond their first pair
 
 
+@pytest.mark.parametrize("layout, seed", [("ring", 0), ("hemisphere", 5)])
+def test_small_photos_around_an_object_do_not_start_a_flipped_model(layout, seed):
+    """200 px views: verification's 4 px admitted an initial pair's E degrees off, and these two models came
+    out flipped (every camera 130-178 deg off, all registered) until the pose came from `tight_essential`."""
+    scene = make_object_scene(num_cameras=30, layout=layout, num_points=1500, noise_px=0.5,
+                              outlier_fraction=0.3, seed=seed, width=200, height=150)
+    model = reconstruct_models(scene.tracks, scene.K, CONFIG)[0]
+    assert sorted(model.poses) == list(range(30))
+    errors = pose_errors(model, scene)
+    assert errors.rotation_deg.mean() < 1.0
+    assert errors.rotation_deg.max() < 3.0
+
+
 def test_two_disconnected_groups_of_images_give_two_models():
     first = make_scene(num_cameras=5, num_points=300, noise_px=0.5, seed=13)
     second = make_scene(num_cameras=4, num_points=300, noise_px=0.5, seed=14)
