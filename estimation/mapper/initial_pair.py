@@ -2,12 +2,13 @@
 
 Candidates are the co-visible pairs ranked by shared (verified) tracks. Each is evaluated in turn:
 geometric verification (`two_view.geometry`: E by the 5-point solver, F and H in RANSAC; planar and
-panoramic pairs are refused), the chirality-checked relative pose of E estimated again on the inliers at a
-tight threshold (`tight_essential`), triangulation of the inliers, and their parallax. A candidate passes with enough well-conditioned points and a median triangulation
-angle at min_initial_pair_median_angle_deg; the first reaching preferred_initial_pair_angle_deg is taken
-at once (wide baselines start better conditioned models), else the one with most well-conditioned points
-among the first initial_pair_candidates passing ones. A failed candidate only records its reason:
-the next is tried while the graph has pairs left (COLMAP tries pairs the same way).
+panoramic pairs are refused), the chirality-checked relative pose of E estimated again on the inliers at
+a tight threshold (`tight_essential`), triangulation of the inliers, and their parallax. A candidate
+passes with enough well-conditioned points and a median triangulation angle at
+min_initial_pair_median_angle_deg; the first reaching preferred_initial_pair_angle_deg is taken at once
+(wide baselines start better conditioned models), else the one with most well-conditioned points among
+the first initial_pair_candidates passing ones. A failed candidate only records its reason: the next is
+tried while the graph has pairs left (COLMAP tries pairs the same way).
 """
 
 from __future__ import annotations
