@@ -59,7 +59,7 @@ def test_keypoints_detected_downscaled_are_mapped_back_to_full_resolution_pixels
 def test_the_default_contrast_threshold_keeps_opencvs_skip_of_flat_dog_samples():
     """OpenCV refines only DoG extrema with |D| > floor(contrast_threshold / 3 * 0.5 * 255): below 0.02353
     that floor is 0 and every nonzero extremum is refined (1.6x the detection time on lego). The default
-    keeps it at 1 and finds a subset of 0.02's keypoints, without only the weakest few."""
+    keeps it at 1 and finds a subset of 0.02's keypoints, missing only the weakest few."""
     default = SiftConfig()
     assert np.floor(default.contrast_threshold / 3 * 0.5 * 255) >= 1
     image = textured_image(320, 240, seed=0)
