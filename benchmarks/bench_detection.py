@@ -53,16 +53,16 @@ def main() -> None:
         for name in args.sets.split(","):
             images = images_of(name, Path(work))
             seconds: dict[float, list[float]] = {threshold: [] for threshold in thresholds}
+            detected: dict[float, list[np.ndarray]] = {}
             for _ in range(args.repeats):
                 for threshold in thresholds:
                     config = SiftConfig(contrast_threshold=threshold)
                     start = time.process_time()
-                    keypoints = [detect_features(rgb, config).uv for rgb in images]
+                    detected[threshold] = [detect_features(rgb, config).uv for rgb in images]
                     seconds[threshold].append(time.process_time() - start)
             reference: list[set] | None = None
             for threshold in thresholds:
-                config = SiftConfig(contrast_threshold=threshold)
-                keypoints = [detect_features(rgb, config).uv for rgb in images]
+                keypoints = detected[threshold]
                 found = [{tuple(uv) for uv in image_uv} for image_uv in keypoints]
                 reference = reference or found
                 common = sum(len(a & b) for a, b in zip(found, reference, strict=True))

@@ -122,10 +122,8 @@ def tight_essential(K: np.ndarray, E: np.ndarray, uv_i: np.ndarray, uv_j: np.nda
     Verification's 4 px admits, on small images, essential matrices several degrees apart with as many
     inliers: on lego's 200 px views, its E of the pair that started a flipped model (all 90 images 160 deg
     off) was 21 deg from the true relative rotation."""
-    threshold = config.mapper.initial_pair_max_error_px
-    ransac = config.ransac.model_copy(update={"threshold_px": threshold})
     try:
-        estimate = ransac_essential(uv_i, uv_j, K, K, threshold, ransac)
+        estimate = ransac_essential(uv_i, uv_j, K, K, config.mapper.initial_pair_max_error_px, config.ransac)
     except DegenerateConfigurationError:
         return E
     return estimate.E if estimate.inlier_mask.sum() >= config.mapper.min_initial_pair_inliers else E

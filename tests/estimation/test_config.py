@@ -14,6 +14,7 @@ from estimation.config import ReconstructionConfig
     ("mapper", "pnp_threshold_noise_factor", -1.0),
     ("mapper", "relaxed_registration_factor", 1.5),
     ("mapper", "refinement_max_iterations", 0),
+    ("mapper", "initial_pair_max_error_px", 0.0),
     ("bundle_adjustment", "local_max_iterations", 0),
     ("bundle_adjustment", "local_max_iterations_refining", 0),
 ])
