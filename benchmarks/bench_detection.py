@@ -9,7 +9,7 @@ threshold's detection also found. Sets: lego (lego_200 train + val composited on
 200x200) and fountain (the first two views of strecha/fountain-P11 at 3072x2048, where the 8192-keypoint
 budget binds).
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_detection.py
+    python benchmarks/bench_detection.py
     python benchmarks/bench_detection.py --sets lego --thresholds 0.02,0.0235,0.0236,0.04
 """
 

@@ -15,7 +15,7 @@ On lego it also measures the retrieval used beyond `exhaustive_up_to` images (VL
 the view pairs whose ground-truth viewing directions are within 20 / 30 degrees that the retrieval
 neighbours contain.
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_features.py
+    python benchmarks/bench_features.py
     python benchmarks/bench_features.py --sets lego --max-side 3200 --max-features 8192
 """
 

@@ -10,9 +10,9 @@ on other processes meanwhile (from /proc/stat: a run where they are not near 0 s
 matches and inliers per pair, two-view geometries, tracks) and --compare checks it bitwise against a saved
 one.
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_frontend.py --timeline
+    python benchmarks/bench_frontend.py --timeline
     mkdir -p /tmp/base && git archive ca7ff17 | tar -x -C /tmp/base
-    flock /tmp/sfmnerf-bench.lock bash -c 'for k in 1 2 3; do python benchmarks/bench_frontend.py --code \\
+    bash -c 'for k in 1 2 3; do python benchmarks/bench_frontend.py --code \\
         /tmp/base --save /tmp/base.pkl; python benchmarks/bench_frontend.py --compare /tmp/base.pkl; done'
 """
 

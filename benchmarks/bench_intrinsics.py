@@ -13,7 +13,7 @@ the ground-truth poses, RMS reprojection error, and seconds.
 the image centre (the split on which the uncalibrated defaults were chosen; the Strecha sets are the
 unseen check): each intrinsics setting's recovered focal length, principal point and rotation error.
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_intrinsics.py
+    python benchmarks/bench_intrinsics.py
     python benchmarks/bench_intrinsics.py --sets fountain-P11 --camera-model radial
     python benchmarks/bench_intrinsics.py --sets lego --uncalibrated-only
     python benchmarks/bench_intrinsics.py --synthetic

@@ -10,7 +10,7 @@ commit), so two versions can be timed on the same tracks one after the other.
 
     python benchmarks/bench_mapper.py --seeds 0,1,2
     mkdir -p /tmp/base && git archive 304f5ed | tar -x -C /tmp/base
-    flock /tmp/sfmnerf-bench.lock bash -c 'for s in 0 1 2; do python benchmarks/bench_mapper.py --seeds $s \\
+    bash -c 'for s in 0 1 2; do python benchmarks/bench_mapper.py --seeds $s \\
         --code /tmp/base; python benchmarks/bench_mapper.py --seeds $s; done'
 """
 

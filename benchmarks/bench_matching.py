@@ -6,11 +6,11 @@ then the matching runs `--repeats` times for each `--workers` count (1: in this 
 spawned processes, started, fed the descriptors and shut down within each run; in a reconstruction they start
 earlier, while the images are detected; the seconds the pool takes to start are printed once per count). CPU
 seconds (`time.process_time` of this process plus its finished children's `RUSAGE_CHILDREN`) move little when
-other work shares the machine; wall seconds only mean something under the bench lock on an otherwise idle
+other work shares the machine; wall seconds only mean something on an otherwise idle
 machine. Without a folder, the 90 lego views (../shared/data/lego_200) are composited on white into a
 temporary folder first.
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_matching.py
+    python benchmarks/bench_matching.py
     python benchmarks/bench_matching.py /tmp/prof/lego_work/lego --workers 1 --repeats 5
 """
 
