@@ -1,0 +1,147 @@
+"""The documentation stays usable and true: a short README for users, links that lead somewhere, the
+settings table as the settings class defines it, and files that speak of the product only."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+DOCUMENTS = [README, *sorted((ROOT / "docs").glob("*.md")), ROOT / "benchmarks" / "RESULTS.md"]
+README_MAX_LINES = 200
+
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
+FENCE = re.compile(r"^```.*?^```", re.M | re.S)
+WORK_PROCESS_WORDS = {
+    "a numbered stop": re.compile(r"\bstop [0-9]+\b", re.I),
+    "a branch name": re.compile(r"\bbranch (sfm|nerf|svc|service)[-a-z0-9]*", re.I),
+    "engineers": re.compile(r"\bengineers?\b", re.I),
+    "a benchmark lock": re.compile(r"\bbench(mark)?[-. _]lock", re.I),
+}
+
+
+def load_script(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def heading_anchors(markdown: str) -> set[str]:
+    """GitHub's anchors of a document's headings: lower case, punctuation dropped, spaces as hyphens."""
+    anchors = set()
+    for line in FENCE.sub("", markdown).splitlines():
+        if match := re.match(r"#{1,6}\s+(.*)", line):
+            title = match.group(1).strip().lower()
+            anchors.add(re.sub(r"[^\w\- ]", "", title).replace(" ", "-"))
+    return anchors
+
+
+def relative_links(document: Path) -> list[str]:
+    text = FENCE.sub("", document.read_text(encoding="utf-8"))
+    return [target for target in LINK.findall(text) if not re.match(r"[a-z][a-z0-9+.-]*:", target)]
+
+
+def tracked_files() -> list[Path]:
+    try:
+        listing = subprocess.run(
+            ["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True, text=True
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("not a git checkout: the tracked files are unknown")
+    return [ROOT / name for name in listing.split("\0") if name]
+
+
+def test_readme_is_short_enough_to_read_in_one_sitting():
+    lines = README.read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= README_MAX_LINES, f"README.md has {len(lines)} lines (at most {README_MAX_LINES})"
+
+
+def test_readme_shows_the_web_app_and_links_every_document():
+    links = set(relative_links(README))
+    assert "docs/images/scene-page.png" in links
+    for document in DOCUMENTS[1:]:
+        assert str(document.relative_to(ROOT)) in links, f"README.md does not link {document.name}"
+
+
+@pytest.mark.parametrize("document", DOCUMENTS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_relative_link_leads_to_a_file_and_heading(document):
+    broken = []
+    for target in relative_links(document):
+        path, _, anchor = target.partition("#")
+        destination = (document.parent / path).resolve() if path else document
+        if not destination.exists():
+            broken.append(f"{target}: no such file")
+        elif (
+            anchor
+            and destination.suffix == ".md"
+            and anchor not in heading_anchors(destination.read_text(encoding="utf-8"))
+        ):
+            broken.append(f"{target}: no such heading")
+    assert not broken, f"{document.relative_to(ROOT)}: " + "; ".join(broken)
+
+
+def test_heading_anchors_follow_github():
+    anchors = heading_anchors("# Checkerboard calibration (`sfmnerf calibrate`)\n## API (all under `/v1`)\n")
+    assert anchors == {"checkerboard-calibration-sfmnerf-calibrate", "api-all-under-v1"}
+
+
+def test_settings_table_is_the_one_the_settings_class_generates():
+    settings_table = load_script("settings_table")
+    text = settings_table.DOC.read_text(encoding="utf-8")
+    assert settings_table.replace_table(text, settings_table.settings_table()) == text, (
+        "docs/service.md's settings table differs from the settings class: "
+        "run python3 scripts/settings_table.py --write"
+    )
+
+
+def test_settings_table_has_one_row_per_setting():
+    from service.settings import ServiceSettings
+
+    rows = load_script("settings_table").settings_table().splitlines()[2:]
+    variables = [row.split("|")[1].strip(" `") for row in rows]
+    assert variables == [f"SFMNERF_{name.upper()}" for name in ServiceSettings.model_fields]
+
+
+def test_files_speak_of_the_product_not_of_how_it_was_made():
+    found = []
+    for path in tracked_files():
+        relative = path.relative_to(ROOT)
+        if relative.parts[0] == "tests" or not path.is_file():
+            continue
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            continue  # images and other binary files
+        for number, line in enumerate(text.splitlines(), 1):
+            for what, pattern in WORK_PROCESS_WORDS.items():
+                if match := pattern.search(line):
+                    found.append(f"{relative}:{number}: {what} ({match.group(0)!r})")
+    assert not found, "\n".join(found)
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        "measured on stop 21's main",
+        "branch sfm-verify3 (22:06 UTC)",
+        "other engineers' work",
+        "flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py",
+        "under the benchmark lock",
+    ],
+)
+def test_work_process_words_are_recognised(line):
+    assert any(pattern.search(line) for pattern in WORK_PROCESS_WORDS.values())
+
+
+@pytest.mark.parametrize(
+    "line",
+    ["a job stops when cancelled", "stop the service with Ctrl-C", "the flock of points", "git branch"],
+)
+def test_ordinary_words_are_not_taken_for_work_process_words(line):
+    assert not any(pattern.search(line) for pattern in WORK_PROCESS_WORDS.values())
