@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import re
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -28,6 +29,7 @@ WORK_PROCESS_WORDS = {
 def load_script(name: str):
     spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the script runs
     spec.loader.exec_module(module)
     return module
 
@@ -145,3 +147,50 @@ def test_work_process_words_are_recognised(line):
 )
 def test_ordinary_words_are_not_taken_for_work_process_words(line):
     assert not any(pattern.search(line) for pattern in WORK_PROCESS_WORDS.values())
+
+
+def write_package(root: Path, files: dict[str, str]) -> None:
+    for name, text in files.items():
+        path = root / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+
+def test_import_graph_puts_every_importer_above_what_it_imports(tmp_path):
+    import_graph = load_script("import_graph")
+    write_package(
+        tmp_path,
+        {
+            "pkg/__init__.py": "from pkg.core.base import Thing\n",
+            "pkg/core/__init__.py": "",
+            "pkg/core/base.py": "Thing = 1\n",
+            "pkg/middle.py": "from pkg import Thing\n",  # through the package's re-export
+            "pkg/top.py": "def run():\n    from . import middle\n",  # inside a function, relative
+        },
+    )
+    modules = import_graph.module_graph(import_graph.read_modules(tmp_path, ["pkg"]))
+    graph = import_graph.node_graph(modules, depth=2)
+    assert graph == {"pkg.core": set(), "pkg.middle": {"pkg.core"}, "pkg.top": {"pkg.middle"}}
+    component = import_graph.strongly_connected(graph)
+    assert import_graph.floors(graph, component) == {"pkg.core": 0, "pkg.middle": 1, "pkg.top": 2}
+
+
+def test_import_graph_draws_a_cycle_on_one_floor_in_red(tmp_path):
+    import_graph = load_script("import_graph")
+    write_package(
+        tmp_path,
+        {
+            "pkg/__init__.py": "",
+            "pkg/a.py": "from pkg.b import y\nx = 1\n",
+            "pkg/b.py": "def f():\n    from pkg.a import x\ny = 2\n",
+            "pkg/c.py": "import pkg.a\n",
+        },
+    )
+    modules = import_graph.module_graph(import_graph.read_modules(tmp_path, ["pkg"]))
+    graph = import_graph.node_graph(modules, depth=2)
+    component = import_graph.strongly_connected(graph)
+    assert component["pkg.a"] == component["pkg.b"] != component["pkg.c"]
+    assert import_graph.floors(graph, component) == {"pkg.a": 0, "pkg.b": 0, "pkg.c": 1}
+    svg = import_graph.render_svg(graph, depth=2)
+    assert svg.count(f'stroke="{import_graph.CYCLE_COLOUR}" stroke-width="2"') == 2  # a and b, not c
+    assert "1 import cycle(s) in red" in svg
