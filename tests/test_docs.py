@@ -1,5 +1,6 @@
-"""The documentation stays usable and true: a short README for users, links that lead somewhere, the
-settings table as the settings class defines it, and files that speak of the product only."""
+"""The documentation stays usable and true: a short README for users, links that lead somewhere, files and
+Python names that exist, the settings table as the settings class defines it, and files that speak of the
+product only."""
 
 from __future__ import annotations
 
@@ -57,6 +58,42 @@ def tracked_files() -> list[Path]:
     except (OSError, subprocess.CalledProcessError):
         pytest.skip("not a git checkout: the tracked files are unknown")
     return [ROOT / name for name in listing.split("\0") if name]
+
+
+CODE_PATH = re.compile(r"`([A-Za-z0-9_.-]+(?:/[A-Za-z0-9_.-]+)*\.(?:py|js|css|html|yaml|sh|toml|mako))\b")
+DOTTED_NAME = re.compile(r"`((?:estimation|neural|service)(?:\.[A-Za-z_][A-Za-z0-9_]*)+)")
+
+
+def test_every_file_the_documents_name_exists():
+    """A file named in backticks (`estimation/geometry/ransac.py`, `mapper/incremental.py`, `bench_sfm.py`)
+    is the end of a tracked file's path."""
+    tracked = ["/" + str(path.relative_to(ROOT)) for path in tracked_files()]
+    missing = [
+        f"{document.relative_to(ROOT)}: {name}"
+        for document in DOCUMENTS
+        for name in CODE_PATH.findall(document.read_text(encoding="utf-8"))
+        if not any(path.endswith("/" + name) for path in tracked)
+    ]
+    assert not missing, "; ".join(missing)
+
+
+def test_every_python_name_the_documents_name_exists():
+    """`estimation.api.initial_intrinsics`, `neural.data.confined_path`, ...: a module, then attributes."""
+    missing = []
+    for document in DOCUMENTS:
+        for name in sorted(set(DOTTED_NAME.findall(document.read_text(encoding="utf-8")))):
+            parts = name.split(".")
+            for length in range(len(parts), 0, -1):
+                try:
+                    found = importlib.import_module(".".join(parts[:length]))
+                    break
+                except ModuleNotFoundError:
+                    continue
+            for attribute in parts[length:]:
+                found = getattr(found, attribute, None)
+            if found is None:
+                missing.append(f"{document.relative_to(ROOT)}: {name}")
+    assert not missing, "; ".join(missing)
 
 
 def test_readme_is_short_enough_to_read_in_one_sitting():
