@@ -10,6 +10,7 @@ import base64
 import json
 import os
 import re
+import time
 from pathlib import Path
 
 import httpx
@@ -90,6 +91,15 @@ def drop_files(page: Page, selector: str, paths: list[Path]) -> None:
     page.dispatch_event(selector, "drop", {"dataTransfer": transfer})
 
 
+def wait_for_renders(novel, count: int, seconds: float = 60.0) -> None:
+    """Until the novel view has shown `count` renders (polled here: the page's CSP forbids the string
+    evaluation that wait_for_function uses)."""
+    deadline = time.monotonic() + seconds
+    while int(novel.get_attribute("data-renders")) < count:
+        assert time.monotonic() < deadline, f"{novel.get_attribute('data-renders')} renders, {count} expected"
+        time.sleep(0.2)
+
+
 @pytest.mark.slow
 def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_views(page, server, shared_data):
     hall = shared_data / "unity_hall"
@@ -123,18 +133,17 @@ def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_vie
         for c in cameras
     ]
     assert min(distances) < 1e-6, distances
-    assert "near photo" in page.inner_text(f"#nerf-{nerf_id}")
+    assert page.inner_text(f"#novel-label-{nerf_id}").startswith("near photo ")
     novel.scroll_into_view_if_needed()
     box = novel.bounding_box()
     page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     page.mouse.down()
     page.mouse.move(box["x"] + box["width"] / 2 + 40, box["y"] + box["height"] / 2, steps=4)
     page.mouse.up()
-    page.wait_for_function(f"document.getElementById('novel-{nerf_id}').dataset.renders >= 2", timeout=60_000)
+    wait_for_renders(novel, 2)
     page.check(f"#free-{nerf_id}")  # the free orbit, from where the camera is
-    page.wait_for_selector(f"#novel-{nerf_id}[data-mode=free]")
-    page.wait_for_function(f"document.getElementById('novel-{nerf_id}').dataset.renders >= 3", timeout=60_000)
-    assert "eye" in json.loads(renders[-1].post_data)
+    page.wait_for_selector(f"#novel-label-{nerf_id}:text-matches('^free orbit: ')", timeout=60_000)
+    assert novel.get_attribute("data-mode") == "free" and "eye" in json.loads(renders[-1].post_data)
     page.wait_for_selector(f"#video-{nerf_id}", timeout=60_000)
     assert len(page.query_selector_all("#held-out img")) == 1  # LLFF hold-out of 5 photos: frame 0
     assert page.query_selector(f"#psnr-{nerf_id}") is not None
@@ -206,3 +215,80 @@ def test_every_page_runs_under_a_strict_csp(page):
     # and a violation would be seen: an inline style attribute is refused and reported
     with page.expect_console_message(lambda message: "Content Security Policy" in message.text):
         page.evaluate("document.body.setAttribute('style', 'color: red')")
+
+
+def looking_at(image: str, centre: np.ndarray) -> dict:
+    """A registered camera at `centre` looking at the origin, z up: world-to-camera R (OpenCV axes) and C."""
+    forward = -centre / np.linalg.norm(centre)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    R = np.array([right, np.cross(forward, right), forward])
+    return {"image": image, "R": R.tolist(), "t": (-R @ centre).tolist(), "C": centre.tolist()}
+
+
+def opengl_c2w(camera: dict) -> np.ndarray:
+    return np.c_[np.array(camera["R"]).T @ np.diag([1.0, -1.0, -1.0]), camera["C"]]
+
+
+def test_the_novel_view_opens_at_a_registered_camera_and_follows_the_registered_cameras(page):
+    """A NeRF job on a reconstruction of five photos on a 60-degree arc (the API answered here, each render a
+    grey pixel): the view opens at the middle photo, a drag moves along the photos and stops at the last one,
+    "free orbit" orbits the scene's centre from there, and unticking it returns to the photos."""
+    angles = np.radians([-30, -15, 0, 15, 30])
+    centres = [np.array([4 * np.sin(a), -4 * np.cos(a), 1.0]) for a in angles]
+    cameras = [looking_at(f"{k:04d}.png", centre) for k, centre in enumerate(centres)]
+    job = {"id": "n1", "kind": "nerf", "state": "succeeded", "stage": "done", "progress": 1.0, "error": None,
+           "source_job_id": "r1", "created_at": "2026-11-28T00:00:00Z"}  # fmt: skip
+    config = {"camera": {"width": 400, "height": 300}, "normalization": {"centre": [0, 0, 0], "scale": 1.0},
+              "orbit": {"target": [0, 0, 0], "up": [0, 0, 1], "radius": 4.0}}  # fmt: skip
+    grey_pixel = base64.b64decode(
+        "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAAAAAA6fptVAAAACklEQVR4nGNoAAAAggCBd81ytgAAAABJRU5ErkJggg=="
+    )
+    answers = {
+        "/v1/jobs/n1": job,
+        "/v1/jobs/n1/logs": {"lines": [], "next_offset": 0},
+        "/v1/nerf/n1": {"job": job, "config": config, "metrics": []},
+        "/v1/nerf/n1/checkpoints": [{"step": 10, "is_latest": True, "is_best": True, "val_psnr": None,
+                                     "size_bytes": 1000, "url": "/v1/nerf/n1/checkpoints/10"}],  # fmt: skip
+        "/v1/reconstructions/r1": {"cameras": cameras},
+    }
+    renders = []
+
+    def fake_api(route) -> None:
+        path = route.request.url.split("://", 1)[1].split("/", 1)[1].split("?")[0]
+        if path == "v1/nerf/n1/render":
+            renders.append(json.loads(route.request.post_data))
+            route.fulfill(status=200, content_type="image/png", body=grey_pixel)
+        elif f"/{path}" in answers:
+            route.fulfill(status=200, json=answers[f"/{path}"])
+        else:
+            route.fulfill(status=404, json={"detail": f"{path} not found"})
+
+    page.route(re.compile(r"/v1/"), fake_api)
+    page.goto("/#/jobs/n1")
+    novel = page.wait_for_selector("#novel-n1[data-renders='1']")
+    label = "#novel-label-n1"
+    assert novel.get_attribute("data-mode") == "path" and not page.is_checked("#free-n1")
+    np.testing.assert_allclose(renders[0]["c2w"][:3], opengl_c2w(cameras[2]), atol=1e-9)
+    assert page.inner_text(label) == "near photo 0002.png (3 of 5 along the path of registered cameras)"
+    at_first_photo = "near photo 0000.png (1 of 5 along the path of registered cameras)"
+
+    novel.scroll_into_view_if_needed()
+    box = novel.bounding_box()
+    page.mouse.move(box["x"] + 10, box["y"] + box["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 10 + 2 * box["width"], box["y"] + box["height"] / 2, steps=8)  # far right
+    page.mouse.up()
+    page.wait_for_selector(f"{label}:text-is('{at_first_photo}')")
+    np.testing.assert_allclose(renders[-1]["c2w"][:3], opengl_c2w(cameras[0]), atol=1e-9)
+
+    page.check("#free-n1")
+    page.wait_for_selector(f"{label}:text-matches('^free orbit: azimuth -?\\\\d+°, elevation 14°$')")
+    assert novel.get_attribute("data-mode") == "free"
+    np.testing.assert_allclose(renders[-1]["eye"], cameras[0]["C"], atol=1e-9)
+    assert renders[-1]["look_at"] == [0, 0, 0] and renders[-1]["up"] == [0, 0, 1]
+
+    page.uncheck("#free-n1")
+    page.wait_for_selector(f"{label}:text-is('{at_first_photo}')")
+    np.testing.assert_allclose(renders[-1]["c2w"][:3], opengl_c2w(cameras[0]), atol=1e-9)
+    assert page.errors == []

@@ -10,7 +10,8 @@ const NOVEL_VIEW_WIDTH = 192;
 export function novelView(jobId, config, cameras) {
   const camera = createNovelCamera(config, cameras);
   const img = h("img", { class: "novel", id: `novel-${jobId}`, alt: "novel view (drag to move the camera)" });
-  const label = h("p", { class: "muted" }, "Drag the image to move the camera; each position is rendered by the service.");
+  const label = h("p", { class: "muted", id: `novel-label-${jobId}` },
+    "Drag the image to move the camera; each position is rendered by the service.");
   const freeToggle = h("input", { type: "checkbox", id: `free-${jobId}`, disabled: !camera.canFollowPath });
   const toggleLabel = h("label", { class: "toggle", title: camera.canFollowPath
     ? "off: the camera moves along the registered cameras; on: it orbits the scene's centre freely"
