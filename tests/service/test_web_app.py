@@ -144,6 +144,8 @@ def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_vie
     page.check(f"#free-{nerf_id}")  # the free orbit, from where the camera is
     page.wait_for_selector(f"#novel-label-{nerf_id}:text-matches('^free orbit: ')", timeout=60_000)
     assert novel.get_attribute("data-mode") == "free" and "eye" in json.loads(renders[-1].post_data)
+    page.uncheck(f"#free-{nerf_id}")  # back among the photos, as the screenshot shows the page by default
+    page.wait_for_selector(f"#novel-label-{nerf_id}:text-matches('^near photo ')", timeout=60_000)
     page.wait_for_selector(f"#video-{nerf_id}", timeout=60_000)
     assert len(page.query_selector_all("#held-out img")) == 1  # LLFF hold-out of 5 photos: frame 0
     assert page.query_selector(f"#psnr-{nerf_id}") is not None
