@@ -10,5 +10,9 @@ trap 'rm -rf "$work"' EXIT
 mkdir -p "$target"
 cp "$work/package/build/three.module.min.js" "$work/package/examples/jsm/controls/OrbitControls.js" \
    "$work/package/LICENSE" "$target/"
+# The app loads modules by path, with no import map (an inline script, which its Content-Security-Policy
+# refuses): OrbitControls imports three from its sibling file instead of the bare name.
+sed -i "s#from 'three';#from './three.module.min.js';#" "$target/OrbitControls.js"
+grep -q "from './three.module.min.js';" "$target/OrbitControls.js"
 echo "three@${version}" > "$target/VERSION"
 echo "vendored three@${version} into $target"

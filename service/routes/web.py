@@ -6,6 +6,7 @@ browser's localStorage with every API request.
 
 from __future__ import annotations
 
+import mimetypes
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -17,6 +18,10 @@ WEB_DIR = Path(__file__).resolve().parents[1] / "web"
 
 def mount(app: FastAPI) -> None:
     """Serves index.html at `/` and the assets under `/static/`."""
+    # The app is ES modules: browsers refuse a module script served as anything but JavaScript, and the
+    # platform's MIME table (the Windows registry, a container without /etc/mime.types) may say otherwise.
+    mimetypes.add_type("text/javascript", ".js")
+    mimetypes.add_type("image/svg+xml", ".svg")
     app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")
 
     @app.get("/", include_in_schema=False)

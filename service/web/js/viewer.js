@@ -1,66 +1,12 @@
 // The 3D view of a reconstruction: coloured points and camera frusta (coloured by registration order),
 // orbit and zoom with three.js's OrbitControls. Cameras are world-to-camera R, t (OpenCV axes: x right,
 // y down, z forward) with centre C = -R^T t, as GET /v1/reconstructions/{id} gives them.
-import * as THREE from "three";
-import { OrbitControls } from "three/addons/OrbitControls.js";
+import * as THREE from "../vendor/three/three.module.min.js";
+import { OrbitControls } from "../vendor/three/OrbitControls.js";
+import { orderColour } from "./colours.js";
 
 const FRUSTUM_DEPTH_FRACTION = 0.12; // frustum depth as a fraction of the scene radius
 const POINT_SIZE_PX = 2.5;
-
-// Vertices of an ASCII or binary little-endian PLY file: {positions: Float32Array, colors: Uint8Array, count}.
-export function parsePly(buffer) {
-  const bytes = new Uint8Array(buffer);
-  const marker = new TextEncoder().encode("end_header");
-  let end = -1;
-  for (let i = 0; i + marker.length <= Math.min(bytes.length, 65536) && end < 0; i++) {
-    if (marker.every((b, k) => bytes[i + k] === b)) end = i;
-  }
-  if (end < 0) throw new Error("points.ply: no end_header");
-  const header = new TextDecoder().decode(bytes.subarray(0, end)).split(/\r?\n/);
-  const bodyStart = bytes.indexOf(10, end) + 1;
-  const sizes = { char: 1, uchar: 1, int8: 1, uint8: 1, short: 2, ushort: 2, int16: 2, uint16: 2,
-                  int: 4, uint: 4, int32: 4, uint32: 4, float: 4, float32: 4, double: 8, float64: 8 };
-  let format = null, count = 0, inVertex = false;
-  const props = [];
-  for (const line of header) {
-    const words = line.trim().split(/\s+/);
-    if (words[0] === "format") format = words[1];
-    else if (words[0] === "element") { inVertex = words[1] === "vertex"; if (inVertex) count = +words[2]; }
-    else if (words[0] === "property" && inVertex) props.push({ type: words[1], name: words[2] });
-  }
-  const positions = new Float32Array(3 * count), colors = new Uint8Array(3 * count).fill(200);
-  const slot = { x: [positions, 0], y: [positions, 1], z: [positions, 2],
-                 red: [colors, 0], green: [colors, 1], blue: [colors, 2] };
-  if (format === "ascii") {
-    const rows = new TextDecoder().decode(bytes.subarray(bodyStart)).split("\n");
-    for (let i = 0; i < count; i++) {
-      const values = rows[i].trim().split(/\s+/);
-      props.forEach((p, k) => { if (slot[p.name]) slot[p.name][0][3 * i + slot[p.name][1]] = +values[k]; });
-    }
-  } else if (format === "binary_little_endian") {
-    const view = new DataView(buffer, bodyStart);
-    const stride = props.reduce((s, p) => s + sizes[p.type], 0);
-    const readers = { float: "getFloat32", float32: "getFloat32", double: "getFloat64", float64: "getFloat64",
-                      uchar: "getUint8", uint8: "getUint8", char: "getInt8", int8: "getInt8" };
-    for (let i = 0; i < count; i++) {
-      let offset = i * stride;
-      for (const p of props) {
-        if (slot[p.name] && readers[p.type]) {
-          slot[p.name][0][3 * i + slot[p.name][1]] = view[readers[p.type]](offset, true);
-        }
-        offset += sizes[p.type];
-      }
-    }
-  } else {
-    throw new Error(`points.ply: unsupported format ${format}`);
-  }
-  return { positions, colors, count };
-}
-
-// Colour of the i-th registered camera of n: red (first) through yellow and green to blue (last).
-export function orderColor(i, n) {
-  return new THREE.Color().setHSL((0.66 * i) / Math.max(n - 1, 1), 0.85, 0.55);
-}
 
 function median(values) {
   const sorted = [...values].sort((a, b) => a - b);
@@ -109,7 +55,7 @@ export function showReconstruction(container, { points, cameras, intrinsics, reg
     up.add(new THREE.Vector3(-R[1][0], -R[1][1], -R[1][2])); // camera "up" is -y in OpenCV axes
     const corners = [[0, 0], [width, 0], [width, height], [0, height]].map(([u, v]) =>
       toWorld(((u - K[0][2]) / K[0][0]) * depth, ((v - K[1][2]) / K[1][1]) * depth, depth));
-    const colour = orderColor(order.get(camera.image) ?? 0, cameras.length);
+    const colour = new THREE.Color(...orderColour(order.get(camera.image) ?? 0, cameras.length));
     for (let k = 0; k < 4; k++) {
       for (const v of [C, corners[k], corners[k], corners[(k + 1) % 4]]) {
         vertices.push(v.x, v.y, v.z);
