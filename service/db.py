@@ -12,7 +12,6 @@ lease expired is taken over. The schema is created and upgraded by the Alembic m
 from __future__ import annotations
 
 import contextlib
-import enum
 import os
 import socket
 from collections.abc import Iterable, Sequence
@@ -44,23 +43,8 @@ from sqlalchemy import (
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
-
-class JobState(enum.StrEnum):
-    queued = "queued"
-    running = "running"
-    succeeded = "succeeded"
-    failed = "failed"
-    cancelled = "cancelled"
-
-
-TERMINAL_STATES = frozenset({JobState.succeeded, JobState.failed, JobState.cancelled})
-
-
-class JobKind(enum.StrEnum):
-    reconstruction = "reconstruction"
-    nerf = "nerf"
-    video = "video"
-    evaluation = "evaluation"
+from service.kinds import TERMINAL_STATES, JobKind, JobState
+from service.params import parse_params
 
 
 def utcnow() -> datetime:
@@ -257,8 +241,6 @@ class JobStore:
         webhook_url: str | None = None,
         owner: str | None = None,
     ) -> Job:
-        from service.params import parse_params
-
         job = Job(
             id=job_id or new_job_id(),
             kind=str(kind),

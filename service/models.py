@@ -8,7 +8,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.db import Job, JobKind, JobState
+from service.db import Job
+from service.kinds import JobKind, JobState
 from service.params import VideoParams
 
 JOB_ID_EXAMPLE = "3f2b8c1d9e7a4b6c8d0e1f2a3b4c5d6e"

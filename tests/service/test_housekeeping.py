@@ -11,7 +11,7 @@ from sqlalchemy import update
 from service.app import create_app
 from service.db import Job, JobKind, JobState, Scene, utcnow
 from service.housekeeping import expire_finished_jobs
-from service.runner import job_dir
+from service.layout import job_dir
 from tests.service.conftest import make_settings
 
 

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.db import JobKind, JobState, JobStore, utcnow
-from service.runner import complete_job
+from service.job_end import complete_job
 from service.webhooks import WebhookSender, delivery_deadline_seconds
 from tests.service.conftest import WebhookReceiver, make_settings
 
