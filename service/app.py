@@ -17,16 +17,16 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import openapi
 from service.auth import AuthMiddleware
-from service.db import JobStore
 from service.deps import SettingsDep, StoreDep, current_client, visible_job
 from service.errors import ServiceError
 from service.executor import make_executor
 from service.kinds import JobState
-from service.models import HealthOut, InfoOut, ReadyOut
 from service.renders import RenderQueue
 from service.routes import jobs, nerf, previews, reconstructions, scenes, web
 from service.scene_supervisor import SceneSteps, SceneSupervisor
+from service.schemas import HealthOut, InfoOut, ReadyOut
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
 from service.uploads import sweep_orphan_folders
 from service.webhooks import WebhookSender
 

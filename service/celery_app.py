@@ -21,12 +21,13 @@ from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 from celery.signals import task_failure, worker_process_init
 
 from service.celery_config import RENDER_TASK, RUN_JOB_TASK, make_celery
-from service.db import JobStore, process_exists
 from service.job_end import complete_job, runtime_exceeded
 from service.kinds import JobState
 from service.renders import run_render_task
 from service.runner import TimeLimit, execute
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.leases import process_exists
 
 
 def _worker_name(task: Any) -> str:

@@ -9,11 +9,11 @@ from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.auth import Client
-from service.db import JobStore
 from service.errors import no_space
 from service.executor import Executor
 from service.housekeeping import disk_space_problem
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
 
 _bearer = HTTPBearer(
     auto_error=False, description="API token (SFMNERF_API_TOKEN or a client's), when configured."

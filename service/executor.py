@@ -31,12 +31,13 @@ from typing import IO, Protocol
 from uuid import uuid4
 
 from service.celery_config import RUN_JOB_TASK, make_celery
-from service.db import Job, JobStore
 from service.housekeeping import HOUSEKEEPING_SECONDS, expire_finished_jobs
 from service.job_end import complete_job, runtime_exceeded
 from service.kinds import JobKind, JobState
 from service.layout import WORKER_LOG_NAME, job_dir
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job
 
 log = logging.getLogger(__name__)
 SUPERVISOR_POLL_SECONDS = 0.25

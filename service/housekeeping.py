@@ -10,9 +10,10 @@ import logging
 import shutil
 from datetime import timedelta
 
-from service.db import JobStore, utcnow
 from service.layout import job_dir
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import utcnow
 
 log = logging.getLogger(__name__)
 HOUSEKEEPING_SECONDS = 60.0

@@ -7,9 +7,10 @@ store's outbox (the API's `webhooks.WebhookSender` threads deliver it, also afte
 
 from __future__ import annotations
 
-from service.db import Job, JobStore
 from service.kinds import JobState
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job
 from service.uploads import without_server_paths
 
 

@@ -1,7 +1,7 @@
 """Typed parameters of each job kind, stored as the job's `params` (validated on the way in and out).
 
 The nested configurations (`estimation.ReconstructionConfig`, `neural.TrainConfig`) are validated by
-their own models where the heavy packages are loaded: the routes that create jobs and the job functions.
+their own models where the heavy packages are loaded: the actions that create jobs and the job functions.
 """
 
 from __future__ import annotations

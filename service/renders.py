@@ -266,7 +266,7 @@ class RenderQueue:
 
 
 def spec_from_request(job_id: str, run_dir: Path, step: int, request: Any) -> RenderSpec:
-    """The RenderSpec of a RenderRequest (service.models) whose checkpoint is at `step` right now."""
+    """The RenderSpec of a RenderRequest (service.schemas) whose checkpoint is at `step` right now."""
     import math
 
     c2w = request.camera_to_world()

@@ -18,13 +18,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from service.db import Job, JobStore
 from service.job_end import complete_job, runtime_exceeded
 from service.kinds import JobKind, JobState, require_every_kind
 from service.layout import input_dir, job_dir, output_dir
 from service.params import EvaluationParams, NerfParams, ReconstructionParams, VideoParams, parse_params
 from service.pipeline import render_held_out
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job
 from service.uploads import without_server_paths
 
 PROGRESS_WRITE_INTERVAL_SECONDS = 0.5

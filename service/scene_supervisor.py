@@ -18,7 +18,6 @@ from typing import Any
 
 from service.actions.nerf import NerfInputs, TrainOptions, create_nerf, queue_video
 from service.actions.scenes import owner_client, scene_lock, scene_owner, stage_jobs
-from service.db import Job, JobStore, Scene, utcnow
 from service.errors import ServiceError
 from service.executor import Executor
 from service.kinds import JobKind, JobState
@@ -26,6 +25,8 @@ from service.layout import RECONSTRUCTION_REPORT, output_dir
 from service.params import EvaluationParams, VideoParams
 from service.pipeline import DONE, HELD_OUT_SPLIT, SceneOptions, orbit_size_of_run, registration_problem
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job, Scene, utcnow
 from service.uploads import without_server_paths
 
 log = logging.getLogger(__name__)

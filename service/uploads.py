@@ -25,7 +25,7 @@ from service.errors import ServiceError
 from service.settings import ServiceSettings
 
 if TYPE_CHECKING:
-    from service.db import JobStore
+    from service.store.job_store import JobStore
 
 log = logging.getLogger(__name__)
 

@@ -28,9 +28,10 @@ from ipaddress import IPv4Address, IPv4Network, IPv6Address, IPv6Network
 
 import httpx
 
-from service.db import JobStore, utcnow
-from service.models import JobOut
+from service.schemas import JobOut
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import utcnow
 from service.uploads import invalid
 
 log = logging.getLogger(__name__)

@@ -10,9 +10,9 @@ import os
 import sys
 
 from estimation.parallel import die_with_parent
-from service.db import JobStore
 from service.runner import execute
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
+from service.store.job_store import JobStore
 
 
 def main(argv: list[str] | None = None) -> int:

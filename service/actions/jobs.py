@@ -7,7 +7,6 @@ import shutil
 import time
 
 from service.auth import ANONYMOUS, Client
-from service.db import Job, JobStore, new_job_id
 from service.errors import conflict, not_found
 from service.executor import Executor
 from service.housekeeping import delete_job_and_files
@@ -15,6 +14,8 @@ from service.job_end import request_cancel
 from service.kinds import TERMINAL_STATES, JobKind, JobState
 from service.layout import input_dir
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job, new_job_id
 
 DELETE_WAIT_SECONDS = 10.0
 RUNNING_POLL_SECONDS = 0.1

@@ -15,13 +15,14 @@ from service import webhooks
 from service.actions.jobs import find_job
 from service.actions.reconstructions import InputFile
 from service.auth import Client
-from service.db import Job, JobStore, new_job_id
 from service.errors import ServiceError, conflict
 from service.executor import Executor
 from service.kinds import JobKind, JobState
 from service.layout import INPUT_DIR, job_dir, output_dir
 from service.params import NerfParams, VideoParams
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job, new_job_id
 from service.uploads import (
     extract_zip,
     find_dataset_root,

@@ -11,12 +11,13 @@ from typing import BinaryIO, Literal
 from estimation.config import ReconstructionConfig
 from service import webhooks
 from service.auth import Client
-from service.db import Job, JobStore, new_job_id
 from service.executor import Executor
 from service.kinds import JobKind
 from service.layout import input_dir, job_dir
 from service.params import ReconstructionParams
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job, new_job_id
 from service.uploads import inside, invalid, removed_on_failure, sanitize_filename, save_images, save_stream
 from service.validation import check_isolated
 

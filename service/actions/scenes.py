@@ -15,13 +15,14 @@ from service.actions.jobs import cancel_job, delete_job, retry_job
 from service.actions.nerf import TrainOptions, check_render_size, check_video
 from service.actions.reconstructions import InputFile, ReconstructionInputs, create_reconstruction
 from service.auth import ANONYMOUS, Client
-from service.db import JobStore, Scene, new_job_id, utcnow
 from service.errors import conflict
 from service.executor import Executor
 from service.kinds import TERMINAL_STATES, JobState
 from service.params import VideoParams
 from service.pipeline import SceneOptions, orbit_size
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Scene, new_job_id, utcnow
 from service.uploads import UploadRejected, extract_zip, invalid, sanitize_filename, save_stream
 
 ZIP_PHOTO_SUFFIXES = {".png", ".jpg", ".jpeg"}

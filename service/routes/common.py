@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import Response, UploadFile, status
 
 from service.actions.reconstructions import InputFile
-from service.models import ErrorOut, JobOut
+from service.schemas import ErrorOut, JobOut
 
 NOT_FOUND = {404: {"model": ErrorOut, "description": "No job with this id."}}
 NO_SPACE = {507: {"model": ErrorOut, "description": "The server's disk is too full for new work."}}

@@ -12,8 +12,8 @@ from service.actions.jobs import find_job
 from service.actions.jobs import retry_job as retry
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
 from service.kinds import JobKind, JobState
-from service.models import ErrorOut, JobList, JobOut, LogsOut
 from service.routes.common import MAX_PAGE, NO_SPACE, NOT_FOUND, accepted
+from service.schemas import ErrorOut, JobList, JobOut, LogsOut
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 MAX_LOG_LINES = 5000

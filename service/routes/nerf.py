@@ -24,11 +24,11 @@ from service.actions.nerf import queue_video as queue
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
 from service.kinds import JobKind, JobState
 from service.layout import RUN_CONFIG, RUN_METRICS, job_dir, output_dir
-from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
 from service.openapi import file_response
 from service.renders import RenderBusy, RenderFailed, RenderSpec, spec_from_request
 from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file
 from service.runner import finite_or_none
+from service.schemas import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
 from service.settings import ServiceSettings
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])

@@ -9,9 +9,9 @@ from service.actions.jobs import find_job
 from service.deps import JobIdPath, SettingsDep, StoreDep
 from service.kinds import JobKind
 from service.layout import output_dir
-from service.models import ErrorOut
 from service.openapi import file_response
 from service.routes.common import NOT_FOUND
+from service.schemas import ErrorOut
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
 VALIDATION_FOLDER = "val"

@@ -16,9 +16,9 @@ from service.actions.reconstructions import create_reconstruction as create
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
 from service.kinds import JobKind, JobState
 from service.layout import RECONSTRUCTION_EXPORTS, RECONSTRUCTION_REPORT, output_dir
-from service.models import ErrorOut, JobOut, ReconstructionOut
 from service.openapi import file_response
 from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file, input_files
+from service.schemas import ErrorOut, JobOut, ReconstructionOut
 from service.uploads import UploadRejected, inside, sanitize_filename
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstructions"])

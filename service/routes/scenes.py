@@ -30,14 +30,14 @@ from service.actions.scenes import cancel_scene as cancel
 from service.actions.scenes import create_scene as create
 from service.actions.scenes import delete_scene as delete
 from service.actions.scenes import retry_scene as retry
-from service.db import Scene
 from service.deps import ClientDep, ExecutorDep, SettingsDep, StoreDep, require_disk_space
 from service.kinds import JobState
 from service.layout import RECONSTRUCTION_EXPORTS, output_dir
-from service.models import ErrorOut, JobOut
 from service.openapi import file_response
 from service.pipeline import DONE, EVALUATION_FILE, STAGE_WEIGHTS, STAGES
 from service.routes.common import MAX_PAGE, NO_SPACE, REJECTED, accepted, input_file, input_files
+from service.schemas import ErrorOut, JobOut
+from service.store.tables import Scene
 
 SCENE_NOT_FOUND = {404: {"model": ErrorOut, "description": "No scene with this id."}}
 CONFLICT = {409: {"model": ErrorOut, "description": "Not possible in the scene's state."}}

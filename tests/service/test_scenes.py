@@ -356,10 +356,10 @@ class RecordingExecutor:
 def test_an_error_in_one_scenes_step_fails_that_scene_and_the_others_move_on(settings):
     """A broken report.json makes the step of one scene raise; that scene fails with the reason, keeps its
     reconstruction, and the other scene (older, so advanced after it) still moves on."""
-    from service.db import JobStore, Scene, new_job_id
     from service.kinds import JobKind, JobState
     from service.layout import RECONSTRUCTION_REPORT, output_dir
     from service.scene_supervisor import SceneSteps, SceneSupervisor
+    from service.store import JobStore, Scene, new_job_id
 
     store = JobStore(settings.resolved_database_url)
     report = {"images_registered": 5, "images_total": 5, "unregistered": []}

@@ -22,9 +22,10 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from service.app import create_app
-from service.db import JobKind, JobState, JobStore, Scene, new_job_id
+from service.kinds import JobKind, JobState
 from service.layout import job_dir
 from service.runner import execute
+from service.store import JobStore, Scene, new_job_id
 from tests.service.conftest import WebhookReceiver, make_settings, wait_for_job
 
 UNKNOWN_ID = "0" * 32
