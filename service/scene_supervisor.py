@@ -2,8 +2,9 @@
 (photos -> poses -> radiance field -> views, service.pipeline) on when the child jobs of its stage end.
 
 A reconstruction that registered enough images leads to a NeRF job on its poses, a trained NeRF to an orbit
-video job and a held-out evaluation job, each created through the same actions as a client's (with all
-their checks). A child that fails or is cancelled fails the scene at that stage with the child's reason.
+video job and a held-out evaluation job, each created through the actions (a client's NeRF and video jobs
+go through the same ones, with all their checks). A child that fails or is cancelled fails the scene at
+that stage with the child's reason.
 Each scene is its own unit of failure: any error in one scene's step fails that scene with the reason
 (its finished stages stay available, and a retry re-runs only the failed stage) and never stops the loop
 for the others.
@@ -16,11 +17,11 @@ import logging
 import threading
 from typing import Any
 
-from service.actions.nerf import NerfInputs, TrainOptions, create_nerf, queue_video
+from service.actions.nerf import NerfInputs, TrainOptions, create_nerf, queue_evaluation, queue_video
 from service.actions.scenes import owner_client, scene_lock, scene_owner, stage_jobs
 from service.errors import ServiceError
 from service.executor import Executor
-from service.kinds import JobKind, JobState
+from service.kinds import JobState
 from service.layout import RECONSTRUCTION_REPORT, output_dir
 from service.params import EvaluationParams, VideoParams
 from service.pipeline import DONE, HELD_OUT_SPLIT, SceneOptions, orbit_size_of_run, registration_problem
@@ -112,14 +113,10 @@ class SceneSteps:
                 self.store, self.executor, self.settings, scene.nerf_job_id, video
             ).id
         if scene.evaluation_job_id is None:
-            job = self.store.create(
-                JobKind.evaluation,
-                EvaluationParams(split=HELD_OUT_SPLIT, max_side=options.held_out_max_side),
-                source_job_id=scene.nerf_job_id,
-                owner=scene_owner(self.store, scene),
-            )
-            self.executor.submit(job.id)
-            values["evaluation_job_id"] = job.id
+            held_out = EvaluationParams(split=HELD_OUT_SPLIT, max_side=options.held_out_max_side)
+            values["evaluation_job_id"] = queue_evaluation(
+                self.store, self.executor, scene.nerf_job_id, held_out
+            ).id
         self.store.update_scene(scene.id, log="orbit video and held-out renders queued", **values)
 
     def _fail(self, scene: Scene, reason: str) -> None:

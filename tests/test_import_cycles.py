@@ -1,5 +1,6 @@
 """The packages import downward only: no import cycle among the project's modules, counting the imports
-made inside functions (they tie modules together just the same)."""
+made inside functions (they tie modules together just the same), and the service's floors (the
+architecture page draws them) are imported only from above."""
 
 from __future__ import annotations
 
@@ -12,6 +13,23 @@ KNOWN_CYCLES: list[set[str]] = [
     # Being removed (the triangulation observations move below projection); drop this entry once merged.
     {"estimation.geometry.projection", "estimation.geometry.triangulation"},
 ]
+
+SERVICE_FLOORS = [
+    (
+        "ground",
+        ["kinds", "errors", "settings", "layout", "params", "pipeline", "auth", "openapi", "celery_config"],
+    ),
+    ("store", ["store", "schemas"]),
+    ("checks and housekeeping", ["uploads", "validation", "webhooks", "housekeeping"]),
+    ("how a job ends", ["job_end"]),
+    ("running jobs", ["runner", "executor", "worker", "celery_app", "renders"]),
+    ("actions", ["actions", "deps"]),
+    ("scene supervisor", ["scene_supervisor"]),
+    ("routes", ["routes"]),
+    ("app", ["app"]),
+    ("command line", ["commands", "cli"]),
+]
+"""The service's floors, bottom to top: a module imports modules of its own floor or below."""
 
 
 def module_name(path: Path) -> str:
@@ -114,3 +132,22 @@ def test_only_the_app_imports_the_routes():
         if not module.startswith("service.routes") and any(t.startswith("service.routes") for t in targets)
     }
     assert importers == {"service.app"}
+
+
+def service_floor(module: str) -> int | None:
+    parts = module.split(".")
+    if parts[0] != "service" or len(parts) < 2 or parts[1] == "migrations":
+        return None
+    return next(level for level, (_, packages) in enumerate(SERVICE_FLOORS) if parts[1] in packages)
+
+
+def test_every_service_module_imports_only_its_floor_or_below():
+    upward = [
+        f"{module} ({SERVICE_FLOORS[service_floor(module)][0]}) -> {target} "
+        f"({SERVICE_FLOORS[service_floor(target)][0]})"
+        for module, targets in import_graph().items()
+        if service_floor(module) is not None
+        for target in targets
+        if service_floor(target) is not None and service_floor(target) > service_floor(module)
+    ]
+    assert upward == []

@@ -1,5 +1,5 @@
-"""Creating NeRF and orbit video jobs, and the checks they share with scenes: training options (device
-included), render sizes and the video budget, checkpoints."""
+"""Creating NeRF, orbit video and held-out evaluation jobs, and the checks they share with scenes:
+training options (device included), render sizes and the video budget, checkpoints."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from service.errors import ServiceError, conflict
 from service.executor import Executor
 from service.kinds import JobKind, JobState
 from service.layout import INPUT_DIR, job_dir, output_dir
-from service.params import NerfParams, VideoParams
+from service.params import EvaluationParams, NerfParams, VideoParams
 from service.settings import ServiceSettings
 from service.store.job_store import JobStore
 from service.store.tables import Job, new_job_id
@@ -195,6 +195,17 @@ def check_video(video: VideoParams, settings: ServiceSettings) -> None:
             f"num_frames x width x height = {video.pixels} pixels, more than the video budget "
             f"SFMNERF_MAX_VIDEO_PIXELS={settings.max_video_pixels}",
         )
+
+
+def queue_evaluation(
+    store: JobStore, executor: Executor, nerf_job_id: str, evaluation: EvaluationParams
+) -> Job:
+    """Held-out renders of the NeRF job's latest checkpoint scored against its data (a scene's last stage),
+    owned by the NeRF job's owner."""
+    source = find_job(store, nerf_job_id, JobKind.nerf)
+    job = store.create(JobKind.evaluation, evaluation, source_job_id=nerf_job_id, owner=source.owner)
+    executor.submit(job.id)
+    return job
 
 
 def queue_video(

@@ -11,7 +11,6 @@ import logging
 import math
 import time
 import zipfile
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -61,11 +60,9 @@ class ServerLog(logging.Handler):
 
 
 @pytest.fixture(scope="module")
-def server_log() -> Iterator[ServerLog]:
-    handler = ServerLog()
-    logging.getLogger().addHandler(handler)
-    yield handler
-    logging.getLogger().removeHandler(handler)
+def server_log() -> ServerLog:
+    """Filled by `finished` while its scene runs."""
+    return ServerLog()
 
 
 @pytest.fixture(scope="module")
@@ -80,13 +77,19 @@ def finished(tmp_path_factory, shared_data, server_log):
         )
     )
     settings = make_settings(folder / "data", job_threads=1, api_token=ADMIN, clients_file=clients_file)
-    with TestClient(create_app(settings), headers={"Authorization": f"Bearer {ALICE}"}) as client:
-        response = client.post(
-            "/v1/scenes", files=unity_hall_files(shared_data / "unity_hall"), data=QUICK_NERF
-        )
-        assert response.status_code == 202, response.text
-        assert response.headers["Location"] == f"/v1/scenes/{response.json()['id']}"
-        yield client, wait_for_scene(client, response.json()["id"]), settings
+    logging.getLogger().addHandler(server_log)
+    try:
+        with TestClient(create_app(settings), headers={"Authorization": f"Bearer {ALICE}"}) as client:
+            response = client.post(
+                "/v1/scenes", files=unity_hall_files(shared_data / "unity_hall"), data=QUICK_NERF
+            )
+            assert response.status_code == 202, response.text
+            assert response.headers["Location"] == f"/v1/scenes/{response.json()['id']}"
+            scene = wait_for_scene(client, response.json()["id"])
+            logging.getLogger().removeHandler(server_log)
+            yield client, scene, settings
+    finally:
+        logging.getLogger().removeHandler(server_log)
 
 
 @pytest.mark.slow
