@@ -50,7 +50,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run as a script from anywhere: the tests' server helpers
 
-from service.db import JobKind, JobState, JobStore  # noqa: E402
+from service.kinds import JobKind, JobState  # noqa: E402
+from service.store import JobStore  # noqa: E402
 from tests.service.conftest import TINY_MODEL_OPTIONS, tiny_nerf_npz, unity_hall_files  # noqa: E402
 from tests.service.servers import free_port, start_server  # noqa: E402
 

@@ -17,15 +17,17 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import openapi
 from service.auth import AuthMiddleware
-from service.db import JobState, JobStore
 from service.deps import SettingsDep, StoreDep, current_client, visible_job
+from service.errors import ServiceError
 from service.executor import make_executor
-from service.models import HealthOut, InfoOut, ReadyOut
+from service.kinds import JobState
 from service.renders import RenderQueue
 from service.routes import jobs, nerf, previews, reconstructions, scenes, web
-from service.scenes import SceneRunner, SceneSupervisor
+from service.scene_supervisor import SceneSteps, SceneSupervisor
+from service.schemas import HealthOut, InfoOut, ReadyOut
 from service.settings import ServiceSettings
-from service.uploads import UploadRejected, sweep_orphan_folders
+from service.store.job_store import JobStore
+from service.uploads import sweep_orphan_folders
 from service.webhooks import WebhookSender
 
 log = logging.getLogger(__name__)
@@ -102,7 +104,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         executor = make_executor(settings, store)
         app.state.store, app.state.executor = store, executor
         app.state.renders = RenderQueue(settings)
-        scene_supervisor = SceneSupervisor(SceneRunner(store, executor, settings))
+        scene_supervisor = SceneSupervisor(SceneSteps(store, executor, settings))
         webhook_sender = WebhookSender(store, settings)
         executor.start()
         scene_supervisor.start()
@@ -130,8 +132,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.add_middleware(BodySizeLimit, settings=settings)
     app.add_middleware(AuthMiddleware, settings=settings)
 
-    @app.exception_handler(UploadRejected)
-    async def _rejected(_request: Request, error: UploadRejected) -> JSONResponse:
+    @app.exception_handler(ServiceError)
+    async def _refused(_request: Request, error: ServiceError) -> JSONResponse:
         return JSONResponse({"detail": error.detail}, status_code=error.status_code)
 
     @app.exception_handler(json.JSONDecodeError)

@@ -1,15 +1,13 @@
-"""Celery: the same job functions on as many worker machines as needed, with a Redis broker.
+"""The Celery worker: `celery -A service.celery_app worker` registers the job and render tasks on the
+configuration of `service.celery_config` and runs them.
 
 Start a worker with `celery -A service.celery_app worker --concurrency 1` and the same SFMNERF_* settings
 as the API (database URL, data folder on a shared volume, broker URL, executor=celery), and a render
-worker with `-Q renders` (renders never queue behind a long job). Long jobs:
-acks_late and prefetch 1, so a worker takes one job at a time and a job is acknowledged when it ends; the
-broker's visibility timeout lies above the longest allowed job (Redis would otherwise hand a still-running
-job's message to another worker after 1 hour). A message delivered again (visibility timeout, or a worker
-process that died: task_reject_on_worker_lost) never runs its job twice: the claim in the job store is
-fenced, and the second delivery only records the end of an attempt whose worker process is gone.
-Each task carries its kind's maximum runtime as Celery time limits. Workers report progress into the same
-database as the API.
+worker with `-Q renders` (renders never queue behind a long job). A message delivered again (visibility
+timeout, or a worker process that died: task_reject_on_worker_lost) never runs its job twice: the claim in
+the job store is fenced, and the second delivery only records the end of an attempt whose worker process is
+gone. Each task carries its kind's maximum runtime as Celery time limits. Workers report progress into the
+same database as the API.
 """
 
 from __future__ import annotations
@@ -22,50 +20,14 @@ from celery import Celery
 from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 from celery.signals import task_failure, worker_process_init
 
-from service.renders import RENDER_TASK, run_render_task
+from service.celery_config import RENDER_TASK, RUN_JOB_TASK, make_celery
+from service.job_end import complete_job, runtime_exceeded
+from service.kinds import JobState
+from service.renders import run_render_task
+from service.runner import TimeLimit, execute
 from service.settings import ServiceSettings
-
-RUN_JOB_TASK = "sfmnerf.run_job"
-RENDER_QUEUE = "renders"
-PROCESS_START_SECONDS = 300.0
-"""How long a fresh worker process may take to start (Celery's default of 4 s killed processes that were
-still importing PyTorch on a busy machine, then started and killed the next one, and no task ran)."""
-VISIBILITY_MARGIN_SECONDS = 3600.0
-"""The default visibility timeout: the longest maximum runtime of any job kind plus this margin."""
-
-
-def visibility_timeout(settings: ServiceSettings) -> float:
-    """Seconds Redis waits before it hands an unacknowledged message to another worker."""
-    if settings.broker_visibility_timeout_seconds is not None:
-        return settings.broker_visibility_timeout_seconds
-    return settings.longest_job_seconds + VISIBILITY_MARGIN_SECONDS
-
-
-def make_celery(settings: ServiceSettings) -> Celery:
-    app = Celery("sfmnerf", broker=settings.broker_url)
-    timeout = visibility_timeout(settings)
-    app.conf.update(
-        task_acks_late=True,
-        worker_prefetch_multiplier=1,
-        # A worker process that died puts its message back; the next delivery finds the attempt's
-        # process gone and records the job failed (it does not run it again).
-        task_reject_on_worker_lost=True,
-        task_ignore_result=True,  # state and results live in the job store
-        # Renders never wait behind a long job: their own queue, served by `worker -Q renders`.
-        task_routes={RENDER_TASK: {"queue": RENDER_QUEUE}},
-        broker_connection_retry_on_startup=True,
-        worker_hijack_root_logger=False,
-        worker_proc_alive_timeout=PROCESS_START_SECONDS,
-        broker_transport_options={
-            "visibility_timeout": timeout,
-            # sweep for messages past their visibility timeout often enough for short timeouts too
-            "unacked_restore_interval": max(0.5, min(10.0, timeout / 4)),
-            "unacked_restore_throttle": 1,
-        },
-    )
-    app.task(name=RUN_JOB_TASK, bind=True)(_run_job)
-    app.task(name=RENDER_TASK, acks_late=False)(run_render_task)
-    return app
+from service.store.job_store import JobStore
+from service.store.leases import process_exists
 
 
 def _worker_name(task: Any) -> str:
@@ -75,8 +37,6 @@ def _worker_name(task: Any) -> str:
 
 def _run_job(task: Any, job_id: str) -> str | None:
     """Claims the queued job and runs it; a delivery that cannot claim it runs nothing."""
-    from service.runner import TimeLimit, execute
-
     settings = ServiceSettings()
     store = _store(settings)
     attempt = store.claim(job_id, worker=_worker_name(task), pid=os.getpid())
@@ -92,9 +52,6 @@ def _run_job(task: Any, job_id: str) -> str | None:
 def _another_delivery(store: Any, settings: ServiceSettings, task: Any, job_id: str) -> None:
     """This job's task arrived again while the job is running (visibility timeout, or its worker process
     died): it is never started a second time; a dead worker process on this node ends the job failed."""
-    from service.db import JobState, process_exists
-    from service.runner import complete_job
-
     job = store.get(job_id)
     if job is None or job.state != JobState.running or job.task_id != task.request.id:
         return
@@ -113,13 +70,11 @@ def _another_delivery(store: Any, settings: ServiceSettings, task: Any, job_id: 
         )
 
 
-_stores: dict[str, Any] = {}
+_stores: dict[str, JobStore] = {}
 
 
-def _store(settings: ServiceSettings) -> Any:
+def _store(settings: ServiceSettings) -> JobStore:
     """One job store (engine and connection pool) per worker process and database."""
-    from service.db import JobStore
-
     url = settings.resolved_database_url
     if url not in _stores:
         _stores[url] = JobStore(url, migrate=False)
@@ -145,9 +100,6 @@ def _mark_failed(
     **_: Any,
 ) -> None:
     """A task that failed outside `execute` (its hard time limit, an error before the job started)."""
-    from service.db import JobState
-    from service.runner import complete_job, runtime_exceeded
-
     if not args or getattr(sender, "name", None) != RUN_JOB_TASK:  # a render's failure is its own answer
         return
     settings = ServiceSettings()
@@ -161,4 +113,12 @@ def _mark_failed(
         complete_job(store, settings, job.id, job.attempt, JobState.failed, error=reason)
 
 
-app = make_celery(ServiceSettings())
+def make_worker_app(settings: ServiceSettings) -> Celery:
+    """The configured Celery app with the job and render tasks registered (what a worker runs)."""
+    app = make_celery(settings)
+    app.task(name=RUN_JOB_TASK, bind=True)(_run_job)
+    app.task(name=RENDER_TASK, acks_late=False)(run_render_task)
+    return app
+
+
+app = make_worker_app(ServiceSettings())

@@ -1,4 +1,5 @@
-"""FastAPI dependencies shared by the routers: settings, store, executor, auth, job look-ups."""
+"""FastAPI dependencies shared by the routers: settings, store, executor, the caller, what it may see, disk
+space for new work."""
 
 from __future__ import annotations
 
@@ -7,10 +8,12 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.auth import ANONYMOUS, Client
-from service.db import Job, JobKind, JobStore
+from service.auth import Client
+from service.errors import no_space
 from service.executor import Executor
+from service.housekeeping import disk_space_problem
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
 
 _bearer = HTTPBearer(
     auto_error=False, description="API token (SFMNERF_API_TOKEN or a client's), when configured."
@@ -58,10 +61,7 @@ def visible_job(request: Request, store: StoreDep, client: ClientDep) -> None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
 
 
-def find_job(store: JobStore, job_id: str, kind: JobKind | None = None, client: Client = ANONYMOUS) -> Job:
-    """The job, or 404 naming the id (also when it is of another kind or not the client's)."""
-    job = store.get(job_id)
-    if job is None or (kind is not None and job.kind != kind) or not client.may_see(job.owner):
-        what = f"{kind} job" if kind else "job"
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"{what} {job_id} not found")
-    return job
+def require_disk_space(settings: SettingsDep) -> None:
+    """507 Insufficient Storage for new work while the disk is below SFMNERF_MIN_FREE_DISK_BYTES."""
+    if (problem := disk_space_problem(settings)) is not None:
+        raise no_space(problem)

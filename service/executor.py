@@ -30,16 +30,19 @@ from pathlib import Path
 from typing import IO, Protocol
 from uuid import uuid4
 
-from service.db import Job, JobKind, JobState, JobStore
+from service.celery_config import RUN_JOB_TASK, make_celery
 from service.housekeeping import HOUSEKEEPING_SECONDS, expire_finished_jobs
-from service.runner import complete_job, job_dir, runtime_exceeded
+from service.job_end import complete_job, runtime_exceeded
+from service.kinds import JobKind, JobState
+from service.layout import WORKER_LOG_NAME, job_dir
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job
 
 log = logging.getLogger(__name__)
 SUPERVISOR_POLL_SECONDS = 0.25
 HARD_LIMIT_MARGIN_SECONDS = 30.0
 """Celery's hard time limit lies this far beyond a job's soft limit (its maximum runtime)."""
-WORKER_LOG_NAME = "worker.log"
 WORKER_LOG_TAIL_BYTES = 600
 
 
@@ -298,8 +301,6 @@ class CeleryExecutor:
     """Sends jobs to Celery workers; a reaper marks jobs whose worker stopped heartbeating as failed."""
 
     def __init__(self, settings: ServiceSettings, store: JobStore) -> None:
-        from service.celery_app import make_celery
-
         self.settings = settings
         self.store = store
         self.celery = make_celery(settings)
@@ -318,8 +319,6 @@ class CeleryExecutor:
             self._thread.join(timeout=10)
 
     def submit(self, job_id: str) -> None:
-        from service.celery_app import RUN_JOB_TASK
-
         job = self.store.get(job_id)
         task_id = f"{job_id}-{uuid4().hex[:8]}"
         self.store.set_task_id(job_id, task_id)

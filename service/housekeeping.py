@@ -10,15 +10,16 @@ import logging
 import shutil
 from datetime import timedelta
 
-from service.db import JobStore, utcnow
-from service.runner import job_dir
+from service.layout import job_dir
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import utcnow
 
 log = logging.getLogger(__name__)
 HOUSEKEEPING_SECONDS = 60.0
 
 
-def delete_job(store: JobStore, settings: ServiceSettings, job_id: str) -> None:
+def delete_job_and_files(store: JobStore, settings: ServiceSettings, job_id: str) -> None:
     """The job's row, its log and its folder (the job must not be running)."""
     store.delete(job_id)
     shutil.rmtree(job_dir(settings, job_id), ignore_errors=True)
@@ -34,11 +35,11 @@ def expire_finished_jobs(store: JobStore, settings: ServiceSettings) -> list[str
     for scene in store.expired_scenes(cutoff):
         scene_jobs = store.scene_job_ids(scene)
         for job_id in scene_jobs:
-            delete_job(store, settings, job_id)
+            delete_job_and_files(store, settings, job_id)
         store.delete_scene(scene.id)
         expired += scene_jobs
     for job_id in store.expired(cutoff):
-        delete_job(store, settings, job_id)
+        delete_job_and_files(store, settings, job_id)
         expired.append(job_id)
     if expired:
         log.info(

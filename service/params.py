@@ -1,7 +1,7 @@
 """Typed parameters of each job kind, stored as the job's `params` (validated on the way in and out).
 
 The nested configurations (`estimation.ReconstructionConfig`, `neural.TrainConfig`) are validated by
-their own models where the heavy packages are loaded: the routes that create jobs and the job functions.
+their own models where the heavy packages are loaded: the actions that create jobs and the job functions.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.db import JobKind
+from service.kinds import JobKind, require_every_kind
 
 
 class ReconstructionParams(BaseModel):
@@ -56,12 +56,13 @@ class EvaluationParams(BaseModel):
 
 
 JobParams = ReconstructionParams | NerfParams | VideoParams | EvaluationParams
-PARAMS_OF_KIND: dict[str, type[BaseModel]] = {
+PARAMS_OF_KIND: dict[JobKind, type[BaseModel]] = {
     JobKind.reconstruction: ReconstructionParams,
     JobKind.nerf: NerfParams,
     JobKind.video: VideoParams,
     JobKind.evaluation: EvaluationParams,
 }
+require_every_kind(PARAMS_OF_KIND, "job parameters")
 
 
 def parse_params(kind: str, params: dict[str, Any] | BaseModel) -> Any:

@@ -25,10 +25,10 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from service.celery_config import RENDER_TASK, make_celery
 from service.settings import ServiceSettings
 
 logger = logging.getLogger(__name__)
-RENDER_TASK = "sfmnerf.render"
 CACHE_DIR = "renders"
 MODELS_KEPT_PER_PROCESS = 2
 RETRY_AFTER_SECONDS = 2
@@ -227,8 +227,6 @@ class RenderQueue:
             ) from None
 
     async def _render_with_celery(self, spec: RenderSpec, cache_dir: Path | None) -> bytes:
-        from service.celery_app import make_celery
-
         if self._celery is None:
             self._celery = make_celery(self.settings)
         out_path = self.settings.jobs_dir / spec.job_id / "render-answers" / f"{uuid.uuid4().hex}.png"
@@ -268,7 +266,7 @@ class RenderQueue:
 
 
 def spec_from_request(job_id: str, run_dir: Path, step: int, request: Any) -> RenderSpec:
-    """The RenderSpec of a RenderRequest (service.models) whose checkpoint is at `step` right now."""
+    """The RenderSpec of a RenderRequest (service.schemas) whose checkpoint is at `step` right now."""
     import math
 
     c2w = request.camera_to_world()

@@ -1,11 +1,9 @@
 """The job functions and the code that runs one job attempt, shared by local job processes and Celery.
 
 `execute(store, job_id, attempt, settings)` runs the job whose attempt the caller claimed: it reports
-progress and log lines into the job store, heartbeats, stops when cancelled, and writes the final state.
-`complete_job` is the one way a job's end is recorded (by the job itself, its supervisor or a reaper):
-the fenced state change, the closing log line and the webhook (`announce_end` marks it pending in the
-job store's outbox, which the API's `webhooks.WebhookSender` threads deliver). The heavy
-libraries (`estimation`, `neural`) are imported inside the job functions.
+progress and log lines into the job store, heartbeats, stops when cancelled, and records the end through
+`service.job_end`. The heavy libraries (`estimation`, `neural`) are imported inside the job functions, so
+that the processes that only supervise or serve (the API, a Celery parent) never load them.
 """
 
 from __future__ import annotations
@@ -20,64 +18,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from service.db import Job, JobKind, JobState, JobStore
+from service.job_end import complete_job, runtime_exceeded
+from service.kinds import JobKind, JobState, require_every_kind
+from service.layout import input_dir, job_dir, output_dir
 from service.params import EvaluationParams, NerfParams, ReconstructionParams, VideoParams, parse_params
+from service.pipeline import render_held_out
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import Job
 from service.uploads import without_server_paths
 
 PROGRESS_WRITE_INTERVAL_SECONDS = 0.5
 """Progress of one stage is written at most this often (a NeRF step loop calls back every step)."""
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 log = logging.getLogger(__name__)
-
-
-def job_dir(settings: ServiceSettings, job_id: str) -> Path:
-    return settings.jobs_dir / job_id
-
-
-def input_dir(settings: ServiceSettings, job_id: str) -> Path:
-    return job_dir(settings, job_id) / "input"
-
-
-def output_dir(settings: ServiceSettings, job_id: str) -> Path:
-    """Reconstruction output folder, NeRF run folder or video folder of a job."""
-    return job_dir(settings, job_id) / "output"
-
-
-def announce_end(store: JobStore, job_id: str, line: str) -> None:
-    """The closing log line of a job that just ended, and its webhook marked due in the outbox (any process
-    may: the API's sender threads deliver it, also after a restart)."""
-    store.append_log(job_id, [line])
-    store.queue_webhook(job_id)
-
-
-def complete_job(
-    store: JobStore,
-    settings: ServiceSettings,
-    job_id: str,
-    attempt: int,
-    state: JobState,
-    *,
-    error: str | None = None,
-    result: dict | None = None,
-) -> bool:
-    """Ends a running attempt (fenced by `attempt`) and announces it (`announce_end`);
-    False if it no longer owns the job. The error names no server path (whoever records it)."""
-    error = without_server_paths(error, settings) if error else error
-    if not store.finish(job_id, attempt, state, error=error, result=result):
-        return False
-    shown = f" ({error})" if error and state != JobState.succeeded else ""
-    announce_end(store, job_id, f"finished: {state}{shown}")
-    return True
-
-
-def runtime_exceeded(kind: str, seconds: float) -> str:
-    """The error of a job stopped at its kind's maximum runtime (`seconds`)."""
-    minutes = seconds / 60.0
-    return (
-        f"the {kind} job ran longer than its maximum runtime of {minutes:g} minutes "
-        f"(SFMNERF_MAX_RUNTIME_{kind.upper()}_MINUTES) and was stopped"
-    )
 
 
 @dataclass
@@ -240,18 +194,12 @@ def run_video(context: JobContext) -> dict[str, Any]:
     }
 
 
-EVALUATION_FILE = "metrics.json"
-
-
 def run_evaluation(context: JobContext) -> dict[str, Any]:
-    """neural.evaluate of the source NeRF job's latest checkpoint on its data's held-out split (params:
-    split, max_side): output/<image>.png per view and output/metrics.json (PSNR, SSIM per view and mean)."""
-    import json
-
-    from neural import TrainConfig, evaluate
+    """The scene pipeline's held-out renders of the source NeRF job's latest checkpoint on its data
+    (params: split, max_side): output/<image>.png per view and output/metrics.json."""
+    from neural import TrainConfig
     from neural.data import load_dataset_for
     from neural.inference import IMAGE_CACHE_DIR, read_run_config
-    from service.scenes import downscaled
 
     params: EvaluationParams = context.params
     nerf_job = context.store.get(context.job.source_job_id)
@@ -263,13 +211,7 @@ def run_evaluation(context: JobContext) -> dict[str, Any]:
     config = TrainConfig.model_validate(read_run_config(run_dir)["train"])  # as the run trained on its data
     data = nerf_dataset_path(context.settings, nerf_job)
     dataset = load_dataset_for(data, config, run_dir / IMAGE_CACHE_DIR)
-    result = evaluate(
-        run_dir,
-        downscaled(dataset, params.max_side),
-        params.split,
-        out_dir=context.output_dir,
-    )
-    (context.output_dir / EVALUATION_FILE).write_text(json.dumps(result.to_dict()))
+    result = render_held_out(run_dir, dataset, params.max_side, params.split, context.output_dir)
     return {"views": len(result.per_image), "mean_psnr": result.mean_psnr, "mean_ssim": result.mean_ssim}
 
 
@@ -286,12 +228,13 @@ def finite_or_none(value: Any) -> Any:
     return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
-JOB_FUNCTIONS: dict[str, Callable[[JobContext], dict[str, Any]]] = {
+JOB_FUNCTIONS: dict[JobKind, Callable[[JobContext], dict[str, Any]]] = {
     JobKind.reconstruction: run_reconstruction,
     JobKind.nerf: run_nerf,
     JobKind.video: run_video,
     JobKind.evaluation: run_evaluation,
 }
+require_every_kind(JOB_FUNCTIONS, "job functions")
 
 
 def _expected_error_types() -> tuple[type[Exception], ...]:

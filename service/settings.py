@@ -14,6 +14,8 @@ from typing import Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from service.kinds import JobKind, require_every_kind
+
 WORKER_SETTINGS_ENV = "SFMNERF_WORKER_SETTINGS_JSON"
 """Environment variable through which the local executor hands its settings to a job process."""
 
@@ -109,6 +111,10 @@ class ServiceSettings(BaseSettings):
     max_runtime_video_minutes: float = Field(
         120.0, gt=0, description="An orbit video job running longer fails with this reason."
     )
+    max_runtime_evaluation_minutes: float = Field(
+        120.0, gt=0, description="A held-out evaluation job (a scene's last stage) running longer fails "
+        "with this reason."
+    )
     job_retention_minutes: float = Field(
         2880.0,
         gt=0,
@@ -184,11 +190,11 @@ class ServiceSettings(BaseSettings):
 
     def max_runtime_seconds(self, kind: str) -> float:
         """The longest a job of this kind may run (SFMNERF_MAX_RUNTIME_<KIND>_MINUTES)."""
-        return 60.0 * getattr(self, f"max_runtime_{kind}_minutes")
+        return 60.0 * getattr(self, MAX_RUNTIME_FIELD[JobKind(kind)])
 
     @property
     def longest_job_seconds(self) -> float:
-        return max(self.max_runtime_seconds(kind) for kind in ("reconstruction", "nerf", "video"))
+        return max(self.max_runtime_seconds(kind) for kind in JobKind)
 
     def threads_per_job(self) -> int:
         """CPU threads each local job process may use, so concurrent jobs do not oversubscribe the cores."""
@@ -199,3 +205,23 @@ class ServiceSettings(BaseSettings):
     def to_worker_json(self) -> str:
         """Serialized settings for a child job process (the API token stays with the API)."""
         return self.model_dump_json(exclude={"api_token"})
+
+
+MAX_RUNTIME_FIELD: dict[JobKind, str] = {
+    JobKind.reconstruction: "max_runtime_reconstruction_minutes",
+    JobKind.nerf: "max_runtime_nerf_minutes",
+    JobKind.video: "max_runtime_video_minutes",
+    JobKind.evaluation: "max_runtime_evaluation_minutes",
+}
+"""The setting that limits each job kind's runtime (the one per-kind limit)."""
+
+
+def _check_max_runtime_fields() -> None:
+    """At start-up: every kind has its maximum runtime, and each names a real setting."""
+    require_every_kind(MAX_RUNTIME_FIELD, "maximum runtime settings")
+    missing = set(MAX_RUNTIME_FIELD.values()) - set(ServiceSettings.model_fields)
+    if missing:
+        raise RuntimeError(f"maximum runtime settings: no field {sorted(missing)} in ServiceSettings")
+
+
+_check_max_runtime_fields()

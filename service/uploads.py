@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING, BinaryIO
 
 from PIL import Image, UnidentifiedImageError
 
+from service.errors import ServiceError
 from service.settings import ServiceSettings
 
 if TYPE_CHECKING:
-    from service.db import JobStore
+    from service.store.job_store import JobStore
 
 log = logging.getLogger(__name__)
 
@@ -39,13 +40,8 @@ SMALL_ENTRY_BYTES = 1 << 20
 ORPHAN_MIN_AGE_SECONDS = 600.0
 
 
-class UploadRejected(Exception):
+class UploadRejected(ServiceError):
     """An upload the service refuses; `status_code` is 413 (a limit) or 422 (bad content)."""
-
-    def __init__(self, status_code: int, detail: str) -> None:
-        super().__init__(detail)
-        self.status_code = status_code
-        self.detail = detail
 
 
 def too_large(detail: str) -> UploadRejected:

@@ -28,9 +28,11 @@ from ipaddress import IPv4Address, IPv4Network, IPv6Address, IPv6Network
 
 import httpx
 
-from service.db import JobStore, utcnow
-from service.models import JobOut
+from service.schemas import JobOut
 from service.settings import ServiceSettings
+from service.store.job_store import JobStore
+from service.store.tables import utcnow
+from service.uploads import invalid
 
 log = logging.getLogger(__name__)
 SENDER_THREADS = 4
@@ -95,8 +97,6 @@ def check_url(url: str | None, settings: ServiceSettings) -> str | None:
     """The webhook URL of a submission, checked (422 naming `webhook_url` when refused)."""
     if url is None:
         return None
-    from service.uploads import invalid
-
     try:
         resolve(url, settings.webhook_allowed_networks)
     except WebhookRefused as refused:

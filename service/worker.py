@@ -10,15 +10,14 @@ import os
 import sys
 
 from estimation.parallel import die_with_parent
+from service.runner import execute
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
+from service.store.job_store import JobStore
 
 
 def main(argv: list[str] | None = None) -> int:
     job_id, attempt, parent_pid = (argv or sys.argv[1:])[:3]
     die_with_parent(int(parent_pid))
-    from service.db import JobStore
-    from service.runner import execute
-
     settings = ServiceSettings.model_validate_json(os.environ[WORKER_SETTINGS_ENV])
     store = JobStore(settings.resolved_database_url, migrate=False)
     try:

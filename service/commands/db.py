@@ -13,8 +13,8 @@ def db() -> None:
 @db.command()
 def upgrade() -> None:
     """Apply the Alembic migrations to the database of SFMNERF_DATABASE_URL (or the data folder's SQLite)."""
-    from service.db import JobStore
     from service.settings import ServiceSettings
+    from service.store.job_store import JobStore
 
     settings = ServiceSettings()
     store = JobStore(settings.resolved_database_url)

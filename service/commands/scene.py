@@ -1,4 +1,5 @@
-"""`sfmnerf scene PHOTOS_DIR --out OUT`: photos to novel views in one process, the flow of POST /v1/scenes.
+"""`sfmnerf scene PHOTOS_DIR --out OUT`: photos to novel views in one process (service.pipeline.run_scene,
+the pipeline POST /v1/scenes runs as child jobs).
 
 OUT/reconstruction (as `sfmnerf reconstruct`), OUT/nerf (the run folder), OUT/orbit (frames and orbit.gif)
 and OUT/held_out (renders of the held-out views and metrics.json); one progress bar per stage.
@@ -7,10 +8,13 @@ and OUT/held_out (renders of the held-out views and metrics.json); one progress 
 from __future__ import annotations
 
 import json
-import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import click
+
+from service.pipeline import ProgressCallback
 
 STAGE_BAR_FORMAT = "{desc:<15} {bar} {n:5.1f}% [{elapsed}]"
 
@@ -56,11 +60,10 @@ def scene(
     from pydantic import ValidationError
     from tqdm import tqdm
 
-    from estimation import InputError, ReconstructionConfig, reconstruct
-    from neural import TrainConfig, evaluate, load_dataset, render_orbit, train
+    from estimation import InputError, ReconstructionConfig
+    from neural import TrainConfig
     from neural.errors import CheckpointError, DatasetError
-    from service.runner import EVALUATION_FILE
-    from service.scenes import SceneOptions, downscaled, orbit_size, registration_problem
+    from service.pipeline import SceneOptions, StageFailed, run_scene
 
     try:
         extra = json.loads(options) if options else {}
@@ -73,49 +76,22 @@ def scene(
     except (ValueError, ValidationError) as error:
         raise click.ClickException(f"options: {error}") from None
 
-    seconds: dict[str, float] = {}
-
-    def stage_bar(name: str) -> tuple[tqdm, object]:
-        bar = tqdm(total=100, desc=name, bar_format=STAGE_BAR_FORMAT)
-        seconds[name] = time.perf_counter()
-        return bar, lambda _text, fraction: bar.update(round(100 * min(max(fraction, 0.0), 1.0), 1) - bar.n)
-
-    def stage_done(name: str) -> None:
-        seconds[name] = time.perf_counter() - seconds[name]
+    @contextmanager
+    def stage_bar(name: str) -> Iterator[ProgressCallback]:
+        with tqdm(total=100, desc=name, bar_format=STAGE_BAR_FORMAT) as bar:
+            yield lambda _text, fraction: bar.update(round(100 * min(max(fraction, 0.0), 1.0), 1) - bar.n)
 
     try:
-        bar, progress = stage_bar("reconstruction")
-        with bar:
-            result = reconstruct(
-                photos_dir, out_dir / "reconstruction",
-                ReconstructionConfig(features=features, calibration=calibration), progress=progress,
-            )  # fmt: skip
-        stage_done("reconstruction")
-        problem = registration_problem(result.report, scene_options.min_registered_images)
-        if problem:
-            raise click.ClickException(f"reconstruction: {problem}; it is in {out_dir / 'reconstruction'}")
-        bar, progress = stage_bar("nerf")
-        with bar:
-            trained = train(out_dir / "reconstruction", out_dir / "nerf", config, progress=progress)
-        stage_done("nerf")
-        bar, progress = stage_bar("views")
-        with bar:
-            camera = json.loads((out_dir / "nerf" / "config.json").read_text())["camera"]
-            width, height = orbit_size(camera["width"], camera["height"], scene_options.orbit_max_side)
-            video = render_orbit(
-                out_dir / "nerf", scene_options.orbit_frames, out_dir / "orbit", width, height,
-                progress=lambda _text, fraction: progress("orbit", fraction / 2),
-            )  # fmt: skip
-            dataset = downscaled(load_dataset(out_dir / "reconstruction"), scene_options.held_out_max_side)
-            held_out = evaluate(out_dir / "nerf", dataset, "val", out_dir=out_dir / "held_out")
-            (out_dir / "held_out" / EVALUATION_FILE).write_text(json.dumps(held_out.to_dict(), indent=2))
-            progress("held-out views", 1.0)
-        stage_done("views")
-    except (InputError, DatasetError, CheckpointError) as error:
+        reconstruction_config = ReconstructionConfig(features=features, calibration=calibration)
+        outcome = run_scene(photos_dir, out_dir, reconstruction_config, scene_options, stage_bar)
+    except (InputError, DatasetError, CheckpointError, StageFailed) as error:
         raise click.ClickException(str(error)) from None
+    report, held_out = outcome.report, outcome.held_out
     click.echo(
-        f"registered {result.report['images_registered']}/{result.report['images_total']} images; "
-        f"NeRF {trained.step} steps in {trained.seconds:.0f} s; orbit {video}; held-out views "
-        f"{len(held_out.per_image)}, mean PSNR {held_out.mean_psnr:.2f} dB, SSIM {held_out.mean_ssim:.3f}"
+        f"registered {report['images_registered']}/{report['images_total']} images; "
+        f"NeRF {outcome.trained.step} steps in {outcome.trained.seconds:.0f} s; orbit {outcome.video}; "
+        f"held-out views {len(held_out.per_image)}, mean PSNR {held_out.mean_psnr:.2f} dB, "
+        f"SSIM {held_out.mean_ssim:.3f}"
     )
-    click.echo("seconds per stage: " + ", ".join(f"{name} {value:.1f}" for name, value in seconds.items()))
+    seconds = ", ".join(f"{name} {value:.1f}" for name, value in outcome.seconds.items())
+    click.echo(f"seconds per stage: {seconds}")

@@ -1,1 +1,1 @@
-"""Alembic migrations of the job store (applied by `service.db.upgrade_database`)."""
+"""Alembic migrations of the job store (applied by `service.store.database.upgrade_database`)."""

@@ -5,7 +5,7 @@ Standalone use (`alembic` CLI) is not needed: `sfmnerf db upgrade` and the servi
 
 from alembic import context
 
-from service.db import Base
+from service.store.tables import Base
 
 connection = context.config.attributes["connection"]
 context.configure(connection=connection, target_metadata=Base.metadata)

@@ -2,38 +2,21 @@
 
 from __future__ import annotations
 
-import shutil
-import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Response, status
+from fastapi import APIRouter, Depends, Query, Response
 
-from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore
-from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.housekeeping import delete_job as delete_job_and_files
-from service.housekeeping import disk_space_problem
-from service.models import ErrorOut, JobList, JobOut, LogsOut
-from service.runner import announce_end, input_dir
+from service.actions.jobs import cancel_job as cancel
+from service.actions.jobs import delete_job as delete
+from service.actions.jobs import find_job
+from service.actions.jobs import retry_job as retry
+from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
+from service.kinds import JobKind, JobState
+from service.routes.common import MAX_PAGE, NO_SPACE, NOT_FOUND, accepted
+from service.schemas import ErrorOut, JobList, JobOut, LogsOut
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
-NOT_FOUND = {404: {"model": ErrorOut, "description": "No job with this id."}}
-MAX_PAGE = 500
 MAX_LOG_LINES = 5000
-DELETE_WAIT_SECONDS = 10.0
-NO_SPACE = {507: {"model": ErrorOut, "description": "The server's disk is too full for new work."}}
-
-
-def require_disk_space(settings: SettingsDep) -> None:
-    """507 Insufficient Storage for new work while the disk is below SFMNERF_MIN_FREE_DISK_BYTES."""
-    if (problem := disk_space_problem(settings)) is not None:
-        raise HTTPException(status.HTTP_507_INSUFFICIENT_STORAGE, problem)
-
-
-def accepted(response: Response, job: JobOut) -> JobOut:
-    """202 Accepted with the job resource and its Location."""
-    response.status_code = status.HTTP_202_ACCEPTED
-    response.headers["Location"] = job.links["self"]
-    return job
 
 
 @router.get("", response_model=JobList, summary="List jobs, newest first")
@@ -76,15 +59,7 @@ def get_logs(
     summary="Cancel a queued or running job (its process is killed)",
 )
 def cancel_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settings: SettingsDep) -> JobOut:
-    job = find_job(store, job_id)
-    if job.state in TERMINAL_STATES:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id} is already {job.state}")
-    job = store.request_cancel(job_id)
-    executor.cancel(job_id)
-    if job is not None and job.state == JobState.cancelled:
-        announce_end(store, job_id, "finished: cancelled before it started")
-    # The answer shows the outcome when the process ends quickly (it usually does, within a second).
-    return JobOut.from_job(_wait_while_running(store, job_id, settings.cancel_grace_seconds + 1.0) or job)
+    return JobOut.from_job(cancel(store, executor, settings, job_id))
 
 
 @router.post(
@@ -98,32 +73,7 @@ def cancel_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settin
 def retry_job(
     job_id: JobIdPath, response: Response, store: StoreDep, executor: ExecutorDep, settings: SettingsDep
 ) -> JobOut:
-    job = find_job(store, job_id)
-    if job.state not in (JobState.failed, JobState.cancelled):
-        raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            f"only failed or cancelled jobs can be retried; job {job_id} is {job.state}",
-        )
-    if job.source_job_id and store.get(job.source_job_id) is None:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"the job's source {job.source_job_id} was deleted")
-    from service.db import new_job_id
-
-    new_id = new_job_id()
-    source_inputs = input_dir(settings, job_id)
-    if source_inputs.is_dir():
-        shutil.copytree(source_inputs, input_dir(settings, new_id), copy_function=_link_or_copy)
-    retry = store.create(
-        JobKind(job.kind),
-        job.params,
-        job_id=new_id,
-        source_job_id=job.source_job_id,
-        retry_of=job_id,
-        webhook_url=job.webhook_url,
-        owner=job.owner,
-    )
-    store.append_log(new_id, [f"retry of job {job_id}"])
-    executor.submit(new_id)
-    return accepted(response, JobOut.from_job(retry))
+    return accepted(response, JobOut.from_job(retry(store, executor, settings, job_id)))
 
 
 @router.delete(
@@ -134,12 +84,7 @@ def retry_job(
     summary="Delete a job and its files (a running job is cancelled first)",
 )
 def delete_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settings: SettingsDep) -> Response:
-    job = find_job(store, job_id)
-    if job.state not in TERMINAL_STATES:
-        store.request_cancel(job_id)
-        executor.cancel(job_id)
-        _wait_while_running(store, job_id, DELETE_WAIT_SECONDS)
-    delete_job_and_files(store, settings, job_id)
+    delete(store, executor, settings, job_id)
     return Response(status_code=204)
 
 
@@ -163,22 +108,3 @@ def pin_job(job_id: JobIdPath, store: StoreDep) -> JobOut:
 def unpin_job(job_id: JobIdPath, store: StoreDep) -> JobOut:
     find_job(store, job_id)
     return JobOut.from_job(store.set_pinned(job_id, False))
-
-
-def _wait_while_running(store: JobStore, job_id: str, seconds: float) -> Job | None:
-    """The job once it is no longer running, or as it is after `seconds`."""
-    deadline = time.monotonic() + seconds
-    while (job := store.get(job_id)) is not None and job.state == JobState.running:
-        if time.monotonic() > deadline:
-            break
-        time.sleep(0.1)
-    return job
-
-
-def _link_or_copy(source: str, target: str) -> None:
-    import os
-
-    try:
-        os.link(source, target)
-    except OSError:
-        shutil.copy2(source, target)

@@ -11,98 +11,29 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from neural.config import ModelName
-from service import webhooks
-from service.db import JobKind, JobState, new_job_id
-from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
-from service.openapi import file_response
-from service.params import NerfParams
-from service.renders import RenderBusy, RenderFailed, RenderSpec, spec_from_request
-from service.routes.jobs import NO_SPACE, NOT_FOUND, accepted, require_disk_space
-from service.routes.reconstructions import REJECTED
-from service.runner import finite_or_none, job_dir, output_dir
-from service.settings import ServiceSettings
-from service.uploads import (
-    extract_zip,
-    find_dataset_root,
-    invalid,
-    removed_on_failure,
-    sanitize_filename,
-    save_stream,
+from service.actions.jobs import find_job
+from service.actions.nerf import (
+    NerfInputs,
+    TrainOptions,
+    check_render_size,
+    require_checkpoint,
+    run_checkpoints,
 )
-from service.validation import check_isolated, check_npz_headers
+from service.actions.nerf import create_nerf as create
+from service.actions.nerf import queue_video as queue
+from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
+from service.kinds import JobKind, JobState
+from service.layout import RUN_CONFIG, RUN_METRICS, job_dir, output_dir
+from service.openapi import file_response
+from service.renders import RenderBusy, RenderFailed, RenderSpec, spec_from_request
+from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file
+from service.runner import finite_or_none
+from service.schemas import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
+from service.settings import ServiceSettings
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
 NO_CHECKPOINT = {409: {"model": ErrorOut, "description": "The job has no checkpoint yet."}}
 PNG = file_response("image/png", description="The rendered view.")
-DATASET_DIR = "input/dataset"
-
-
-def _dataset_errors() -> tuple[type[Exception], ...]:
-    from neural.errors import CheckpointError, DatasetError
-
-    return DatasetError, CheckpointError
-
-
-def _train_config(options: str | None, overrides: dict[str, Any]) -> dict[str, Any]:
-    """The TrainConfig fields as JSON, validated by neural.TrainConfig; 422 naming the field otherwise."""
-    from pydantic import ValidationError
-
-    from neural import TrainConfig
-
-    try:
-        extra = json.loads(options) if options else {}
-    except json.JSONDecodeError as error:
-        raise invalid(f"options: not valid JSON ({error})") from None
-    if not isinstance(extra, dict):
-        raise invalid("options: expected a JSON object of training settings")
-    try:
-        config = TrainConfig.model_validate(
-            {**extra, **{k: v for k, v in overrides.items() if v is not None}}
-        )
-    except ValidationError as error:
-        problems = "; ".join(
-            f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in error.errors()
-        )
-        raise invalid(f"training options: {problems}") from None
-    return config.model_dump(mode="json")
-
-
-def _save_dataset(upload: UploadFile, job_id: str, settings: ServiceSettings) -> str:
-    """Stores an uploaded .npz or Blender zip in the job folder; returns its path relative to that folder.
-
-    Only bounded work here (streamed copies, zip directory and .npy headers); the dataset is loaded by
-    `_check_dataset` in a validation process.
-    """
-    folder = job_dir(settings, job_id)
-    shown_name = sanitize_filename(upload.filename or "dataset", "dataset")
-    if shown_name.lower().endswith(".npz"):
-        save_stream(upload.file, folder / "input" / "dataset.npz")
-        check_npz_headers(folder / "input" / "dataset.npz", "dataset", shown_name, settings)
-        return "input/dataset.npz"
-    archive = folder / "input" / "upload.zip"
-    save_stream(upload.file, archive)
-    extract_zip(archive, folder / DATASET_DIR, settings)
-    archive.unlink()
-    root = find_dataset_root(folder / DATASET_DIR)
-    return str(root.relative_to(folder))
-
-
-def _check_dataset(job_id: str, path: Path, field: str, settings: ServiceSettings) -> None:
-    """load_dataset in a validation process, reading only inside the job's folder: 422 naming the frame
-    or file, 413 for a limit."""
-    within = str(job_dir(settings, job_id))
-    check_isolated("dataset", {"path": str(path), "field": field, "within": within}, settings)
-
-
-def _check_device(device: str, settings: ServiceSettings) -> None:
-    """device=cuda needs a CUDA GPU on this machine (local jobs run here; Celery workers are not known)."""
-    if device != "cuda" or settings.executor != "local":
-        return
-    import torch
-
-    if not torch.cuda.is_available():
-        raise invalid("device: 'cuda' was asked for but this machine has no CUDA GPU; use 'cpu' or 'auto'")
 
 
 @router.post(
@@ -145,42 +76,13 @@ def create_nerf(
     ] = None,
     webhook_url: Annotated[str | None, Form(pattern=r"^https?://\S+$", max_length=2000)] = None,
 ) -> JobOut:
-    if (dataset is None) == (reconstruction_id is None):
-        raise HTTPException(422, "dataset: give either an uploaded dataset or reconstruction_id, exactly one")
-    config = _train_config(
-        options,
-        {"model": model, "steps": steps, "minutes": minutes, "batch_rays": batch_rays, "device": device},
-    )
-    _check_device(config["device"], settings)
-    webhook_url = webhooks.check_url(webhook_url, settings)
-    job_id = new_job_id()
-    params = NerfParams(train_config=config)
-    source_job_id = None
-    if reconstruction_id is not None:
-        source = find_job(store, reconstruction_id, JobKind.reconstruction, client)
-        if source.state != JobState.succeeded:
-            raise HTTPException(
-                status.HTTP_409_CONFLICT,
-                f"reconstruction {reconstruction_id} is {source.state}; a NeRF trains on a succeeded one",
-            )
-        source_job_id = reconstruction_id
-        _check_dataset(
-            reconstruction_id, output_dir(settings, reconstruction_id), "reconstruction_id", settings
-        )
-    with removed_on_failure(job_dir(settings, job_id)):
-        if dataset is not None:
-            params.dataset = _save_dataset(dataset, job_id, settings)
-            _check_dataset(job_id, job_dir(settings, job_id) / params.dataset, "dataset", settings)
-        job = store.create(
-            JobKind.nerf,
-            params,
-            job_id=job_id,
-            source_job_id=source_job_id,
-            webhook_url=webhook_url,
-            owner=client.name,
-        )
-    executor.submit(job_id)
-    return accepted(response, JobOut.from_job(job))
+    inputs = NerfInputs(
+        train=TrainOptions(
+            model=model, steps=steps, minutes=minutes, batch_rays=batch_rays, device=device, options=options
+        ),
+        dataset=input_file(dataset), reconstruction_id=reconstruction_id, webhook_url=webhook_url,
+    )  # fmt: skip
+    return accepted(response, JobOut.from_job(create(store, executor, settings, client, inputs)))
 
 
 def _read_metrics(path: Path) -> list[MetricPoint]:
@@ -197,17 +99,6 @@ def _read_metrics(path: Path) -> list[MetricPoint]:
     return points
 
 
-def _checkpoints(run_dir: Path) -> list[Any]:
-    from neural import list_checkpoints
-
-    if not run_dir.is_dir():
-        return []
-    try:
-        return sorted(list_checkpoints(run_dir), key=lambda c: c.step)
-    except _dataset_errors():
-        return []
-
-
 @router.get(
     "/{job_id}",
     response_model=NerfOut,
@@ -217,19 +108,19 @@ def _checkpoints(run_dir: Path) -> list[Any]:
 def get_nerf(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> NerfOut:
     job = find_job(store, job_id, JobKind.nerf)
     run_dir = output_dir(settings, job_id)
-    config_path = run_dir / "config.json"
+    config_path = run_dir / RUN_CONFIG
     try:
         config = (
             json.loads(config_path.read_text()) if config_path.is_file() else job.params.get("train_config")
         )
     except ValueError:
         config = job.params.get("train_config")
-    checkpoints = _checkpoints(run_dir)
+    checkpoints = run_checkpoints(run_dir)
     base = f"/v1/nerf/{job_id}"
     return NerfOut(
         job=JobOut.from_job(job),
         config=config,
-        metrics=_read_metrics(run_dir / "metrics.jsonl"),
+        metrics=_read_metrics(run_dir / RUN_METRICS),
         latest_step=checkpoints[-1].step if checkpoints else None,
         links={"checkpoints": f"{base}/checkpoints", "render": f"{base}/render", "video": f"{base}/video"},
     )
@@ -252,7 +143,7 @@ def get_checkpoints(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -
             size_bytes=Path(c.path).stat().st_size,
             url=f"/v1/nerf/{job_id}/checkpoints/{c.step}",
         )
-        for c in _checkpoints(output_dir(settings, job_id))
+        for c in run_checkpoints(output_dir(settings, job_id))
         if Path(c.path).is_file()
     ]
 
@@ -265,7 +156,7 @@ def get_checkpoints(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -
 )
 def download_checkpoint(job_id: JobIdPath, step: int, store: StoreDep, settings: SettingsDep) -> FileResponse:
     find_job(store, job_id, JobKind.nerf)
-    for checkpoint in _checkpoints(output_dir(settings, job_id)):
+    for checkpoint in run_checkpoints(output_dir(settings, job_id)):
         if checkpoint.step == step and Path(checkpoint.path).is_file():
             return FileResponse(
                 checkpoint.path, media_type="application/octet-stream", filename=Path(checkpoint.path).name
@@ -273,28 +164,12 @@ def download_checkpoint(job_id: JobIdPath, step: int, store: StoreDep, settings:
     raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} has no checkpoint at step {step}")
 
 
-def _require_checkpoint(job_id: str, settings: ServiceSettings) -> Path:
-    run_dir = output_dir(settings, job_id)
-    if not _checkpoints(run_dir):
-        raise HTTPException(status.HTTP_409_CONFLICT, f"NeRF job {job_id} has no checkpoint yet")
-    return run_dir
-
-
-def _check_render_size(pixels: int, settings: ServiceSettings) -> None:
-    if pixels > settings.max_render_pixels:
-        raise HTTPException(
-            422,
-            f"width x height = {pixels} pixels, more than the limit "
-            f"SFMNERF_MAX_RENDER_PIXELS={settings.max_render_pixels}",
-        )
-
-
 def _render_spec(store: Any, settings: ServiceSettings, job_id: str, request: RenderRequest) -> RenderSpec:
     """The view to render, its checkpoint resolved to a step (the render cache's key); 4xx otherwise."""
     find_job(store, job_id, JobKind.nerf)
-    _check_render_size(request.width * request.height, settings)
-    run_dir = _require_checkpoint(job_id, settings)
-    checkpoints = _checkpoints(run_dir)
+    check_render_size(request.width * request.height, settings)
+    run_dir = require_checkpoint(job_id, settings)
+    checkpoints = run_checkpoints(run_dir)
     which = request.checkpoint
     for checkpoint in checkpoints:
         if (
@@ -359,18 +234,7 @@ def queue_video(
     executor: ExecutorDep,
     settings: SettingsDep,
 ) -> JobOut:
-    source = find_job(store, job_id, JobKind.nerf)
-    _check_render_size(request.width * request.height, settings)
-    if request.pixels > settings.max_video_pixels:
-        raise HTTPException(
-            413,
-            f"num_frames x width x height = {request.pixels} pixels, more than the video budget "
-            f"SFMNERF_MAX_VIDEO_PIXELS={settings.max_video_pixels}",
-        )
-    _require_checkpoint(job_id, settings)
-    job = store.create(JobKind.video, request, source_job_id=job_id, owner=source.owner)
-    executor.submit(job.id)
-    return accepted(response, JobOut.from_job(job))
+    return accepted(response, JobOut.from_job(queue(store, executor, settings, job_id, request)))
 
 
 @router.get(

@@ -5,12 +5,13 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, status
 from fastapi.responses import FileResponse
 
-from service.db import JobKind
-from service.deps import JobIdPath, SettingsDep, StoreDep, find_job
-from service.models import ErrorOut
+from service.actions.jobs import find_job
+from service.deps import JobIdPath, SettingsDep, StoreDep
+from service.kinds import JobKind
+from service.layout import output_dir
 from service.openapi import file_response
-from service.routes.jobs import NOT_FOUND
-from service.runner import output_dir
+from service.routes.common import NOT_FOUND
+from service.schemas import ErrorOut
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
 VALIDATION_FOLDER = "val"

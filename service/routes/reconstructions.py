@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import re
 import zipfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -11,116 +10,20 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
-from service import webhooks
-from service.db import JobKind, JobState, new_job_id
-from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.models import ErrorOut, JobOut, ReconstructionOut
+from service.actions.jobs import find_job
+from service.actions.reconstructions import ReconstructionInputs
+from service.actions.reconstructions import create_reconstruction as create
+from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
+from service.kinds import JobKind, JobState
+from service.layout import RECONSTRUCTION_EXPORTS, RECONSTRUCTION_REPORT, output_dir
 from service.openapi import file_response
-from service.params import ReconstructionParams
-from service.routes.jobs import NO_SPACE, NOT_FOUND, accepted, require_disk_space
-from service.runner import input_dir, job_dir, output_dir
-from service.uploads import (
-    UploadRejected,
-    inside,
-    invalid,
-    removed_on_failure,
-    sanitize_filename,
-    save_images,
-    save_stream,
-)
-from service.validation import check_isolated
+from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file, input_files
+from service.schemas import ErrorOut, JobOut, ReconstructionOut
+from service.uploads import UploadRejected, inside, sanitize_filename
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstructions"])
-MATCH_NAME = re.compile(r"^matching(\d+)\.txt$")
-CALIBRATION_NAME = "calibration.txt"
 REPORT_FIELDS_SHOWN_APART = ("intrinsics", "cameras", "unregistered")
 NOT_READY = {409: {"model": ErrorOut, "description": "The job has not succeeded (yet)."}}
-REJECTED = {
-    413: {"model": ErrorOut, "description": "A limit was exceeded (named in the message)."},
-    422: {"description": "Bad input; the message names the field and file."},
-}
-
-
-def _parse_k(text: str, source: str) -> Any:
-    from estimation.errors import InputError
-    from estimation.io.images import parse_calibration
-
-    try:
-        return parse_calibration(text, source)
-    except InputError as error:
-        raise invalid(f"calibration: {error}") from None
-
-
-def _k_from_numbers(numbers: str) -> str:
-    """'fx 0 cx 0 fy cy 0 0 1' (commas, semicolons or spaces) -> calibration.txt text, 3 rows."""
-    tokens = [t for t in re.split(r"[\s,;\[\]]+", numbers) if t]
-    if len(tokens) != 9:
-        raise invalid(f"K: expected 9 numbers (the 3x3 matrix row by row), found {len(tokens)}")
-    return "\n".join(" ".join(tokens[row * 3 : row * 3 + 3]) for row in range(3)) + "\n"
-
-
-def _store_inputs(
-    folder: Path,
-    settings: Any,
-    images: list[UploadFile],
-    matches: list[UploadFile],
-    calibration: UploadFile | None,
-    K: str | None,
-    features: str,
-) -> None:
-    """Saves and checks everything the reconstruction reads; UploadRejected on the first problem."""
-    saved = save_images(((f.filename, f.file) for f in images), folder, settings)
-    if len(saved) < 2:
-        raise invalid(f"images: {len(saved)} image(s) uploaded, a reconstruction needs at least 2")
-    first = saved[0]
-    for image in saved[1:]:
-        if (image.width, image.height) != (first.width, first.height):
-            raise invalid(
-                f"images: {image.name} is {image.width}x{image.height} but {first.name} is "
-                f"{first.width}x{first.height}; all images must have the same size"
-            )
-    if calibration is not None and K:
-        raise invalid("calibration: give either the calibration file or K, not both")
-    if calibration is not None:
-        text = calibration.file.read(64 * 1024).decode("utf-8", errors="replace")
-        source = sanitize_filename(calibration.filename or CALIBRATION_NAME, "calibration")
-    elif K:
-        text, source = _k_from_numbers(K), "K"
-    else:   # no calibration: the reconstruction takes the focal length from EXIF or a prior, and refines it
-        text = None
-    if text is not None:
-        _parse_k(text, source)
-        inside(folder, CALIBRATION_NAME).write_text(text)
-
-    if features == "matches" and not matches:
-        raise invalid("matches: features='matches' needs the matching<i>.txt files")
-    match_files = []
-    for upload in matches:
-        name = sanitize_filename(upload.filename, "matches")
-        found = MATCH_NAME.match(name)
-        if not found:
-            raise invalid(
-                f"matches: file {name!r} must be named matching<i>.txt, <i> an image's numeric name"
-            )
-        target = inside(folder, name)
-        if target.exists():
-            raise invalid(f"matches: two files are named {name!r}")
-        save_stream(upload.file, target)
-        match_files.append((name, int(found.group(1))))
-    # Decoding the images and parsing the match files take memory in proportion to the upload: a worker.
-    check_isolated(
-        "reconstruction_inputs",
-        {
-            "field": "images",
-            "folder": str(folder),
-            "images": [image.name for image in saved],
-            "matches": match_files,
-            "image_ids": [int(Path(image.name).stem) for image in saved if Path(image.name).stem.isdigit()],
-            "width": first.width,
-            "height": first.height,
-        },
-        settings,
-    )
 
 
 @router.post(
@@ -168,28 +71,12 @@ def create_reconstruction(
         Form(pattern=r"^https?://\S+$", max_length=2000, description="Called with the job when it ends."),
     ] = None,
 ) -> JobOut:
-    from estimation.config import ReconstructionConfig
-
-    webhook_url = webhooks.check_url(webhook_url, settings)
-    job_id = new_job_id()
-    folder = input_dir(settings, job_id)
-    with removed_on_failure(job_dir(settings, job_id)):
-        folder.mkdir(parents=True)
-        _store_inputs(folder, settings, images, matches or [], calibration, K, features)
-        config = ReconstructionConfig(features=features).model_dump(mode="json")
-        if ransac_threshold_px is not None:
-            config["ransac"]["threshold_px"] = ransac_threshold_px
-        if ba_max_iterations is not None:
-            config["bundle_adjustment"]["max_iterations"] = ba_max_iterations
-        job = store.create(
-            JobKind.reconstruction,
-            ReconstructionParams(config=config),
-            job_id=job_id,
-            webhook_url=webhook_url,
-            owner=client.name,
-        )
-    executor.submit(job_id)
-    return accepted(response, JobOut.from_job(job))
+    inputs = ReconstructionInputs(
+        images=input_files(images), matches=input_files(matches),
+        calibration=input_file(calibration), K=K, features=features,
+        ransac_threshold_px=ransac_threshold_px, ba_max_iterations=ba_max_iterations, webhook_url=webhook_url,
+    )  # fmt: skip
+    return accepted(response, JobOut.from_job(create(store, executor, settings, client, inputs)))
 
 
 def _succeeded_output(store: Any, settings: Any, job_id: str) -> Path:
@@ -211,12 +98,12 @@ def _succeeded_output(store: Any, settings: Any, job_id: str) -> Path:
 def get_reconstruction(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> ReconstructionOut:
     job = find_job(store, job_id, JobKind.reconstruction)
     out = ReconstructionOut(job=JobOut.from_job(job))
-    report_path = output_dir(settings, job_id) / "report.json"
+    report_path = output_dir(settings, job_id) / RECONSTRUCTION_REPORT
     if job.state != JobState.succeeded or not report_path.is_file():
         return out
     report = json.loads(report_path.read_text())
     base = f"/v1/reconstructions/{job_id}"
-    files = {name: f"{base}/{name}" for name in ("points.ply", "colmap.zip", "transforms.json")}
+    files = {name: f"{base}/{name}" for name in RECONSTRUCTION_EXPORTS}
     figures = output_dir(settings, job_id) / "figures"
     if figures.is_dir():
         files.update({f"figures/{p.name}": f"{base}/figures/{p.name}" for p in sorted(figures.glob("*.png"))})

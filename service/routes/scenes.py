@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import json
-import tempfile
-from contextlib import ExitStack
 from datetime import datetime
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from fastapi import (
     APIRouter,
@@ -25,29 +23,24 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
-from service.db import JobState, Scene, new_job_id
-from service.deps import ClientDep, ExecutorDep, SettingsDep, StoreDep
-from service.models import ErrorOut, JobOut
+from service.actions.nerf import TrainOptions
+from service.actions.reconstructions import ReconstructionInputs
+from service.actions.scenes import SceneInputs, scene_lock, scene_owner, stage_jobs
+from service.actions.scenes import cancel_scene as cancel
+from service.actions.scenes import create_scene as create
+from service.actions.scenes import delete_scene as delete
+from service.actions.scenes import retry_scene as retry
+from service.deps import ClientDep, ExecutorDep, SettingsDep, StoreDep, require_disk_space
+from service.kinds import JobState
+from service.layout import RECONSTRUCTION_EXPORTS, output_dir
 from service.openapi import file_response
-from service.routes.jobs import MAX_PAGE, NO_SPACE, accepted, require_disk_space
-from service.routes.nerf import _train_config
-from service.routes.reconstructions import REJECTED, create_reconstruction
-from service.runner import EVALUATION_FILE, output_dir
-from service.scenes import (
-    DONE,
-    STAGE_WEIGHTS,
-    STAGES,
-    SceneOptions,
-    SceneRunner,
-    scene_lock,
-    scene_owner,
-    stage_jobs,
-)
-from service.uploads import UploadRejected, extract_zip, sanitize_filename, save_stream
+from service.pipeline import DONE, EVALUATION_FILE, STAGE_WEIGHTS, STAGES
+from service.routes.common import MAX_PAGE, NO_SPACE, REJECTED, accepted, input_file, input_files
+from service.schemas import ErrorOut, JobOut
+from service.store.tables import Scene
 
 SCENE_NOT_FOUND = {404: {"model": ErrorOut, "description": "No scene with this id."}}
 CONFLICT = {409: {"model": ErrorOut, "description": "Not possible in the scene's state."}}
-ZIP_PHOTO_SUFFIXES = {".png", ".jpg", ".jpeg"}
 SceneIdPath = Annotated[str, PathParam(description="Scene id.", max_length=64)]
 
 
@@ -121,7 +114,7 @@ def _describe(scene: Scene, request: Request) -> SceneOut:
                 links[str(job.kind)] = job_links["result"]
     if scene.reconstruction_job_id:
         base = f"/v1/reconstructions/{scene.reconstruction_job_id}"
-        links.update({name: f"{base}/{name}" for name in ("points.ply", "colmap.zip", "transforms.json")})
+        links.update({name: f"{base}/{name}" for name in RECONSTRUCTION_EXPORTS})
     if scene.nerf_job_id:
         base = f"/v1/nerf/{scene.nerf_job_id}"
         links.update(
@@ -178,27 +171,6 @@ def visible_scene(request: Request, store: StoreDep, client: ClientDep) -> None:
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[Depends(visible_scene)])
 
 
-def _runner(request: Request) -> SceneRunner:
-    state = request.app.state
-    return SceneRunner(state.store, state.executor, state.settings)
-
-
-def _zip_photos(archive: UploadFile, folder: Path, settings: Any) -> dict[str, list[Path]]:
-    """The photos, match files and calibration of an uploaded zip, extracted (safely) into folder."""
-    target = folder / "photos.zip"
-    save_stream(archive.file, target)
-    extract_zip(target, folder / "photos", settings, field="photos_zip")
-    files = sorted(p for p in (folder / "photos").rglob("*") if p.is_file() and not p.name.startswith("."))
-    found: dict[str, list[Path]] = {
-        "images": [p for p in files if p.suffix.lower() in ZIP_PHOTO_SUFFIXES],
-        "matches": [p for p in files if p.name.startswith("matching") and p.suffix == ".txt"],
-        "calibration": [p for p in files if p.name == "calibration.txt"],
-    }
-    if not found["images"]:
-        raise UploadRejected(422, "photos_zip: the zip holds no PNG or JPEG photos")
-    return found
-
-
 @router.post(
     "",
     response_model=SceneOut,
@@ -247,57 +219,21 @@ def create_scene(
     orbit_max_side: Annotated[int, Form(ge=8, le=4096)] = 200,
     held_out_max_side: Annotated[int, Form(ge=8, le=4096)] = 200,
 ) -> SceneOut:
-    try:
-        train_config = _train_config(
-            options,
-            {"model": model, "steps": steps, "minutes": minutes, "batch_rays": batch_rays, "device": device},
-        )
-    except UploadRejected as rejected:
-        raise HTTPException(rejected.status_code, rejected.detail) from None
-    scene_options = SceneOptions(
-        train_config=train_config,
-        min_registered_images=min_registered_images,
-        orbit_frames=orbit_frames,
-        orbit_max_side=orbit_max_side,
-        held_out_max_side=held_out_max_side,
-    )
-    images, matches = list(images or []), list(matches or [])
-    with ExitStack() as stack:
-        if photos_zip is not None:
-            folder = Path(stack.enter_context(tempfile.TemporaryDirectory(dir=settings.data_dir)))
-            try:
-                found = _zip_photos(photos_zip, folder, settings)
-            except UploadRejected as rejected:
-                raise HTTPException(rejected.status_code, rejected.detail) from None
-
-            def upload(path: Path) -> UploadFile:
-                return UploadFile(
-                    stack.enter_context(open(path, "rb")), filename=sanitize_filename(path.name, "photos_zip")
-                )
-
-            images += [upload(p) for p in found["images"]]
-            matches += [upload(p) for p in found["matches"]]
-            if calibration is None and K is None and found["calibration"]:
-                calibration = upload(found["calibration"][0])
-        if not images:
-            raise HTTPException(422, "images: upload the photos as `images` or as a `photos_zip`")
-        reconstruction = create_reconstruction(
-            Response(), store, client, executor, settings, images=images, matches=matches,
-            calibration=calibration, K=K, features=features, ransac_threshold_px=ransac_threshold_px,
-            ba_max_iterations=ba_max_iterations, webhook_url=None,
-        )  # fmt: skip
-    scene = store.create_scene(
-        Scene(
-            id=new_job_id(),
-            state=JobState.running,
-            stage="reconstruction",
-            params=scene_options.model_dump(mode="json"),
-            reconstruction_job_id=reconstruction.id,
-            log=[],
-        )
-    )
-    store.update_scene(scene.id, log=f"reconstruction job {reconstruction.id} started")
-    out = _describe(store.get_scene(scene.id), request)
+    inputs = SceneInputs(
+        photos=ReconstructionInputs(
+            images=input_files(images), matches=input_files(matches), calibration=input_file(calibration),
+            K=K, features=features, ransac_threshold_px=ransac_threshold_px,
+            ba_max_iterations=ba_max_iterations,
+        ),
+        train=TrainOptions(
+            model=model, steps=steps, minutes=minutes, batch_rays=batch_rays, device=device, options=options
+        ),
+        photos_zip=input_file(photos_zip),
+        options={"min_registered_images": min_registered_images, "orbit_frames": orbit_frames,
+                 "orbit_max_side": orbit_max_side, "held_out_max_side": held_out_max_side},
+    )  # fmt: skip
+    scene = create(store, executor, settings, client, inputs)
+    out = _describe(scene, request)
     response.status_code = status.HTTP_202_ACCEPTED
     response.headers["Location"] = out.links["self"]
     return out
@@ -333,12 +269,11 @@ def get_scene(scene_id: SceneIdPath, request: Request) -> SceneOut:
     responses={**SCENE_NOT_FOUND, **CONFLICT},
     summary="Cancel a running scene (its running child jobs are cancelled)",
 )
-def cancel_scene(scene_id: SceneIdPath, request: Request) -> SceneOut:
+def cancel_scene(
+    scene_id: SceneIdPath, request: Request, store: StoreDep, executor: ExecutorDep, settings: SettingsDep
+) -> SceneOut:
     with scene_lock:
-        scene = _find(request, scene_id)
-        if scene.state != JobState.running:
-            raise HTTPException(status.HTTP_409_CONFLICT, f"scene {scene_id} is already {scene.state}")
-        _runner(request).cancel(scene)
+        cancel(store, executor, settings, _find(request, scene_id))
     return _describe(_find(request, scene_id), request)
 
 
@@ -350,18 +285,16 @@ def cancel_scene(scene_id: SceneIdPath, request: Request) -> SceneOut:
     dependencies=[Depends(require_disk_space)],
     summary="Run a failed or cancelled scene again from the stage it stopped at",
 )
-def retry_scene(scene_id: SceneIdPath, request: Request, response: Response) -> SceneOut:
+def retry_scene(
+    scene_id: SceneIdPath,
+    request: Request,
+    response: Response,
+    store: StoreDep,
+    executor: ExecutorDep,
+    settings: SettingsDep,
+) -> SceneOut:
     with scene_lock:
-        scene = _find(request, scene_id)
-        if scene.state not in (JobState.failed, JobState.cancelled):
-            raise HTTPException(
-                status.HTTP_409_CONFLICT,
-                f"only failed or cancelled scenes can be retried; {scene_id} is {scene.state}",
-            )
-        try:
-            _runner(request).retry(scene)
-        except ValueError as error:
-            raise HTTPException(status.HTTP_409_CONFLICT, str(error)) from None
+        retry(store, executor, settings, _find(request, scene_id))
     return accepted(response, _describe(_find(request, scene_id), request))
 
 
@@ -372,9 +305,11 @@ def retry_scene(scene_id: SceneIdPath, request: Request, response: Response) -> 
     responses=SCENE_NOT_FOUND,
     summary="Delete a scene, its child jobs and all their files (a running scene is cancelled first)",
 )
-def delete_scene(scene_id: SceneIdPath, request: Request) -> Response:
+def delete_scene(
+    scene_id: SceneIdPath, request: Request, store: StoreDep, executor: ExecutorDep, settings: SettingsDep
+) -> Response:
     with scene_lock:
-        _runner(request).delete(_find(request, scene_id))
+        delete(store, executor, settings, _find(request, scene_id))
     return Response(status_code=204)
 
 

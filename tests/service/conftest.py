@@ -13,8 +13,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.db import TERMINAL_STATES, JobStore
+from service.kinds import TERMINAL_STATES
 from service.settings import ServiceSettings
+from service.store import JobStore
 
 JOB_TIMEOUT_SECONDS = 180.0
 TINY_MODEL_OPTIONS = {

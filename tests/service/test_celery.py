@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 
 from service import renders
 from service.app import create_app
-from service.celery_app import make_celery
+from service.celery_config import make_celery
 from service.renders import RenderFailed, RenderQueue, RenderSpec, read_render_error, run_render_task
 from service.settings import ServiceSettings
 from tests.service.conftest import endless_nerf_upload, job_pid, make_settings, unity_hall_files, wait_for_job

@@ -9,9 +9,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy import update
 
 from service.app import create_app
-from service.db import Job, JobKind, JobState, Scene, utcnow
 from service.housekeeping import expire_finished_jobs
-from service.runner import job_dir
+from service.kinds import JobKind, JobState
+from service.layout import job_dir
+from service.store import Job, Scene, utcnow
 from tests.service.conftest import make_settings
 
 

@@ -16,8 +16,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.db import JobKind, JobStore
 from service.executor import CeleryExecutor
+from service.kinds import JobKind
+from service.store import JobStore
 from tests.service.conftest import endless_nerf_upload, job_pid, make_settings, unity_hall_files, wait_for_job
 from tests.service.servers import free_port, start_server
 

@@ -13,7 +13,8 @@ from click.testing import CliRunner
 from sqlalchemy import inspect
 
 from service.cli import main
-from service.db import Base, JobKind, JobState, JobStore
+from service.kinds import JobKind, JobState
+from service.store import Base, JobStore
 
 # The job store's schema as `Base.metadata.create_all` made it before migrations (SQLite), verbatim.
 PRE_MIGRATION_DDL = """
@@ -98,7 +99,7 @@ def test_sfmnerf_db_upgrade_migrates_the_configured_database(tmp_path, monkeypat
 
 def test_processes_starting_together_on_a_new_database_create_it_once(tmp_path):
     url = f"sqlite:///{tmp_path / 'fresh.sqlite'}"
-    code = f"from service.db import JobStore; JobStore({url!r}).dispose()"
+    code = f"from service.store import JobStore; JobStore({url!r}).dispose()"
     root = Path(__file__).resolve().parents[2]
     processes = [
         subprocess.Popen([sys.executable, "-c", code], cwd=root, stderr=subprocess.PIPE) for _ in range(4)

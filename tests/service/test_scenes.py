@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import logging
 import math
 import time
 import zipfile
@@ -19,7 +20,7 @@ from PIL import Image
 
 from service.app import create_app
 from service.cli import main as cli
-from service.scenes import orbit_size, registration_problem
+from service.pipeline import orbit_size, registration_problem
 from tests.service.conftest import JOB_TIMEOUT_SECONDS, make_settings, unity_hall_files
 
 ALICE, BOB, ADMIN = "alice-token-0123456789", "bob-token-0123456789", "admin-token-0123456789"
@@ -46,8 +47,26 @@ def wait_for_scene(
         time.sleep(0.3)
 
 
+class ServerLog(logging.Handler):
+    """The server's log records while a module's scene runs (its threads log to the root logger)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+        self.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(self.format(record))
+
+
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory, shared_data):
+def server_log() -> ServerLog:
+    """Filled by `finished` while its scene runs."""
+    return ServerLog()
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory, shared_data, server_log):
     """One Unity Hall scene run to its end, created by client alice: (client as alice, scene, settings)."""
     folder = tmp_path_factory.mktemp("scenes")
     clients_file = folder / "clients.txt"
@@ -58,13 +77,19 @@ def finished(tmp_path_factory, shared_data):
         )
     )
     settings = make_settings(folder / "data", job_threads=1, api_token=ADMIN, clients_file=clients_file)
-    with TestClient(create_app(settings), headers={"Authorization": f"Bearer {ALICE}"}) as client:
-        response = client.post(
-            "/v1/scenes", files=unity_hall_files(shared_data / "unity_hall"), data=QUICK_NERF
-        )
-        assert response.status_code == 202, response.text
-        assert response.headers["Location"] == f"/v1/scenes/{response.json()['id']}"
-        yield client, wait_for_scene(client, response.json()["id"]), settings
+    logging.getLogger().addHandler(server_log)
+    try:
+        with TestClient(create_app(settings), headers={"Authorization": f"Bearer {ALICE}"}) as client:
+            response = client.post(
+                "/v1/scenes", files=unity_hall_files(shared_data / "unity_hall"), data=QUICK_NERF
+            )
+            assert response.status_code == 202, response.text
+            assert response.headers["Location"] == f"/v1/scenes/{response.json()['id']}"
+            scene = wait_for_scene(client, response.json()["id"])
+            logging.getLogger().removeHandler(server_log)
+            yield client, scene, settings
+    finally:
+        logging.getLogger().removeHandler(server_log)
 
 
 @pytest.mark.slow
@@ -77,6 +102,15 @@ def test_a_scene_goes_from_photos_to_novel_views(finished):
     ]  # fmt: skip
     assert [len(s["job_ids"]) for s in scene["stages"]] == [1, 1, 2]
     assert any("registered 5 of 5 images" in line for line in scene["log"])
+
+
+@pytest.mark.slow
+def test_a_scene_run_through_the_supervisors_leaves_a_server_log_without_a_traceback(finished, server_log):
+    _, scene, _ = finished
+    assert scene["state"] == "succeeded", scene
+    assert not [line for line in server_log.lines if "Traceback" in line or line.startswith("ERROR")], (
+        server_log.lines
+    )
 
 
 @pytest.mark.slow
@@ -268,3 +302,86 @@ def test_the_scene_command_stops_at_too_few_registered_images(tmp_path, shared_d
     assert result.exit_code != 0
     assert "registered 5 of 5 images; a NeRF needs at least 6" in result.output
     assert (tmp_path / "o" / "reconstruction" / "report.json").is_file()
+
+
+# ---- each scene is its own unit of failure ------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("data", "overrides", "status", "expected"),
+    [
+        ({"orbit_frames": "720", "orbit_max_side": "4096"}, {}, 413, "SFMNERF_MAX_VIDEO_PIXELS"),
+        ({"orbit_max_side": "200"}, {"max_render_pixels": 20_000}, 422, "SFMNERF_MAX_RENDER_PIXELS"),
+        ({"orbit_max_side": "40", "held_out_max_side": "400"}, {"max_render_pixels": 20_000}, 422,
+         "SFMNERF_MAX_RENDER_PIXELS"),
+        ({"steps": "0"}, {}, 422, "steps"),
+    ],
+    ids=["video-budget", "orbit-frame-size", "held-out-size", "steps"],
+)  # fmt: skip
+def test_every_option_of_a_scene_is_checked_at_submit_time(
+    tmp_path, shared_data, data, overrides, status, expected
+):
+    """The orbit's frames x pixels and both render sizes follow from the photos' size (800x600 here): a
+    scene that could not render its views is refused before its reconstruction starts."""
+    with TestClient(create_app(make_settings(tmp_path / "data", **overrides))) as client:
+        response = client.post("/v1/scenes", files=unity_hall_files(shared_data / "unity_hall"), data=data)
+        assert response.status_code == status and expected in response.text, response.text
+        assert client.get("/v1/jobs").json()["total"] == 0 and client.get("/v1/scenes").json()["total"] == 0
+        assert list((tmp_path / "data" / "jobs").iterdir()) == []
+
+
+def test_a_scene_asking_for_a_gpu_this_machine_lacks_is_refused_like_a_nerf_job(client, shared_data):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    photos = unity_hall_files(shared_data / "unity_hall")
+    scene = client.post("/v1/scenes", files=photos, data={"device": "cuda"})
+    nerf = client.post("/v1/nerf", data={"reconstruction_id": "0" * 32, "device": "cuda"})
+    assert scene.status_code == nerf.status_code == 422
+    assert scene.json()["detail"] == nerf.json()["detail"] and "no CUDA GPU" in scene.json()["detail"]
+    assert client.get("/v1/jobs").json()["total"] == 0
+
+
+class RecordingExecutor:
+    """Queues nothing: records the jobs the scene supervisor submits."""
+
+    def __init__(self) -> None:
+        self.submitted: list[str] = []
+
+    def submit(self, job_id: str) -> None:
+        self.submitted.append(job_id)
+
+    def cancel(self, job_id: str) -> None:
+        pass
+
+
+def test_an_error_in_one_scenes_step_fails_that_scene_and_the_others_move_on(settings):
+    """A broken report.json makes the step of one scene raise; that scene fails with the reason, keeps its
+    reconstruction, and the other scene (older, so advanced after it) still moves on."""
+    from service.kinds import JobKind, JobState
+    from service.layout import RECONSTRUCTION_REPORT, output_dir
+    from service.scene_supervisor import SceneSteps, SceneSupervisor
+    from service.store import JobStore, Scene, new_job_id
+
+    store = JobStore(settings.resolved_database_url)
+    report = {"images_registered": 5, "images_total": 5, "unregistered": []}
+    scenes = {}
+    for name, text in (("healthy", json.dumps(report)), ("broken", "{not json")):
+        job = store.create(JobKind.reconstruction, {})
+        attempt = store.claim(job.id, worker="test")
+        store.finish(job.id, attempt, JobState.succeeded)
+        output_dir(settings, job.id).mkdir(parents=True)
+        (output_dir(settings, job.id) / RECONSTRUCTION_REPORT).write_text(text)
+        scene = Scene(id=new_job_id(), state=JobState.running, stage="reconstruction", log=[],
+                      params={"train_config": {"model": "fast"}}, reconstruction_job_id=job.id)  # fmt: skip
+        scenes[name] = store.create_scene(scene).id
+        time.sleep(0.01)  # the broken scene is the newest: the supervisor comes to it first
+    supervisor = SceneSupervisor(SceneSteps(store, RecordingExecutor(), settings))
+    supervisor.advance_all()
+    broken, healthy = store.get_scene(scenes["broken"]), store.get_scene(scenes["healthy"])
+    assert broken.state == JobState.failed and broken.stage == "reconstruction"
+    assert broken.error.startswith("reconstruction: unexpected error: JSONDecodeError"), broken.error
+    assert store.get(broken.reconstruction_job_id).state == JobState.succeeded
+    assert healthy.state == JobState.running and healthy.stage == "nerf", healthy.log
+    store.dispose()

@@ -19,7 +19,8 @@ from hypothesis import HealthCheck, Phase, settings
 from sqlalchemy import delete
 
 from service.app import create_app
-from service.db import Job, JobKind, JobState, JobStore, Scene
+from service.kinds import JobKind, JobState
+from service.store import Job, JobStore, Scene
 from tests.service.conftest import make_settings
 
 EXAMPLES_PER_OPERATION = 100

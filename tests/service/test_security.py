@@ -22,8 +22,10 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from service.app import create_app
-from service.db import JobKind, JobState, JobStore, Scene, new_job_id
-from service.runner import execute, job_dir
+from service.kinds import JobKind, JobState
+from service.layout import job_dir
+from service.runner import execute
+from service.store import JobStore, Scene, new_job_id
 from tests.service.conftest import WebhookReceiver, make_settings, wait_for_job
 
 UNKNOWN_ID = "0" * 32
@@ -155,7 +157,7 @@ def test_a_decompression_bomb_in_a_reconstruction_upload_answers_413_and_leaves_
 
 
 def test_a_submission_failing_for_any_reason_leaves_no_folder(settings, monkeypatch):
-    import service.routes.reconstructions as routes
+    import service.actions.reconstructions as routes
 
     def broken(*_args, **_kwargs):
         raise RuntimeError("a bug while storing the inputs")

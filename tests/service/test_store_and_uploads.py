@@ -19,8 +19,9 @@ from pathlib import Path
 import pytest
 from sqlalchemy import text
 
-from service.db import Base, JobKind, JobState, JobStore
+from service.kinds import JobKind, JobState
 from service.settings import ServiceSettings
+from service.store import Base, JobStore
 from service.uploads import UploadRejected, extract_zip, inside, sanitize_filename
 from service.webhooks import deliver
 from tests.service.conftest import make_settings

@@ -10,8 +10,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.db import JobKind, JobState, JobStore, utcnow
-from service.runner import complete_job
+from service.job_end import complete_job
+from service.kinds import JobKind, JobState
+from service.store import JobStore, utcnow
 from service.webhooks import WebhookSender, delivery_deadline_seconds
 from tests.service.conftest import WebhookReceiver, make_settings
 

@@ -7,7 +7,7 @@ Revises:
 import sqlalchemy as sa
 from alembic import op
 
-from service.db import UTCDateTime
+from service.store.tables import UTCDateTime
 
 revision = "0001"
 down_revision = None

@@ -7,7 +7,7 @@ Revises: 0001
 import sqlalchemy as sa
 from alembic import op
 
-from service.db import UTCDateTime
+from service.store.tables import UTCDateTime
 
 revision = "0002"
 down_revision = "0001"

@@ -1,4 +1,4 @@
-"""Scenes: photos to novel views as a chain of child jobs (service/scenes.py).
+"""Scenes: photos to novel views as a chain of child jobs (service/scene_supervisor.py).
 
 Revision ID: 0004
 Revises: 0003
@@ -7,7 +7,7 @@ Revises: 0003
 import sqlalchemy as sa
 from alembic import op
 
-from service.db import UTCDateTime
+from service.store.tables import UTCDateTime
 
 revision = "0004"
 down_revision = "0003"

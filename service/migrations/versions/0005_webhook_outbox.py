@@ -7,7 +7,7 @@ Revises: 0004
 import sqlalchemy as sa
 from alembic import op
 
-from service.db import UTCDateTime
+from service.store.tables import UTCDateTime
 
 revision = "0005"
 down_revision = "0004"

@@ -8,8 +8,9 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service.db import Job, JobKind, JobState
+from service.kinds import JobKind, JobState
 from service.params import VideoParams
+from service.store.tables import Job
 
 JOB_ID_EXAMPLE = "3f2b8c1d9e7a4b6c8d0e1f2a3b4c5d6e"
 

@@ -1,0 +1,30 @@
+"""Domain errors: what the service refuses and why, with the HTTP status the app's one handler answers.
+
+Actions, uploads and checks raise them; routes never translate them (service.app maps every
+`ServiceError` to `{"detail": ...}` with its status), and the scene supervisor records their detail as a
+scene's failure reason.
+"""
+
+from __future__ import annotations
+
+
+class ServiceError(Exception):
+    """A refusal with its HTTP status (404 not found, 409 conflict, 413 over a limit, 422 bad input, 507 no
+    disk space)."""
+
+    def __init__(self, status_code: int, detail: str) -> None:
+        super().__init__(detail)
+        self.status_code = status_code
+        self.detail = detail
+
+
+def not_found(detail: str) -> ServiceError:
+    return ServiceError(404, detail)
+
+
+def conflict(detail: str) -> ServiceError:
+    return ServiceError(409, detail)
+
+
+def no_space(detail: str) -> ServiceError:
+    return ServiceError(507, detail)

@@ -1,0 +1,32 @@
+"""What the routers share: documented error answers, page sizes and the 202 Accepted answer."""
+
+from __future__ import annotations
+
+from fastapi import Response, UploadFile, status
+
+from service.actions.reconstructions import InputFile
+from service.schemas import ErrorOut, JobOut
+
+NOT_FOUND = {404: {"model": ErrorOut, "description": "No job with this id."}}
+NO_SPACE = {507: {"model": ErrorOut, "description": "The server's disk is too full for new work."}}
+REJECTED = {
+    413: {"model": ErrorOut, "description": "A limit was exceeded (named in the message)."},
+    422: {"description": "Bad input; the message names the field and file."},
+}
+MAX_PAGE = 500
+
+
+def accepted(response: Response, job: JobOut) -> JobOut:
+    """202 Accepted with the job resource and its Location."""
+    response.status_code = status.HTTP_202_ACCEPTED
+    response.headers["Location"] = job.links["self"]
+    return job
+
+
+def input_file(upload: UploadFile | None) -> InputFile | None:
+    """A request's file as the actions take it."""
+    return None if upload is None else InputFile(upload.filename, upload.file)
+
+
+def input_files(uploads: list[UploadFile] | None) -> list[InputFile]:
+    return [InputFile(upload.filename, upload.file) for upload in uploads or []]
