@@ -311,6 +311,46 @@ class MapperConfig(StrictConfig):
         "one final BA instead of 3 / 2 / 3 (its filter removes ~0.1 %), 0.1-0.25 s less mapping CPU, "
         "mean rotation error 0.380 / 0.368 / 0.366 deg against 0.382 / 0.369 / 0.369.",
     )
+    verify_min_inliers: int = Field(
+        12, ge=6, description="Every registration, relaxed or not, needs this many absolute-pose inliers: "
+        "relaxing min_pnp_inliers never goes below it. On lego_ring_400 (mapper only) the images registered "
+        "with 6-11 inliers in the relaxed pass were the wrong ones (r_28 with 6 of 29, r_12 with 8 of 30: "
+        "172-176 deg off; r_34 with 11 of 29: 6 deg off); with 12, 40/50 register, none over 0.6 deg off. "
+        "COLMAP's 30 registered 29/50 there.",
+    )
+    verify_min_inlier_ratio: float = Field(
+        0.2, gt=0, le=1, description="... and this fraction of its 2D-3D correspondences as inliers, relaxed "
+        "or not (COLMAP: 25 %).",
+    )
+    verify_min_inlier_spread: float = Field(
+        0.05, ge=0, le=1, description="Its inliers must lie in this share of the image's 8 x 8 grid cells "
+        "(0.05: 4 cells): a pose resting on one small part of the image is refused.",
+    )
+    verify_pair_min_inliers: int = Field(
+        30, ge=8, description="Verified pairs with this many inliers vote on a registered image's rotation "
+        "(weaker pairs' E were often 20-50 deg off the truth on lego_ring_400).",
+    )
+    verify_max_rotation_deviation_deg: float = Field(
+        60.0, gt=0, le=180, description="A pair agrees with a pose when the model's relative rotation is "
+        "within this of its verified E's rotation. On lego_ring_400 the verified E of pairs with >= 30 "
+        "inliers were within 22 deg of the true relative rotation in 90 % (median 3.9, worst 50): the "
+        "vote catches far-side placements (130-180 deg there), not small errors. 30 refused lego_200's "
+        "r_86 (its one voting pair 50 deg off) and left the mean rotation error at 0.437 deg, not 0.413.",
+    )
+    verify_min_rotation_agreement: float = Field(
+        1.0, ge=0, le=1, description="Least share of the voting pairs' inliers that must agree with a "
+        "registration's rotation (1: every voting pair, a veto); an image below it is refused (at "
+        "registration) or removed (after a global refinement) and tried again later. A majority is not "
+        "enough: the far-side pairs of a symmetric object's image vote for its mirrored placement, and "
+        "they can outnumber its true neighbours (synthetic symmetric rings).",
+    )
+    deregister_min_kept_ratio: float = Field(
+        0.5, ge=0, le=1, description="After each global refinement, an image whose observations fell below "
+        "this fraction of the inliers it was registered with is removed and tried again later.",
+    )
+    max_deregistrations: int = Field(
+        1, ge=0, description="Times an image may be removed from a model before it is given up.",
+    )
     min_model_images: int = Field(3, ge=2, description="Smaller models are discarded (2 for a 2-image set).")
     max_models: int = Field(10, ge=1, description="Most models started from the images left unregistered.")
     export_all_models: bool = Field(

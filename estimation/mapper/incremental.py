@@ -36,6 +36,18 @@ from estimation.mapper.initial_pair import (
 )
 from estimation.mapper.next_image import PyramidCells, pyramid_cells, visibility_pyramid_scores
 from estimation.mapper.scene import Scene
+from estimation.mapper.verification import (
+    NEAR_MIRROR,
+    InlierSupport,
+    RotationAgreement,
+    VerifiedPair,
+    agreement_problem,
+    inlier_spread,
+    rotation_agreement,
+    support_problem,
+    voting_pairs,
+)
+from estimation.two_view.geometry import TwoViewGeometry
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
 FINAL_BA_ROUNDS = 3
@@ -85,6 +97,14 @@ class PrincipalPointTest(NamedTuple):
     kept: bool                     # d2 reached CameraConfig.principal_point_min_d2: the refined one stays
 
 
+class RegistrationCheck(NamedTuple):
+    """A registration the verification refused, or a registered image it removed later, and why."""
+
+    image: int
+    event: str      # "refused" (at registration) or "removed" (after a global refinement)
+    reason: str
+
+
 @dataclass
 class InitialPairDiagnostics:
     """What the figures show about the initial pair (i, j)."""
@@ -118,6 +138,8 @@ class SparseModel:
     initial_pair_diagnostics: InitialPairDiagnostics
     registration_order: list[int] = field(default_factory=list)
     cameras: list[Camera] = field(default_factory=list)  # image index -> intrinsics (refined by the BA)
+    checks: list[RegistrationCheck] = field(default_factory=list)  # registrations refused or undone
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def visibility(self) -> np.ndarray:
@@ -190,13 +212,17 @@ class _Thresholds:
         self.min_inlier_ratio *= factor
         self.relaxed = True
 
+    def floored(self, min_inliers: float, min_inlier_ratio: float) -> tuple[float, float]:
+        """(inliers, ratio) to ask for: relaxed or not, never less than the verification's floor."""
+        return max(self.min_inliers, min_inliers), max(self.min_inlier_ratio, min_inlier_ratio)
+
 
 class _ModelBuilder:
     """Grows one model from its initial pair (orchestration of the Scene's named operations)."""
 
     def __init__(self, tracks: Tracks, camera: CameraInput, refine: IntrinsicsRefinement,
                  config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
-                 progress: ProgressCallback | None) -> None:
+                 progress: ProgressCallback | None, votes: list[list[VerifiedPair]] | None = None) -> None:
         self.config, self.mapper = config, config.mapper
         # The principal point is refined only from the final global refinement on (`release_principal_point`):
         # while the model grows, its few images cannot determine it, and a drifting one bends what follows.
@@ -208,6 +234,10 @@ class _ModelBuilder:
         self.timer, self.progress = timer, progress
         self.trials = np.zeros(len(tracks.image_names), np.int64)
         self.failures: dict[int, str] = {}
+        self.votes = votes or [[] for _ in tracks.image_names]   # image -> its verified pairs
+        self.registered_inliers = np.zeros(len(tracks.image_names), np.int64)
+        self.deregistrations = np.zeros(len(tracks.image_names), np.int64)
+        self.checks: list[RegistrationCheck] = []
         self.thresholds = _Thresholds(self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio)
         self.refinement_rounds = 0
         self.error_limit = config.filter.max_reprojection_px
@@ -353,15 +383,60 @@ class _ModelBuilder:
                 inliers = reprojection_errors(scene.K, pose.R, pose.t, points, uv) < ransac.pnp_threshold_px
         except DegenerateConfigurationError as error:
             return str(error)
-        need = max(self.thresholds.min_inliers, self.thresholds.min_inlier_ratio * len(obs_ids))
-        if inliers.sum() < need:
-            return (
-                f"absolute pose RANSAC found {int(inliers.sum())} inliers among {len(obs_ids)} 2D-3D "
-                f"correspondences (need {int(np.ceil(need))})"
-            )
+        min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,
+                                                         self.mapper.verify_min_inlier_ratio)
+        support = InlierSupport(int(inliers.sum()), len(obs_ids),
+                                inlier_spread(uv[inliers], *self.image_size))
+        problem = support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
+        if problem is None:
+            problem = agreement_problem(self.rotation_agreement(image, pose.R),
+                                        self.mapper.verify_min_rotation_agreement, self.tracks.image_names)
+            if problem is not None:
+                self.checks.append(RegistrationCheck(image, "refused", problem))
+        if problem is not None:
+            return problem
         scene.register_image(image, pose)
         scene.add_observations(obs_ids[inliers], point_ids[inliers])
+        self.registered_inliers[image] = support.inliers
         return None
+
+    def rotation_agreement(self, image: int, R: np.ndarray) -> RotationAgreement:
+        """How the rotation R of `image` agrees with its verified pairs with the other registered images."""
+        scene = self.scene
+        pairs = [pair for pair in self.votes[image] if scene.registered[pair.other] and pair.other != image]
+        return rotation_agreement(R, pairs, {pair.other: scene.R[pair.other] for pair in pairs},
+                                  self.mapper.verify_max_rotation_deviation_deg)
+
+    def verify_registered(self) -> list[int]:
+        """After a global refinement: remove the images (not the initial pair) whose observations were mostly
+        filtered away (below deregister_min_kept_ratio of their registration's inliers) or whose rotation
+        no longer agrees with their verified pairs; each may be tried again up to max_deregistrations
+        times. Returns the images removed."""
+        scene, mapper = self.scene, self.mapper
+        used = scene.used_observations()
+        kept = np.bincount(self.tracks.image_index[used], minlength=len(scene.registered))
+        removed = []
+        for image in scene.order[2:]:
+            reason = None
+            if kept[image] < mapper.deregister_min_kept_ratio * self.registered_inliers[image]:
+                reason = (f"{kept[image]} of its observations survived the filters, registered with "
+                          f"{self.registered_inliers[image]} inliers "
+                          f"(need {mapper.deregister_min_kept_ratio:.0%})")
+            else:
+                reason = agreement_problem(self.rotation_agreement(image, scene.R[image]),
+                                           mapper.verify_min_rotation_agreement, self.tracks.image_names)
+            if reason is not None:
+                removed.append(image)
+                self.checks.append(RegistrationCheck(image, "removed", reason))
+                self.failures[image] = f"removed after a global refinement: {reason}"
+        for image in removed:
+            scene.deregister_image(image)
+            self.deregistrations[image] += 1
+            if self.deregistrations[image] <= mapper.max_deregistrations:
+                self.trials[image] = 0
+            else:
+                self.trials[image] = mapper.max_registration_trials
+        return removed
 
     def triangulate_image(self, image: int) -> None:
         """New points for the image's tracks without one. Existing points need no completion here: the
@@ -461,6 +536,24 @@ class _ModelBuilder:
                 break
         return decrease, iterations, covariance
 
+    def mirror_warnings(self) -> list[str]:
+        """Warnings of near-mirror ambiguity: images whose verified pairs disagree with their final rotation,
+        and images refused or removed for such a disagreement during the reconstruction."""
+        names = self.tracks.image_names
+        warnings = []
+        for image in self.scene.order:
+            problem = agreement_problem(self.rotation_agreement(image, self.scene.R[image]),
+                                        self.mapper.verify_min_rotation_agreement, names)
+            if problem is not None:
+                warnings.append(f"near-mirror ambiguity: {names[image]} is registered, but {problem}")
+        flipped = sorted({names[check.image] for check in self.checks if NEAR_MIRROR in check.reason})
+        if flipped:
+            warnings.append(f"near-mirror ambiguity: {len(flipped)} image(s) matched a pose on the other "
+                            f"side of the object and were refused or removed at least once "
+                            f"({', '.join(flipped)}); symmetric objects need views that overlap their "
+                            "neighbours well")
+        return warnings
+
     def test_principal_point(self, covariance: IntrinsicsCovariance | None) -> PrincipalPointTest | None:
         """The refined principal point's shift from its start (the image centre) against its covariance;
         None when it was not refined."""
@@ -512,6 +605,7 @@ class _ModelBuilder:
                     return
                 with self.timer.stage("global refinement"):
                     self.global_refinement(self.mapper.growth_refinement_rounds)
+                    self.verify_registered()
                 self.thresholds.relax(self.mapper.relaxed_registration_factor)
                 self.trials[:] = 0
                 continue
@@ -522,6 +616,7 @@ class _ModelBuilder:
             if len(self.scene.order) >= self.mapper.global_ba_growth * last_global:
                 with self.timer.stage("global refinement"):
                     self.global_refinement(self.mapper.growth_refinement_rounds)
+                    self.verify_registered()
                 last_global = len(self.scene.order)
 
 
@@ -595,14 +690,17 @@ def reconstruct_models(
     progress: ProgressCallback | None = None,
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     pair_types: dict[tuple[int, int], str] | None = None,
+    pair_geometries: dict[tuple[int, int], TwoViewGeometry] | None = None,
 ) -> list[SparseModel]:
     """Every model incremental SfM can build from the tracks, largest first.
 
     A model starts from the best initial pair among images no earlier model holds and grows until no
     image registers; models under min_model_images are discarded (their pair is not tried again).
     `pair_types` maps (i, j), i < j, to geometric verification's label; planar/panoramic pairs never start
-    a model. `camera` (a 3x3 K, a Camera, or one Camera per image) is every image's initial camera; each
-    global BA refines the intrinsics as `refine` says, and the models' `cameras` carry the result.
+    a model. `pair_geometries` (the verified geometry of each pair, by (i, j)) lets each registration be
+    checked against its pairs' relative rotations (`verification`). `camera` (a 3x3 K, a Camera, or one
+    Camera per image) is every image's initial camera; each global BA refines the intrinsics as `refine`
+    says, and the models' `cameras` carry the result.
     Raises DegenerateConfigurationError naming, per image, why no model could start.
     """
     num_images = len(tracks.image_names)
@@ -619,6 +717,7 @@ def reconstruct_models(
     small_models: dict[tuple[int, int], str] = {}
     min_images = min(mapper.min_model_images, num_images)
     built: list[tuple[_ModelBuilder, SparseModel]] = []
+    votes = voting_pairs(pair_geometries or {}, K, num_images, mapper.verify_pair_min_inliers)
     while len(built) < mapper.max_models and available.sum() >= 2:
         if progress:
             progress("initial pair", 0.02 + 0.85 * (num_images - available.sum()) / num_images)
@@ -634,7 +733,7 @@ def reconstruct_models(
         if choice.candidate is None:
             break
         candidate = choice.candidate
-        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress)
+        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress, votes)
         with timer.stage("initial pair"):
             builder.initialize(candidate)
         builder.grow(num_images, num_images - int(available.sum()))
@@ -656,6 +755,9 @@ def reconstruct_models(
         with timer.stage("bundle adjustment"):
             builder.release_principal_point()
             builder.global_refinement(mapper.refinement_max_rounds)
+            if builder.verify_registered():
+                builder.grow(num_images, num_images - int(available.sum()))
+                builder.global_refinement(mapper.refinement_max_rounds)
             decrease, iterations, covariance = builder.final_bundle_adjustment()
             principal_point_test = builder.test_principal_point(covariance)
             if principal_point_test is not None and not principal_point_test.kept:
@@ -681,7 +783,9 @@ def reconstruct_models(
             intrinsics_sigma=covariance.sigma() if covariance is not None else {},
             principal_point_test=principal_point_test,
         )
-        built.append((builder, _sparse_model(builder, candidate, stats)))
+        model = _sparse_model(builder, candidate, stats)
+        model.checks, model.warnings = list(builder.checks), builder.mirror_warnings()
+        built.append((builder, model))
     if not built:
         raise DegenerateConfigurationError(_why_no_model(tracks, pairs, failures, small_models))
     if progress:
