@@ -26,7 +26,7 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsCovariance, Intr
 from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
-from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors_per_hypothesis
 from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared
 from estimation.mapper.initial_pair import (
     InitialPairCandidate,
@@ -380,7 +380,9 @@ class _ModelBuilder:
                 pose = pnp_nonlinear(
                     scene.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
                 ).pose
-                inliers = reprojection_errors(scene.K, pose.R, pose.t, points, uv) < ransac.pnp_threshold_px
+                errors = reprojection_errors_per_hypothesis(scene.K, np.column_stack([pose.R, pose.t]),
+                                                            points, uv)
+                inliers = errors < ransac.pnp_threshold_px
         except DegenerateConfigurationError as error:
             return str(error)
         min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,

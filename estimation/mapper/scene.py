@@ -28,11 +28,11 @@ from estimation.geometry.projection import (
     as_camera,
     is_shared,
     observation_cameras,
+    reprojection_errors,
     transfer_pixels,
 )
 from estimation.geometry.triangulation import (
     Observations,
-    observation_errors,
     triangulate_nonlinear,
     triangulate_ransac,
     triangulation_angle_reaches,
@@ -224,7 +224,7 @@ class Scene:
                            uv=self.observed_uv.take(obs_ids, axis=0), point_index=points,
                            num_points=len(self.point_alive))
         camera = observation_cameras(self.cameras, images)
-        return observation_errors(camera, obs, self.point_xyz)
+        return reprojection_errors(camera, obs, self.point_xyz)
 
     def noise_sigma(self, max_error_px: float) -> float:
         """Per-axis pixel noise (`pixel_noise_sigma`) of the observations within max_error_px of their
@@ -389,7 +389,7 @@ class Scene:
             obs = self.observations(involved, pair_index, len(keep_ids))
             points = triangulate_nonlinear(self.K, obs, self.point_xyz[keep_ids]).points
             worst = np.zeros(len(keep_ids))
-            np.maximum.at(worst, pair_index, observation_errors(self.K, obs, points))
+            np.maximum.at(worst, pair_index, reprojection_errors(self.K, obs, points))
             ok = worst < max_error_px
             if not ok.any():
                 break
