@@ -18,7 +18,7 @@ from estimation.mapper.incremental import (
     run_incremental,
     track_observation_pairs,
 )
-from estimation.mapper.scene import Scene
+from estimation.mapper.reconstruction import Reconstruction
 from estimation.synthetic import make_object_scene, make_scene, observe, project, rotation_about_axis
 from estimation.types import CameraPose, Tracks
 
@@ -476,9 +476,10 @@ def test_relaxed_inlier_minimums_never_go_below_the_verification_floor():
 
 
 def record_bundle_adjustments(monkeypatch) -> list[tuple[str, float]]:
-    """(kind, relative_error_tol) of every Scene.bundle_adjust call: initial, local, global or final."""
+    """(kind, relative_error_tol) of every Reconstruction.bundle_adjust call: initial, local, global or
+    final."""
     calls = []
-    adjust = Scene.bundle_adjust
+    adjust = Reconstruction.bundle_adjust
 
     def recording(scene, config, variable_images=None, intrinsics_covariance=False):
         kind = ("final" if intrinsics_covariance else "local" if variable_images is not None
@@ -486,7 +487,7 @@ def record_bundle_adjustments(monkeypatch) -> list[tuple[str, float]]:
         calls.append((kind, config.relative_error_tol))
         return adjust(scene, config, variable_images, intrinsics_covariance)
 
-    monkeypatch.setattr(Scene, "bundle_adjust", recording)
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     return calls
 
 
@@ -504,9 +505,9 @@ def test_each_refinement_round_adjusts_to_the_refinement_tolerance_and_the_last_
 def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_min_change(
         monkeypatch, noisy_scene):
     calls = record_bundle_adjustments(monkeypatch)
-    filter_points = Scene.filter_points
+    filter_points = Reconstruction.filter_points
     # Every filter reports one observation more than it removed: a few, out of thousands.
-    monkeypatch.setattr(Scene, "filter_points", lambda scene, *args: filter_points(scene, *args) + 1)
+    monkeypatch.setattr(Reconstruction, "filter_points", lambda scene, *args: filter_points(scene, *args) + 1)
 
     def final_adjustments(final_min_change: float) -> int:
         calls.clear()
@@ -521,14 +522,14 @@ def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_m
 def test_every_mapper_ba_runs_the_mapper_optimizer_and_the_global_ones_the_mapper_global_ordering(
         monkeypatch, noisy_scene):
     kinds = {}
-    adjust = Scene.bundle_adjust
+    adjust = Reconstruction.bundle_adjust
 
     def recording(scene, config, variable_images=None, intrinsics_covariance=False):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
         kinds.setdefault(kind, set()).add((config.optimizer, config.ordering))
         return adjust(scene, config, variable_images, intrinsics_covariance)
 
-    monkeypatch.setattr(Scene, "bundle_adjust", recording)
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     reconstruct(noisy_scene.tracks, noisy_scene, ReconstructionConfig(bundle_adjustment={
         "optimizer": "levenberg_marquardt", "mapper_optimizer": "gauss_newton",
         "ordering": "points_first", "mapper_global_ordering": "colamd"}))
@@ -560,17 +561,17 @@ def test_while_the_model_grows_each_refinement_adjusts_at_most_growth_refinement
 
 
 def record_iteration_caps(monkeypatch) -> dict[str, set[int]]:
-    """max_iterations of every Scene.bundle_adjust call by kind: local, global (the initial pair's and the
-    refinement rounds') or final."""
+    """max_iterations of every Reconstruction.bundle_adjust call by kind: local, global (the initial pair's
+    and the refinement rounds') or final."""
     caps = {}
-    adjust = Scene.bundle_adjust
+    adjust = Reconstruction.bundle_adjust
 
     def recording(scene, config, variable_images=None, intrinsics_covariance=False):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
         caps.setdefault(kind, set()).add(config.max_iterations)
         return adjust(scene, config, variable_images, intrinsics_covariance)
 
-    monkeypatch.setattr(Scene, "bundle_adjust", recording)
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     return caps
 
 

@@ -1,5 +1,6 @@
-"""`reconstruct`: images folder in, cameras, points and their files out. The one entry point the CLI
-and the REST service call; it orchestrates input, features, the incremental pipeline and the outputs.
+"""The Structure from Motion pipeline, `reconstruct`: images folder in, cameras, points and their files out.
+The one entry point the CLI and the REST service call (as `estimation.reconstruct`); it orchestrates input,
+features, the incremental mapper and the outputs.
 """
 
 from __future__ import annotations

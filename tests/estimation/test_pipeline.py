@@ -11,11 +11,11 @@ import pytest
 from PIL import ExifTags, Image
 
 from estimation import InputError, ReconstructionConfig, reconstruct
-from estimation.api import initial_intrinsics
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import CameraConfig
 from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
+from estimation.pipeline import initial_intrinsics
 from estimation.synthetic import project
 
 pytestmark = pytest.mark.slow
