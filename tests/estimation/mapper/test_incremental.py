@@ -14,6 +14,8 @@ from estimation.geometry.projection import Camera
 from estimation.mapper.incremental import (
     FINAL_BA_ROUNDS,
     SparseModel,
+    _ModelBuilder,
+    _Timer,
     reconstruct_models,
     run_incremental,
     track_observation_pairs,
@@ -605,3 +607,37 @@ def test_track_observation_pairs_lists_each_pair_of_a_tracks_observations_once_w
     # image pair (m, n), m < n, as m * 4 + n
     assert listed == [(0, 4, 1 * 4 + 3), (1, 3, 0 * 4 + 2), (1, 5, 1 * 4 + 2), (2, 6, 0 * 4 + 3),
                       (3, 5, 0 * 4 + 1)]
+
+
+def builder_at_the_truth(scene) -> _ModelBuilder:
+    """A model builder with every image registered at its true pose (by the inliers it saw) and every track
+    triangulated."""
+    builder = _ModelBuilder(scene.tracks, scene.K, IntrinsicsRefinement(focal=False, distortion=False),
+                            CONFIG, np.ones(len(scene.poses), bool), _Timer(), None)
+    reconstruction = builder.reconstruction
+    for m, pose in enumerate(scene.poses):
+        reconstruction.register_image(m, pose)
+    reconstruction.triangulate_tracks(np.arange(scene.tracks.num_tracks), builder.max_error,
+                                      builder.min_angle, CONFIG.mapper.triangulation_hypotheses)
+    used = reconstruction.used_observations()
+    builder.registered_inliers[:] = np.bincount(scene.tracks.image_index[used], minlength=len(scene.poses))
+    return builder
+
+
+def test_an_image_whose_observations_were_filtered_away_is_removed_and_tried_again_once():
+    scene = make_object_scene(num_cameras=8, num_points=800, noise_px=0.3, seed=3)
+    builder = builder_at_the_truth(scene)
+    reconstruction, moved = builder.reconstruction, 5
+    turned = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(3.0)) @ scene.poses[moved].R
+    reconstruction.set_pose(moved, CameraPose(turned, scene.poses[moved].t))
+    reconstruction.filter_points(builder.max_error, builder.min_angle)    # what a global refinement does
+    assert builder.verify_registered() == [moved]
+    assert not reconstruction.registered[moved] and moved not in reconstruction.order
+    check = builder.checks[-1]
+    assert (check.image, check.event) == (moved, "removed") and "survived the filters" in check.reason
+    assert builder.trials[moved] == 0                                     # it may register again
+    assert builder.verify_registered() == []                              # the others are untouched
+    reconstruction.register_image(moved, CameraPose(turned, scene.poses[moved].t))
+    reconstruction.filter_points(builder.max_error, builder.min_angle)
+    assert builder.verify_registered() == [moved]
+    assert builder.trials[moved] == CONFIG.mapper.max_registration_trials   # removed twice: given up
