@@ -61,19 +61,25 @@ def support_problem(support: InlierSupport, min_inliers: float, min_ratio: float
     return None
 
 
-def essential_rotation_deviation_deg(E: np.ndarray, R_relative: np.ndarray) -> float:
-    """min over the two rotations R of E ~ [t]x R of angle(R, R_relative): how far a relative rotation
-    (x_2 = R_relative x_1 + t) is from the pair's verified epipolar geometry, without chirality (the
-    twisted-pair rotation is 180 deg about the baseline from the true one, far from either)."""
-    return min(rotation_angle_deg(candidate.R, R_relative) for candidate in pose_candidates(E)[::2])
+def essential_rotations(E: np.ndarray) -> np.ndarray:
+    """(2, 3, 3): the two rotations R of E ~ [t]x R (the true one and its twisted pair, 180 deg about the
+    baseline from it)."""
+    return np.stack([candidate.R for candidate in pose_candidates(E)[::2]])
+
+
+def essential_rotation_deviation_deg(rotations: np.ndarray, R_relative: np.ndarray) -> float:
+    """min over the two rotations R of E (`essential_rotations`) of angle(R, R_relative): how far a relative
+    rotation (x_2 = R_relative x_1 + t) is from the pair's verified epipolar geometry, without chirality
+    (a far-side placement is far from both)."""
+    return min(rotation_angle_deg(R, R_relative) for R in rotations)
 
 
 class VerifiedPair(NamedTuple):
     """Two-view evidence about image `image` relative to the registered image `other`."""
 
     other: int
-    E: np.ndarray        # x_image^T E x_other = 0 (normalized coordinates): the pair's verified geometry
-    inliers: int         # its verified inliers: the weight of its vote
+    rotations: np.ndarray  # (2, 3, 3) `essential_rotations` of E, x_image^T E x_other = 0 (normalized)
+    inliers: int           # the pair's verified inliers: the weight of its vote
 
 
 def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], K: np.ndarray, num_images: int,
@@ -86,8 +92,8 @@ def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], K: np.ndarr
         if geometry.num_inliers < min_inliers or (geometry.E is None and geometry.F is None):
             continue
         E = geometry.E if geometry.E is not None else essential_from_fundamental(geometry.F, K)
-        votes[j].append(VerifiedPair(i, E, geometry.num_inliers))
-        votes[i].append(VerifiedPair(j, E.T, geometry.num_inliers))
+        votes[j].append(VerifiedPair(i, essential_rotations(E), geometry.num_inliers))
+        votes[i].append(VerifiedPair(j, essential_rotations(E.T), geometry.num_inliers))
     return votes
 
 
@@ -108,7 +114,7 @@ def rotation_agreement(R_image: np.ndarray, pairs: list[VerifiedPair], R_of: dic
                        max_deviation_deg: float) -> RotationAgreement:
     """Each pair votes with its inliers for or against R_image: for when R_image R_other^T is within
     max_deviation_deg of its E's rotation (`essential_rotation_deviation_deg`); R_of: other -> its R."""
-    deviations = {pair.other: essential_rotation_deviation_deg(pair.E, R_image @ R_of[pair.other].T)
+    deviations = {pair.other: essential_rotation_deviation_deg(pair.rotations, R_image @ R_of[pair.other].T)
                   for pair in pairs}
     agreeing = sum(pair.inliers for pair in pairs if deviations[pair.other] <= max_deviation_deg)
     return RotationAgreement(agreeing, sum(pair.inliers for pair in pairs), deviations)

@@ -13,6 +13,7 @@ from estimation.mapper.verification import (
     VerifiedPair,
     agreement_problem,
     essential_rotation_deviation_deg,
+    essential_rotations,
     inlier_spread,
     rotation_agreement,
     support_problem,
@@ -48,10 +49,11 @@ def test_a_relative_rotation_agrees_with_its_own_essential_matrix_and_a_half_tur
     relative = CameraPose(rotation_about_axis(np.array([0.1, 1.0, 0.0]), np.radians(7)),
                           np.array([1.0, 0.0, 0.1]))
     E = essential_of(relative)
-    assert essential_rotation_deviation_deg(E, relative.R) < 1e-6
-    assert essential_rotation_deviation_deg(-3.0 * E, relative.R) < 1e-6       # E is up to scale and sign
+    assert essential_rotation_deviation_deg(essential_rotations(E), relative.R) < 1e-6
+    # E is up to scale and sign
+    assert essential_rotation_deviation_deg(essential_rotations(-3.0 * E), relative.R) < 1e-6
     flipped = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.pi) @ relative.R
-    assert essential_rotation_deviation_deg(E, flipped) > 170
+    assert essential_rotation_deviation_deg(essential_rotations(E), flipped) > 170
 
 
 def test_voting_pairs_orient_each_pair_from_the_voting_image_and_skip_weak_pairs():
@@ -74,7 +76,8 @@ def test_one_disagreeing_strong_pair_vetoes_a_rotation_at_full_agreement_and_nam
     turn = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.pi)
     R_of = {1: np.eye(3), 2: np.eye(3)}
     baseline = skew(np.array([1.0, 0.0, 0.0]))
-    pairs = [VerifiedPair(1, baseline, 200), VerifiedPair(2, baseline @ turn, 100)]
+    pairs = [VerifiedPair(1, essential_rotations(baseline), 200),
+             VerifiedPair(2, essential_rotations(baseline @ turn), 100)]
     agreement = rotation_agreement(np.eye(3), pairs, R_of, max_deviation_deg=30)
     assert agreement.agreeing_inliers == 200 and agreement.share == pytest.approx(2 / 3)
     assert agreement_problem(agreement, 0.5, ["a", "b", "c"]) is None
