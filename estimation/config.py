@@ -153,6 +153,26 @@ class SiftConfig(StrictConfig):
         "fewer keypoints, all found at 0.02 too (the weakest go); two full-size fountain-P11 views keep the "
         "same 8192 keypoints each, in 3.53 instead of 3.78 s.",
     )
+    low_contrast: float = Field(
+        0.1, ge=0, description="Low-contrast images (a dark object on a dark background): when the RMS "
+        "contrast of an image's textured pixels (std of its intensities 0..1 where the 9 x 9 neighbourhood "
+        "is not constant) is below this, its contrast_threshold is scaled by contrast / reference_contrast "
+        "(DoG responses scale with the contrast: its structure is detected as at the reference contrast), "
+        "at least min_contrast_factor, and its constant regions are masked out, so that a flat background, "
+        "whose noise the lower threshold would pick up, gives no keypoints. 0: off. The benchmark photos lie "
+        "above 0.1 (lego 0.27-0.33, fountain-P11 and Herz-Jesus-P8 0.14-0.18, Unity Hall 0.25): unchanged.",
+    )
+    reference_contrast: float = Field(
+        0.25, gt=0, description="The RMS contrast of a typical photo, which a low-contrast image's threshold "
+        "is scaled to.",
+    )
+    min_contrast_factor: float = Field(
+        0.2, gt=0, le=1, description="The lowest fraction of contrast_threshold a low-contrast image gets.",
+    )
+    constant_region_std: float = Field(
+        1.0 / 255, ge=0, description="A pixel whose 9 x 9 neighbourhood has an intensity std (0..1) below "
+        "this lies in a constant region (masked out in low-contrast images).",
+    )
     ratio: float = Field(0.8, gt=0, lt=1, description="Lowe's ratio test threshold.")
     max_distance: float = Field(
         0.7, gt=0, description="Largest descriptor distance of a match (RootSIFT: unit norm; COLMAP's 0.7)."
