@@ -154,13 +154,14 @@ class SiftConfig(StrictConfig):
         "same 8192 keypoints each, in 3.53 instead of 3.78 s.",
     )
     low_contrast: float = Field(
-        0.1, ge=0, description="Low-contrast images (a dark object on a dark background): when the RMS "
+        0.06, ge=0, description="Low-contrast images (a dark object on a dark background): when the RMS "
         "contrast of an image's textured pixels (std of its intensities 0..1 where the 9 x 9 neighbourhood "
         "is not constant) is below this, its contrast_threshold is scaled by contrast / reference_contrast "
         "(DoG responses scale with the contrast: its structure is detected as at the reference contrast), "
         "at least min_contrast_factor, and its constant regions are masked out, so that a flat background, "
         "whose noise the lower threshold would pick up, gives no keypoints. 0: off. The benchmark photos lie "
-        "above 0.1 (lego 0.27-0.33, fountain-P11 and Herz-Jesus-P8 0.14-0.18, Unity Hall 0.25): unchanged.",
+        "above it (fountain-P11 0.10-0.17, Herz-Jesus-P8 0.17-0.19, Unity Hall 0.25, lego 0.27-0.33): "
+        "unchanged.",
     )
     reference_contrast: float = Field(
         0.25, gt=0, description="The RMS contrast of a typical photo, which a low-contrast image's threshold "

@@ -90,8 +90,8 @@ def dark_low_contrast_image(width: int = 320, height: int = 240, seed: int = 0) 
 
 def test_the_contrast_threshold_follows_the_image_contrast_below_the_reference_only():
     config = SiftConfig()
-    assert adaptive_contrast_threshold(0.15, config) == config.contrast_threshold
-    assert adaptive_contrast_threshold(0.0625, config) == pytest.approx(config.contrast_threshold / 4)
+    assert adaptive_contrast_threshold(0.07, config) == config.contrast_threshold
+    assert adaptive_contrast_threshold(0.055, config) == pytest.approx(0.22 * config.contrast_threshold)
     assert adaptive_contrast_threshold(0.0, config) == pytest.approx(config.min_contrast_factor
                                                                      * config.contrast_threshold)
     assert adaptive_contrast_threshold(0.0, SiftConfig(low_contrast=0)) == config.contrast_threshold
@@ -309,3 +309,12 @@ def test_a_gpu_matches_in_the_calling_process_and_the_workers_only_verify(monkey
     for pair in pairs:
         np.testing.assert_array_equal(gpu_matches[pair].index_b, cpu_matches[pair].index_b)
         np.testing.assert_array_equal(gpu_geometries[pair].inlier_mask, cpu_geometries[pair].inlier_mask)
+
+
+def test_a_large_low_contrast_image_is_measured_on_a_preview_and_masked_at_full_size():
+    image = dark_low_contrast_image(seed=1)
+    large = cv2.resize(image, (1600, 1200), interpolation=cv2.INTER_CUBIC)       # beyond the preview side
+    fixed = detect_features(large, SiftConfig(low_contrast=0)).uv
+    adaptive = detect_features(large, SiftConfig()).uv
+    assert len(adaptive) > 3 * max(len(fixed), 10)
+    assert adaptive[:, 0].min() > 750
