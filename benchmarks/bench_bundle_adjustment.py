@@ -157,11 +157,11 @@ def synthetic_problem(
 def unity_hall_problem(data_dir: Path) -> Problem:
     """The Unity Hall reconstruction just before its global BA (inputs of the pipeline's first global BA)."""
     import estimation.bundle_adjustment.factor_graph as bundle_adjustment_module
-    from estimation.api import extract_tracks
     from estimation.config import ReconstructionConfig
     from estimation.geometry.projection import as_camera, is_shared
     from estimation.io.images import find_calibration, list_images
     from estimation.mapper.incremental import run_incremental
+    from estimation.pipeline import extract_tracks
 
     calls: list[dict] = []
     original = bundle_adjustment_module.bundle_adjust

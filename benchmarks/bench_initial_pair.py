@@ -38,10 +38,10 @@ def lego_pairs(pairs: int, seeds: list[int]) -> None:
     from bench_sfm import lego_set
 
     from estimation import ReconstructionConfig
-    from estimation.api import extract_tracks
     from estimation.geometry.alignment import relative_pose, rotation_angle_deg
     from estimation.io.images import list_images
     from estimation.mapper.initial_pair import co_visible_pairs, tight_essential
+    from estimation.pipeline import extract_tracks
     from estimation.two_view.essential import choose_relative_pose, essential_from_fundamental
     from estimation.two_view.geometry import estimate_two_view_geometry
 

@@ -34,8 +34,8 @@ def cached_tracks(work: Path) -> dict[str, np.ndarray]:
         from bench_sfm import lego_set
 
         from estimation import ReconstructionConfig
-        from estimation.api import extract_tracks
         from estimation.io.images import list_images
+        from estimation.pipeline import extract_tracks
 
         bench = lego_set(work)
         images = list_images(bench.images)

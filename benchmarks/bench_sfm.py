@@ -17,6 +17,9 @@ Sets (../shared/data):
   the image centre is ((W - 1) / 2, (H - 1) / 2) for us and (W / 2, H / 2) for COLMAP (centre at 0.5).
 - fountain, herzjesu: strecha/fountain-P11 and Herz-Jesus-P8 at full size with their calibration.txt
   (OpenCV convention, + 0.5 for COLMAP) and ground_truth.json.
+- ring: lego_ring_400 (50 views of lego's validation ring at 400 px, about 7 deg apart) with its
+  calibration.txt and ground_truth.json: a sparse ring around a symmetric object, where a flipped camera
+  (registered on the far side of the ring) is the failure to watch for (rot max).
 - unity: Unity Hall with the course's match files (ours only; no ground truth: RMS and Ceres left).
 
     flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py                 # every set
@@ -126,12 +129,16 @@ def uncalibrated_copy(bench: BenchSet, work: Path) -> BenchSet:
     return replace(bench, name=f"{bench.name} uncalibrated", images=folder, calibrated=False)
 
 
-def strecha_set(name: str) -> BenchSet:
-    folder = DATA / "strecha" / name
+def ground_truth_set(folder: Path, name: str) -> BenchSet:
+    """A folder with calibration.txt and ground_truth.json (world-to-camera R, t per image)."""
     cameras = json.loads((folder / "ground_truth.json").read_text())["cameras"]
     truth = {image: CameraPose(R=np.array(c["R"], float), t=np.array(c["t"], float))
              for image, c in cameras.items()}
     return BenchSet(name, folder, np.loadtxt(folder / "calibration.txt"), truth)
+
+
+def strecha_set(name: str) -> BenchSet:
+    return ground_truth_set(DATA / "strecha" / name, name)
 
 
 def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None, workers: int = 0,
@@ -243,7 +250,7 @@ def pose_error_cells(outcome: Outcome, truth: dict[str, CameraPose] | None) -> l
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", default="lego,fountain,herzjesu,unity",
-                        help="comma-separated: lego, fountain, herzjesu, unity")
+                        help="comma-separated: lego, ring, fountain, herzjesu, unity")
     parser.add_argument("--no-pycolmap", action="store_true", help="ours only")
     parser.add_argument("--max-reprojection-sigmas", type=float, default=None,
                         help="ours: the filter's noise-following limit in sigmas (0: the fixed 4 px limit)")
@@ -271,6 +278,8 @@ def main() -> None:
         for key in args.sets.split(","):
             if key == "lego":
                 bench = lego_set(work)
+            elif key == "ring":
+                bench = ground_truth_set(DATA / "lego_ring_400", "lego_ring_400 (50)")
             elif key == "fountain":
                 bench = strecha_set("fountain-P11")
             elif key == "herzjesu":

@@ -10,7 +10,7 @@ from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 
 if TYPE_CHECKING:
-    from estimation.api import ReconstructionResult, reconstruct
+    from estimation.pipeline import ReconstructionResult, reconstruct
 
 __all__ = [
     "DegenerateConfigurationError",
@@ -25,7 +25,7 @@ _LAZY = {"reconstruct", "ReconstructionResult"}
 
 def __getattr__(name: str) -> object:
     if name in _LAZY:
-        from estimation import api
+        from estimation import pipeline
 
-        return getattr(api, name)
+        return getattr(pipeline, name)
     raise AttributeError(f"module 'estimation' has no attribute {name!r}")

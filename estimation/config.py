@@ -153,6 +153,27 @@ class SiftConfig(StrictConfig):
         "fewer keypoints, all found at 0.02 too (the weakest go); two full-size fountain-P11 views keep the "
         "same 8192 keypoints each, in 3.53 instead of 3.78 s.",
     )
+    low_contrast: float = Field(
+        0.06, ge=0, description="Low-contrast images (a dark object on a dark background): when the RMS "
+        "contrast of an image's textured pixels (std of its intensities 0..1 where the 9 x 9 neighbourhood "
+        "is not constant) is below this, its contrast_threshold is scaled by contrast / reference_contrast "
+        "(DoG responses scale with the contrast: its structure is detected as at the reference contrast), "
+        "at least min_contrast_factor, and its constant regions are masked out, so that a flat background, "
+        "whose noise the lower threshold would pick up, gives no keypoints. 0: off. The benchmark photos lie "
+        "above it (fountain-P11 0.10-0.17, Herz-Jesus-P8 0.17-0.19, Unity Hall 0.25, lego 0.27-0.33): "
+        "unchanged.",
+    )
+    reference_contrast: float = Field(
+        0.25, gt=0, description="The RMS contrast of a typical photo, which a low-contrast image's threshold "
+        "is scaled to.",
+    )
+    min_contrast_factor: float = Field(
+        0.2, gt=0, le=1, description="The lowest fraction of contrast_threshold a low-contrast image gets.",
+    )
+    constant_region_std: float = Field(
+        1.0 / 255, ge=0, description="A pixel whose 9 x 9 neighbourhood has an intensity std (0..1) below "
+        "this lies in a constant region (masked out in low-contrast images).",
+    )
     ratio: float = Field(0.8, gt=0, lt=1, description="Lowe's ratio test threshold.")
     max_distance: float = Field(
         0.7, gt=0, description="Largest descriptor distance of a match (RootSIFT: unit norm; COLMAP's 0.7)."
@@ -310,6 +331,46 @@ class MapperConfig(StrictConfig):
         "this fraction of the observations. 2e-3 instead of 0 (any): on lego (mapper only, seeds 0 / 1 / 2) "
         "one final BA instead of 3 / 2 / 3 (its filter removes ~0.1 %), 0.1-0.25 s less mapping CPU, "
         "mean rotation error 0.380 / 0.368 / 0.366 deg against 0.382 / 0.369 / 0.369.",
+    )
+    verify_min_inliers: int = Field(
+        12, ge=6, description="Every registration, relaxed or not, needs this many absolute-pose inliers: "
+        "relaxing min_pnp_inliers never goes below it. On lego_ring_400 (mapper only) the images registered "
+        "with 6-11 inliers in the relaxed pass were the wrong ones (r_28 with 6 of 29, r_12 with 8 of 30: "
+        "172-176 deg off; r_34 with 11 of 29: 6 deg off); with 12, 40/50 register, none over 0.6 deg off. "
+        "COLMAP's 30 registered 29/50 there.",
+    )
+    verify_min_inlier_ratio: float = Field(
+        0.2, gt=0, le=1, description="... and this fraction of its 2D-3D correspondences as inliers, relaxed "
+        "or not (COLMAP: 25 %).",
+    )
+    verify_min_inlier_spread: float = Field(
+        0.05, ge=0, le=1, description="Its inliers must lie in this share of the image's 8 x 8 grid cells "
+        "(0.05: 4 cells): a pose resting on one small part of the image is refused.",
+    )
+    verify_pair_min_inliers: int = Field(
+        30, ge=8, description="Verified pairs with this many inliers vote on a registered image's rotation "
+        "(weaker pairs' E were often 20-50 deg off the truth on lego_ring_400).",
+    )
+    verify_max_rotation_deviation_deg: float = Field(
+        60.0, gt=0, le=180, description="A pair agrees with a pose when the model's relative rotation is "
+        "within this of its verified E's rotation. On lego_ring_400 the verified E of pairs with >= 30 "
+        "inliers were within 22 deg of the true relative rotation in 90 % (median 3.9, worst 50): the "
+        "vote catches far-side placements (130-180 deg there), not small errors. 30 refused lego_200's "
+        "r_86 (its one voting pair 50 deg off) and left the mean rotation error at 0.437 deg, not 0.413.",
+    )
+    verify_min_rotation_agreement: float = Field(
+        1.0, ge=0, le=1, description="Least share of the voting pairs' inliers that must agree with a "
+        "registration's rotation (1: every voting pair, a veto); an image below it is refused (at "
+        "registration) or removed (after a global refinement) and tried again later. A majority is not "
+        "enough: the far-side pairs of a symmetric object's image vote for its mirrored placement, and "
+        "they can outnumber its true neighbours (synthetic symmetric rings).",
+    )
+    deregister_min_kept_ratio: float = Field(
+        0.5, ge=0, le=1, description="After each global refinement, an image whose observations fell below "
+        "this fraction of the inliers it was registered with is removed and tried again later.",
+    )
+    max_deregistrations: int = Field(
+        1, ge=0, description="Times an image may be removed from a model before it is given up.",
     )
     min_model_images: int = Field(3, ge=2, description="Smaller models are discarded (2 for a 2-image set).")
     max_models: int = Field(10, ge=1, description="Most models started from the images left unregistered.")

@@ -255,3 +255,54 @@ def make_object_scene(
                                   (width, height), rng)
     return SyntheticScene(K=K, camera=Camera.from_K(K), width=width, height=height, poses=poses,
                           points=points, colors=colors, tracks=tracks, inlier_mask=inlier_mask)
+
+
+@dataclass(frozen=True)
+class SymmetricRing:
+    """A ring around an object symmetric under a half turn about the vertical axis, with images whose
+    matcher took look-alike features of the far side for their own."""
+
+    scene: SyntheticScene
+    confused: tuple[int, ...]          # images with symmetric mismatches
+    half_turn: np.ndarray              # (3, 3) the object's symmetry (about the world's vertical axis)
+
+
+def make_symmetric_ring(num_cameras: int = 24, num_points: int = 3000, confused: tuple[int, ...] = (5,),
+                        confusion: float = 0.6, noise_px: float = 0.3, seed: int = 0) -> SymmetricRing:
+    """Cameras on a ring (`make_object_scene`) around points on a sphere that come in symmetric pairs X and
+    H X (H: a half turn about the vertical axis, so the far side looks like the near one). In each confused
+    image, a `confusion` share of its observations is linked to the track of the symmetric point instead,
+    as a matcher links look-alike features: the image then carries a complete, consistent second placement,
+    its true pose turned by H, which every track of those observations supports."""
+    rng = np.random.default_rng(seed)
+    base = make_object_scene(num_cameras, "ring", num_points // 2, seed=seed)
+    half_turn = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.pi)
+    half = len(base.points)
+    normals = base.points / OBJECT_RADIUS
+    points = np.vstack([base.points, base.points @ half_turn.T])
+    colors = np.vstack([base.colors, base.colors])
+    all_normals = np.vstack([normals, normals @ half_turn.T])
+    centers = np.array([pose.center for pose in base.poses])
+    to_camera = centers[None, :, :] - points[:, None, :]
+    cosine = np.einsum("nmk,nk->nm", to_camera, all_normals) / np.linalg.norm(to_camera, axis=2)
+    visible = cosine > np.cos(np.radians(MAX_VIEWING_ANGLE_DEG))
+    for m, pose in enumerate(base.poses):
+        uv = project(base.K, pose, points)
+        visible[:, m] &= (uv >= IMAGE_MARGIN_PX).all(axis=1) & (uv[:, 0] < base.width - IMAGE_MARGIN_PX) & (
+            uv[:, 1] < base.height - IMAGE_MARGIN_PX)
+    tracks, inlier_mask = observe(base.K, base.poses, points, colors, visible, noise_px, 0.0,
+                                  (base.width, base.height), rng)
+    track_index = tracks.track_index.copy()
+    twin = np.concatenate([np.arange(half, 2 * half), np.arange(half)])   # point n <-> its symmetric one
+    for m in confused:
+        own = np.flatnonzero(tracks.image_index == m)
+        swap = own[rng.random(len(own)) < confusion]
+        # A track holds one observation per image: the twin must not be seen in m already.
+        swap = swap[~visible[twin[track_index[swap]], m]]
+        track_index[swap] = twin[track_index[swap]]
+    scene = SyntheticScene(K=base.K, camera=base.camera, width=base.width, height=base.height,
+                           poses=base.poses, points=points, colors=colors,
+                           tracks=Tracks(tracks.image_names, track_index, tracks.image_index, tracks.uv,
+                                         colors),
+                           inlier_mask=inlier_mask)
+    return SymmetricRing(scene, tuple(confused), half_turn)

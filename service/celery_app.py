@@ -86,7 +86,7 @@ def _import_job_libraries(**_: Any) -> None:
     """Each worker process imports the heavy libraries before its first task, so a job's soft time limit
     can never stop an import halfway: a half-imported torch fails every later task of that process. (Not in
     the parent before it forks: importing OpenBLAS and OpenCV starts threads there.)"""
-    import estimation.api  # noqa: F401  (OpenCV, GTSAM)
+    import estimation.pipeline  # noqa: F401  (OpenCV, GTSAM)
     import neural.inference  # noqa: F401  (PyTorch; what renders use)
     import neural.training  # noqa: F401
 

@@ -68,6 +68,11 @@ class PairTypes(Mapping[Pair, str]):
     def __len__(self) -> int:
         return len(self._geometries)
 
+    def epipolar_geometries(self) -> dict[Pair, TwoViewGeometry]:
+        """Every pair's geometry as verified, without waiting for the planarity tests (which change only
+        the type: E, F and the inliers are final)."""
+        return dict(self._geometries)
+
     def geometries(self) -> dict[Pair, TwoViewGeometry]:
         """Every pair's geometry, its planarity tested: the worker's results (waited for; tested here instead
         if its process died); the pool is shut down."""

@@ -91,17 +91,63 @@ def root_sift(descriptors: np.ndarray) -> np.ndarray:
     return np.sqrt(descriptors / np.maximum(l1, np.finfo(np.float32).tiny))
 
 
+CONTRAST_WINDOW = 9
+"""Side of the neighbourhood whose intensity std tells a textured pixel from a constant region."""
+CONTRAST_PREVIEW_SIDE = 800
+"""The RMS contrast and the constant regions are measured on the image area-downscaled to this longest side
+(the contrast within 0.006 of the full-size value on the Strecha photos, in 3 instead of 140 ms; the
+window then spans as much of the scene whatever the resolution)."""
+
+
+class ImageContrast(NamedTuple):
+    """RMS contrast of an image's textured pixels, and where they are."""
+
+    rms: float                 # std of the intensities (0..1) of the textured pixels (0: none)
+    textured: np.ndarray       # (H, W) uint8 mask, 255 where the neighbourhood is not constant
+
+
+def image_contrast(gray: np.ndarray, min_std: float, window: int = CONTRAST_WINDOW) -> ImageContrast:
+    """textured = std_{window x window}(I) >= min_std, rms = std(I[textured]) for the uint8 image I / 255."""
+    intensity = gray.astype(np.float32) / 255.0
+    mean = cv2.blur(intensity, (window, window))
+    local_std = np.sqrt(np.maximum(cv2.blur(intensity * intensity, (window, window)) - mean * mean, 0.0))
+    textured = local_std >= min_std
+    rms = float(intensity[textured].std()) if textured.any() else 0.0
+    return ImageContrast(rms, textured.astype(np.uint8) * 255)
+
+
+def adaptive_contrast_threshold(contrast: float, config: SiftConfig) -> float:
+    """contrast_threshold * clip(contrast / reference_contrast, min_contrast_factor, 1) below low_contrast,
+    else contrast_threshold: DoG extrema scale with the image's contrast, so a low-contrast image is held to
+    the threshold its structure would meet at the reference contrast."""
+    if contrast >= config.low_contrast:
+        return config.contrast_threshold
+    factor = np.clip(contrast / config.reference_contrast, config.min_contrast_factor, 1.0)
+    return float(config.contrast_threshold * factor)
+
+
 def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
     """SIFT on the (H, W, 3) uint8 image downscaled to config.max_image_side (area averaging), at most
-    config.max_features keypoints; uv in full-resolution pixels: u = (u_s + 0.5) W / W_s - 0.5."""
+    config.max_features keypoints; uv in full-resolution pixels: u = (u_s + 0.5) W / W_s - 0.5. A
+    low-contrast image gets a lower contrast threshold (`adaptive_contrast_threshold`) and no keypoints in
+    its constant regions."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     height, width = gray.shape
     scale = min(1.0, config.max_image_side / max(height, width))
     if scale < 1.0:
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
         gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
-    sift = cv2.SIFT_create(nfeatures=config.max_features, contrastThreshold=config.contrast_threshold)
-    keypoints, descriptors = sift.detectAndCompute(gray, None)
+    threshold, mask = config.contrast_threshold, None
+    if config.low_contrast > 0:
+        shrink = min(1.0, CONTRAST_PREVIEW_SIDE / max(gray.shape))
+        preview_size = (max(1, round(gray.shape[1] * shrink)), max(1, round(gray.shape[0] * shrink)))
+        preview = gray if shrink == 1.0 else cv2.resize(gray, preview_size, interpolation=cv2.INTER_AREA)
+        contrast = image_contrast(preview, config.constant_region_std)
+        threshold = adaptive_contrast_threshold(contrast.rms, config)
+        if threshold < config.contrast_threshold:
+            mask = cv2.resize(contrast.textured, gray.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    sift = cv2.SIFT_create(nfeatures=config.max_features, contrastThreshold=threshold)
+    keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if descriptors is None:
         return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
     # OpenCV's nfeatures keeps ties (and extra orientations) at the cut: enforce the budget exactly.

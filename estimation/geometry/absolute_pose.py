@@ -19,7 +19,7 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
-from estimation.geometry.pnp import projection_errors, refine_pose
+from estimation.geometry.pnp import refine_pose, reprojection_errors_per_hypothesis
 from estimation.geometry.ransac import ransac
 from estimation.types import CameraPose
 
@@ -231,7 +231,7 @@ def absolute_pose_ransac(
         return p3p_batch(K, sample_points, sample_uv).poses
 
     def residuals(P: np.ndarray, X: np.ndarray, x: np.ndarray) -> np.ndarray:
-        return projection_errors(K, P, X, x)
+        return reprojection_errors_per_hypothesis(K, P, X, x)
 
     def refit(X: np.ndarray, x: np.ndarray) -> np.ndarray:
         pose = epnp(K, X, x) if len(X) >= EPNP_MIN_CORRESPONDENCES else None
@@ -257,9 +257,8 @@ def absolute_pose_ransac(
             "2D-3D correspondences"
         )
     refined = refine_pose(K, points[best_mask], uv[best_mask], best_pose)
-    refined_mask = (
-        projection_errors(K, np.concatenate([refined.R, refined.t[:, None]], axis=1), points, uv) < threshold
-    )
+    refined_mask = reprojection_errors_per_hypothesis(K, np.column_stack([refined.R, refined.t]), points,
+                                                      uv) < threshold
     if refined_mask.sum() < best_mask.sum():  # the refinement may not lose the consensus it started from
         refined, refined_mask = best_pose, best_mask
     return AbsolutePoseResult(pose=refined, inlier_mask=refined_mask, iterations=result.iterations)

@@ -11,11 +11,10 @@ from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.linalg import null_vector
 from estimation.geometry.projection import as_camera, project
-from estimation.geometry.ransac import random_samples, required_iterations
+from estimation.geometry.ransac import ransac
 from estimation.types import CameraPose
 
 MIN_CORRESPONDENCES = 6
-HYPOTHESES_PER_BATCH = 64
 
 
 class PnPResult(NamedTuple):
@@ -85,8 +84,11 @@ def pnp_linear(K: np.ndarray, points: np.ndarray, uv: np.ndarray) -> CameraPose:
     return CameraPose(R=R, t=t)
 
 
-def projection_errors(K: np.ndarray, P: np.ndarray, points: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """||pi(K P [X; 1]) - uv|| per point (pixels), inf behind the camera; P (..., 3, 4) -> (..., N).
+def reprojection_errors_per_hypothesis(K: np.ndarray, P: np.ndarray, points: np.ndarray, uv: np.ndarray
+                                       ) -> np.ndarray:
+    """||pi(K P [X; 1]) - uv|| per hypothesis and point (pixels), inf behind the camera; P (..., 3, 4) ->
+    (..., N): `projection.reprojection_errors` of many poses [R | t] (or DLT projections) at once, as the
+    RANSAC scoring needs them.
 
     K P is formed first, and the rows of every hypothesis' K P multiply the points in one matrix product
     (a batched product of 3x3 blocks cost twice as much); K's last row is [0 0 1]: the third coordinate
@@ -100,49 +102,30 @@ def projection_errors(K: np.ndarray, P: np.ndarray, points: np.ndarray, uv: np.n
     return np.where(in_front[:, 0], error, np.inf).reshape(*KP.shape[:-2], len(points))
 
 
-def reprojection_errors(K: np.ndarray, R: np.ndarray, t: np.ndarray, points: np.ndarray, uv: np.ndarray
-                        ) -> np.ndarray:
-    """||pi(K (R X + t)) - uv|| per point (pixels), inf behind the camera."""
-    projection = project(K, R, t, points)
-    return np.where(projection.depth > 0, np.linalg.norm(projection.uv - uv, axis=-1), np.inf)
-
-
 def pnp_ransac(K: np.ndarray, points: np.ndarray, uv: np.ndarray, config: RansacConfig) -> PnPResult:
-    """DLT maximizing #{reprojection < pnp_threshold_px}; N = log(1-p)/log(1-w^6); refit, then R by SVD.
+    """DLT maximizing #{reprojection < pnp_threshold_px}: 6-point DLT samples in the shared RANSAC driver
+    (N = log(1-p)/log(1-w^6)), DLT refits on each new best's inliers (LO), then R by SVD.
 
     Hypotheses are scored with the DLT's own projection P (before orthonormalization, which is only
     accurate to about a degree with noisy, shallow structure); the pose is then P's nearest [R | t],
     meant as the start of `pnp_nonlinear`.
     """
     points, uv = np.asarray(points, float), np.asarray(uv, float)
-    num = len(points)
-    _require(num)
-    rng = np.random.default_rng(config.seed)
-    best_mask, best_count = np.zeros(num, bool), -1
-    needed, iterations = config.max_iterations, 0
-    while iterations < needed:
-        samples = random_samples(rng, num, MIN_CORRESPONDENCES, HYPOTHESES_PER_BATCH)
-        masks = projection_errors(K, _linear_pnp_batch(K, points[samples], uv[samples]), points, uv) < (
-            config.pnp_threshold_px)
-        counts = masks.sum(axis=1)
-        best = int(np.argmax(counts))
-        iterations += HYPOTHESES_PER_BATCH
-        if counts[best] > best_count:
-            best_mask, best_count = masks[best], int(counts[best])
-            needed = required_iterations(best_count / num, MIN_CORRESPONDENCES, config.confidence,
-                                         config.max_iterations)
-    if best_count < MIN_CORRESPONDENCES:
-        raise DegenerateConfigurationError(
-            f"PnP RANSAC found no pose with {MIN_CORRESPONDENCES}+ inliers among {num} correspondences"
-        )
-    P = _linear_pnp_batch(K, points[best_mask], uv[best_mask])
-    inlier_mask = projection_errors(K, P, points, uv) < config.pnp_threshold_px
-    if inlier_mask.sum() >= max(best_count, MIN_CORRESPONDENCES):
-        P = _linear_pnp_batch(K, points[inlier_mask], uv[inlier_mask])
-    else:
-        inlier_mask = best_mask
-    R, t = _pose_from_projection(P)
-    return PnPResult(pose=CameraPose(R=R, t=t), inlier_mask=inlier_mask, iterations=iterations)
+    _require(len(points))
+
+    def minimal(sample_points: np.ndarray, sample_uv: np.ndarray) -> np.ndarray:
+        return _linear_pnp_batch(K, sample_points, sample_uv)
+
+    def residuals(P: np.ndarray, X: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return reprojection_errors_per_hypothesis(K, P, X, x)
+
+    def refit(X: np.ndarray, x: np.ndarray) -> np.ndarray:
+        return _linear_pnp_batch(K, X, x)[None]
+
+    result = ransac((points, uv), minimal, MIN_CORRESPONDENCES, residuals, config.pnp_threshold_px, config,
+                    refit=refit, model_name="camera pose")
+    R, t = _pose_from_projection(result.model)
+    return PnPResult(pose=CameraPose(R=R, t=t), inlier_mask=result.inlier_mask, iterations=result.iterations)
 
 
 def refine_pose(K: np.ndarray, points: np.ndarray, uv: np.ndarray, initial: CameraPose) -> CameraPose:

@@ -22,12 +22,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-from typing import TYPE_CHECKING, Literal, NamedTuple, get_args
+from typing import Literal, NamedTuple, get_args
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from estimation.geometry.triangulation import Observations
 
 CameraModel = Literal["pinhole", "simple-radial", "radial", "opencv"]
 CAMERA_MODELS: tuple[str, ...] = get_args(CameraModel)
@@ -288,7 +285,26 @@ def project(camera: Camera | np.ndarray, R: np.ndarray, t: np.ndarray, points: n
     return Projection(uv=normalized_to_pixel(camera, normalized), depth=depth)
 
 
+class Observations(NamedTuple):
+    """Flat observations of points by posed cameras (world-to-camera R, t per observation)."""
+
+    R: np.ndarray             # (O, 3, 3)
+    t: np.ndarray             # (O, 3)
+    uv: np.ndarray            # (O, 2) pixels
+    point_index: np.ndarray   # (O,) int in [0, num_points)
+    num_points: int
+
+
 def reprojection_residuals(camera: Camera | np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
     """r_o = pi(camera, R_o X_p(o) + t_o) - uv_o, (O, 2) pixels, for flat `Observations` (R, t, uv,
     point_index); a 3x3 K is the pinhole camera. Depth is clamped, so behind-camera residuals are large."""
     return project(camera, obs.R, obs.t, np.asarray(points, float).take(obs.point_index, axis=0)).uv - obs.uv
+
+
+def reprojection_errors(camera: Camera | np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
+    """||r_o|| = ||pi(camera, R_o X_p(o) + t_o) - uv_o|| in pixels, inf where the point is behind the
+    observing camera or not finite, (O,); a 3x3 K is the pinhole camera."""
+    projection = project(camera, obs.R, obs.t, np.asarray(points, float).take(obs.point_index, axis=0))
+    residuals = projection.uv - obs.uv
+    error = np.sqrt(np.einsum("oi,oi->o", residuals, residuals))   # the norm's own sum, in fewer calls
+    return np.where((projection.depth > 0) & np.isfinite(error), error, np.inf)

@@ -13,7 +13,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from estimation.geometry.projection import as_camera, project, reprojection_residuals
+from estimation.geometry.projection import (
+    Observations,
+    as_camera,
+    reprojection_errors,
+    reprojection_residuals,
+)
 
 NONLINEAR_ITERATIONS = 10
 INITIAL_DAMPING = 1e-3
@@ -25,18 +30,9 @@ SOLVE_REGULARIZATION = 1e-12 * IDENTITY_3
 """Added to each damped 3x3 system, so that a point seen along one ray still has a solution."""
 
 
-class Observations(NamedTuple):
-    """Flat observations of points by posed cameras (world-to-camera R, t per observation)."""
-
-    R: np.ndarray             # (O, 3, 3)
-    t: np.ndarray             # (O, 3)
-    uv: np.ndarray            # (O, 2) pixels
-    point_index: np.ndarray   # (O,) int in [0, num_points)
-    num_points: int
-
-
 class Triangulation(NamedTuple):
-    """Triangulated points (their reprojection errors: `observation_errors`, where a caller needs them)."""
+    """Triangulated points (their reprojection errors: `projection.reprojection_errors`, where a caller
+    needs them)."""
 
     points: np.ndarray            # (P, 3)
 
@@ -190,14 +186,6 @@ def triangulation_angle_reaches(centers: np.ndarray, obs_point_index: np.ndarray
     return reaches
 
 
-def observation_errors(K: np.ndarray, obs: Observations, points: np.ndarray) -> np.ndarray:
-    """||r_o|| in pixels, inf where the point is behind the observing camera or not finite, (O,)."""
-    projection = project(K, obs.R, obs.t, np.asarray(points, float).take(obs.point_index, axis=0))
-    residuals = projection.uv - obs.uv
-    error = np.sqrt(np.einsum("oi,oi->o", residuals, residuals))   # the norm's own sum, in fewer calls
-    return np.where((projection.depth > 0) & np.isfinite(error), error, np.inf)
-
-
 class RobustTriangulation(NamedTuple):
     """Points from each track's best two-view hypothesis, refined on the observations agreeing with it."""
 
@@ -243,7 +231,7 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     expanded = Observations(R=obs.R.take(scored_obs, axis=0), t=obs.t.take(scored_obs, axis=0),
                             uv=obs.uv.take(scored_obs, axis=0),
                             point_index=scored_hypothesis, num_points=num_hypotheses)
-    agrees = observation_errors(K, expanded, candidates) < max_error_px
+    agrees = reprojection_errors(K, expanded, candidates) < max_error_px
     support = np.bincount(scored_hypothesis, weights=agrees, minlength=num_hypotheses)
     support[~((pair_angle >= min_angle_deg) & np.all(np.isfinite(candidates), axis=1))] = -1
     # Best hypothesis per point: the first of the largest support (the order of the listed pairs).
@@ -263,7 +251,7 @@ def triangulate_ransac(K: np.ndarray, obs: Observations, max_error_px: float, mi
     points = np.where((best_hypothesis >= 0)[:, None], candidates.take(best_hypothesis, axis=0), np.nan)
     if inliers.any():
         points = triangulate_nonlinear(K, subset, points).points
-    inliers = observation_errors(K, obs, points) < max_error_px
+    inliers = reprojection_errors(K, obs, points) < max_error_px
     inlier_counts = np.bincount(obs.point_index[inliers], minlength=obs.num_points)
     all_centers = -np.einsum("oji,oj->oi", obs.R.compress(inliers, axis=0), obs.t.compress(inliers, axis=0))
     wide = triangulation_angle_reaches(all_centers, obs.point_index[inliers], points, min_angle_deg)

@@ -8,8 +8,8 @@ filtered. Whenever the model grew by `global_ba_growth`, and at the end, global 
 (BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change
 (while the model grows, `growth_refinement_rounds`); the last step is a converged global BA. When
 registration stalls the thresholds are relaxed once; when a model cannot grow, another is started from
-the images no model holds. Orchestration only: the state and its operations live in `scene.Scene`, the
-geometry in `geometry/` and `two_view/`.
+the images no model holds. Orchestration only: the state and its operations live in
+`reconstruction.Reconstruction` (the reconstruction being built), the geometry in `geometry/` and `two_view/`.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsCovariance, Intr
 from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
-from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors
+from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors_per_hypothesis
 from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared
 from estimation.mapper.initial_pair import (
     InitialPairCandidate,
@@ -35,7 +35,19 @@ from estimation.mapper.initial_pair import (
     pair_name,
 )
 from estimation.mapper.next_image import PyramidCells, pyramid_cells, visibility_pyramid_scores
-from estimation.mapper.scene import Scene
+from estimation.mapper.reconstruction import Reconstruction
+from estimation.mapper.verification import (
+    NEAR_MIRROR,
+    InlierSupport,
+    RotationAgreement,
+    VerifiedPair,
+    agreement_problem,
+    inlier_spread,
+    rotation_agreement,
+    support_problem,
+    voting_pairs,
+)
+from estimation.two_view.geometry import TwoViewGeometry
 from estimation.types import CameraPose, ProgressCallback, Tracks
 
 FINAL_BA_ROUNDS = 3
@@ -85,6 +97,14 @@ class PrincipalPointTest(NamedTuple):
     kept: bool                     # d2 reached CameraConfig.principal_point_min_d2: the refined one stays
 
 
+class RegistrationCheck(NamedTuple):
+    """A registration the verification refused, or a registered image it removed later, and why."""
+
+    image: int
+    event: str      # "refused" (at registration) or "removed" (after a global refinement)
+    reason: str
+
+
 @dataclass
 class InitialPairDiagnostics:
     """What the figures show about the initial pair (i, j)."""
@@ -118,6 +138,8 @@ class SparseModel:
     initial_pair_diagnostics: InitialPairDiagnostics
     registration_order: list[int] = field(default_factory=list)
     cameras: list[Camera] = field(default_factory=list)  # image index -> intrinsics (refined by the BA)
+    checks: list[RegistrationCheck] = field(default_factory=list)  # registrations refused or undone
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def visibility(self) -> np.ndarray:
@@ -190,37 +212,45 @@ class _Thresholds:
         self.min_inlier_ratio *= factor
         self.relaxed = True
 
+    def floored(self, min_inliers: float, min_inlier_ratio: float) -> tuple[float, float]:
+        """(inliers, ratio) to ask for: relaxed or not, never less than the verification's floor."""
+        return max(self.min_inliers, min_inliers), max(self.min_inlier_ratio, min_inlier_ratio)
+
 
 class _ModelBuilder:
-    """Grows one model from its initial pair (orchestration of the Scene's named operations)."""
+    """Grows one model from its initial pair (orchestration of the Reconstruction's named operations)."""
 
     def __init__(self, tracks: Tracks, camera: CameraInput, refine: IntrinsicsRefinement,
                  config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
-                 progress: ProgressCallback | None) -> None:
+                 progress: ProgressCallback | None, votes: list[list[VerifiedPair]] | None = None) -> None:
         self.config, self.mapper = config, config.mapper
         # The principal point is refined only from the final global refinement on (`release_principal_point`):
         # while the model grows, its few images cannot determine it, and a drifting one bends what follows.
         self.refine = refine
         staged = config.camera.principal_point_in_final_rounds_only
-        self.scene = Scene(tracks, camera,
+        self.reconstruction = Reconstruction(tracks, camera,
                            replace(refine, principal_point=refine.principal_point and not staged))
         self.available = available  # images no earlier model holds
         self.timer, self.progress = timer, progress
         self.trials = np.zeros(len(tracks.image_names), np.int64)
         self.failures: dict[int, str] = {}
+        self.votes = votes or [[] for _ in tracks.image_names]   # image -> its verified pairs
+        self.registered_inliers = np.zeros(len(tracks.image_names), np.int64)
+        self.deregistrations = np.zeros(len(tracks.image_names), np.int64)
+        self.checks: list[RegistrationCheck] = []
         self.thresholds = _Thresholds(self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio)
         self.refinement_rounds = 0
         self.error_limit = config.filter.max_reprojection_px
         self.observation_pairs = track_observation_pairs(tracks)
         # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
-        self.image_size = (2.0 * self.scene.K[0, 2], 2.0 * self.scene.K[1, 2])
+        self.image_size = (2.0 * self.reconstruction.K[0, 2], 2.0 * self.reconstruction.K[1, 2])
         self._cells: PyramidCells | None = None
         self._cells_uv: np.ndarray | None = None   # the working pixels _cells were computed from
 
     @property
     def tracks(self) -> Tracks:
-        """The scene's tracks, in the working pixels of its pinhole K."""
-        return self.scene.tracks
+        """The reconstruction's tracks, in the working pixels of its pinhole K."""
+        return self.reconstruction.tracks
 
     @property
     def max_error(self) -> float:
@@ -243,18 +273,18 @@ class _ModelBuilder:
 
     def initialize(self, candidate: InitialPairCandidate) -> None:
         g = candidate.geometry
-        scene = self.scene
-        scene.register_image(g.i, CameraPose(R=np.eye(3), t=np.zeros(3)))
-        scene.register_image(g.j, candidate.pose_j)
+        reconstruction = self.reconstruction
+        reconstruction.register_image(g.i, CameraPose(R=np.eye(3), t=np.zeros(3)))
+        reconstruction.register_image(g.j, candidate.pose_j)
         keep = candidate.well_conditioned
         track_ids = candidate.track_ids[keep]
         obs_i, obs_j = self._observations_of(g.i, track_ids), self._observations_of(g.j, track_ids)
         index = np.arange(len(track_ids))
-        scene.add_points(
+        reconstruction.add_points(
             candidate.points[keep], np.concatenate([obs_i, obs_j]), np.concatenate([index, index])
         )
-        scene.bundle_adjust(self.refinement_ba_config())
-        scene.filter_points(self.max_error, self.min_angle)
+        reconstruction.bundle_adjust(self.refinement_ba_config())
+        reconstruction.filter_points(self.max_error, self.min_angle)
 
     def mapper_ba_config(self, relative_error_tol: float, max_iterations: int,
                          local: bool = False) -> BundleAdjustmentConfig:
@@ -270,9 +300,10 @@ class _ModelBuilder:
         return ba.model_copy(update=update)
 
     def refines_intrinsics(self) -> bool:
-        """Whether the scene's BAs refine intrinsics (then its local and refinement BAs take more steps)."""
-        refine = self.scene.refine
-        return refine is not None and refine.refines(self.scene.cameras[0].model)
+        """Whether the reconstruction's BAs refine intrinsics (then its local and refinement BAs take more
+        steps)."""
+        refine = self.reconstruction.refine
+        return refine is not None and refine.refines(self.reconstruction.cameras[0].model)
 
     def local_ba_config(self) -> BundleAdjustmentConfig:
         """A local BA: it stops at local_relative_error_tol or after local_max_iterations
@@ -295,7 +326,7 @@ class _ModelBuilder:
         own accuracy (a fixed limit of a few pixels keeps the mismatches of small images). Returns the
         measured noise sigma (px)."""
         limits = self.config.filter
-        sigma = self.scene.noise_sigma(limits.max_reprojection_px)
+        sigma = self.reconstruction.noise_sigma(limits.max_reprojection_px)
         self.error_limit = limits.max_reprojection_px
         if limits.max_reprojection_sigmas > 0 and np.isfinite(sigma):
             self.error_limit = float(np.clip(limits.max_reprojection_sigmas * sigma,
@@ -311,10 +342,11 @@ class _ModelBuilder:
 
     def next_images(self) -> list[int]:
         """Unregistered images with enough 2D-3D correspondences, best visibility pyramid score first."""
-        scene, tracks = self.scene, self.tracks
-        waiting = self.available & ~scene.registered & (self.trials < self.mapper.max_registration_trials)
+        reconstruction, tracks = self.reconstruction, self.tracks
+        waiting = (self.available & ~reconstruction.registered
+                   & (self.trials < self.mapper.max_registration_trials))
         has_point = np.zeros(tracks.num_tracks, bool)
-        has_point[scene.point_track[scene.point_alive]] = True
+        has_point[reconstruction.point_track[reconstruction.point_alive]] = True
         visible = has_point[tracks.track_index] & waiting[tracks.image_index]
         counts = np.bincount(tracks.image_index[visible], minlength=len(waiting))
         scores = visibility_pyramid_scores(self.pyramid_cells(), len(waiting), visible)
@@ -337,31 +369,79 @@ class _ModelBuilder:
     def register(self, image: int) -> str | None:
         """Absolute pose of `image` from its 2D-3D correspondences; adds its inlier observations to their
         points. Returns why it failed, or None."""
-        scene = self.scene
-        obs_ids, point_ids = scene.correspondences_2d3d(image)
-        points, uv = scene.point_xyz.take(point_ids, axis=0), self.tracks.uv.take(obs_ids, axis=0)
+        reconstruction = self.reconstruction
+        obs_ids, point_ids = reconstruction.correspondences_2d3d(image)
+        points, uv = reconstruction.point_xyz.take(point_ids, axis=0), self.tracks.uv.take(obs_ids, axis=0)
         ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.pnp_threshold})
         try:
             if self.mapper.absolute_pose == "p3p":
-                result = absolute_pose_ransac(scene.K, points, uv, ransac)
+                result = absolute_pose_ransac(reconstruction.K, points, uv, ransac)
                 pose, inliers = result.pose, result.inlier_mask
             else:
-                linear = pnp_ransac(scene.K, points, uv, ransac)
+                linear = pnp_ransac(reconstruction.K, points, uv, ransac)
                 pose = pnp_nonlinear(
-                    scene.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
+                    reconstruction.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
                 ).pose
-                inliers = reprojection_errors(scene.K, pose.R, pose.t, points, uv) < ransac.pnp_threshold_px
+                errors = reprojection_errors_per_hypothesis(
+                    reconstruction.K, np.column_stack([pose.R, pose.t]), points, uv)
+                inliers = errors < ransac.pnp_threshold_px
         except DegenerateConfigurationError as error:
             return str(error)
-        need = max(self.thresholds.min_inliers, self.thresholds.min_inlier_ratio * len(obs_ids))
-        if inliers.sum() < need:
-            return (
-                f"absolute pose RANSAC found {int(inliers.sum())} inliers among {len(obs_ids)} 2D-3D "
-                f"correspondences (need {int(np.ceil(need))})"
-            )
-        scene.register_image(image, pose)
-        scene.add_observations(obs_ids[inliers], point_ids[inliers])
+        min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,
+                                                         self.mapper.verify_min_inlier_ratio)
+        support = InlierSupport(int(inliers.sum()), len(obs_ids),
+                                inlier_spread(uv[inliers], *self.image_size))
+        problem = support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
+        if problem is None:
+            problem = agreement_problem(self.rotation_agreement(image, pose.R),
+                                        self.mapper.verify_min_rotation_agreement, self.tracks.image_names)
+            if problem is not None:
+                self.checks.append(RegistrationCheck(image, "refused", problem))
+        if problem is not None:
+            return problem
+        reconstruction.register_image(image, pose)
+        reconstruction.add_observations(obs_ids[inliers], point_ids[inliers])
+        self.registered_inliers[image] = support.inliers
         return None
+
+    def rotation_agreement(self, image: int, R: np.ndarray) -> RotationAgreement:
+        """How the rotation R of `image` agrees with its verified pairs with the other registered images."""
+        reconstruction = self.reconstruction
+        pairs = [pair for pair in self.votes[image]
+                 if reconstruction.registered[pair.other] and pair.other != image]
+        return rotation_agreement(R, pairs, {pair.other: reconstruction.R[pair.other] for pair in pairs},
+                                  self.mapper.verify_max_rotation_deviation_deg)
+
+    def verify_registered(self) -> list[int]:
+        """After a global refinement: remove the images (not the initial pair) whose observations were mostly
+        filtered away (below deregister_min_kept_ratio of their registration's inliers) or whose rotation
+        no longer agrees with their verified pairs; each may be tried again up to max_deregistrations
+        times. Returns the images removed."""
+        reconstruction, mapper = self.reconstruction, self.mapper
+        used = reconstruction.used_observations()
+        kept = np.bincount(self.tracks.image_index[used], minlength=len(reconstruction.registered))
+        removed = []
+        for image in reconstruction.order[2:]:
+            reason = None
+            if kept[image] < mapper.deregister_min_kept_ratio * self.registered_inliers[image]:
+                reason = (f"{kept[image]} of its observations survived the filters, registered with "
+                          f"{self.registered_inliers[image]} inliers "
+                          f"(need {mapper.deregister_min_kept_ratio:.0%})")
+            else:
+                reason = agreement_problem(self.rotation_agreement(image, reconstruction.R[image]),
+                                           mapper.verify_min_rotation_agreement, self.tracks.image_names)
+            if reason is not None:
+                removed.append(image)
+                self.checks.append(RegistrationCheck(image, "removed", reason))
+                self.failures[image] = f"removed after a global refinement: {reason}"
+        for image in removed:
+            reconstruction.deregister_image(image)
+            self.deregistrations[image] += 1
+            if self.deregistrations[image] <= mapper.max_deregistrations:
+                self.trials[image] = 0
+            else:
+                self.trials[image] = mapper.max_registration_trials
+        return removed
 
     def triangulate_image(self, image: int) -> None:
         """New points for the image's tracks without one. Existing points need no completion here: the
@@ -370,36 +450,36 @@ class _ModelBuilder:
         observations per lego mapping, for 60 ms)."""
         tracks = self.tracks
         image_tracks = tracks.track_index[tracks.image_index == image]
-        self.scene.triangulate_tracks(
+        self.reconstruction.triangulate_tracks(
             image_tracks, self.max_error, self.min_angle, self.mapper.triangulation_hypotheses
         )
 
     def local_bundle_adjustment(self, image: int) -> None:
         """BA of `image` and the local_window - 1 images sharing most points with it; then complete, merge
         and filter the points they see."""
-        scene = self.scene
-        used = scene.used_observations()
-        own = scene.points_seen_in([image])
-        shared = np.bincount(self.tracks.image_index[used[own[scene.obs_point[used]]]],
-                             minlength=len(scene.registered))
+        reconstruction = self.reconstruction
+        used = reconstruction.used_observations()
+        own = reconstruction.points_seen_in([image])
+        shared = np.bincount(self.tracks.image_index[used[own[reconstruction.obs_point[used]]]],
+                             minlength=len(reconstruction.registered))
         shared[image] = 0
         ba = self.config.bundle_adjustment
         neighbours = np.argsort(-shared, kind="stable")[: ba.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
-        scene.bundle_adjust(self.local_ba_config(), variable_images=window)
-        touched = np.flatnonzero(scene.points_seen_in(window))
-        scene.complete_tracks(self.max_error, touched)
-        scene.merge_tracks(self.max_error)
-        scene.filter_points(self.max_error, self.min_angle, touched)
+        reconstruction.bundle_adjust(self.local_ba_config(), variable_images=window)
+        touched = np.flatnonzero(reconstruction.points_seen_in(window))
+        reconstruction.complete_tracks(self.max_error, touched)
+        reconstruction.merge_tracks(self.max_error)
+        reconstruction.filter_points(self.max_error, self.min_angle, touched)
 
     def retriangulate(self) -> int:
         """Triangulate again the untriangulated tracks of registered image pairs whose shared tracks are
         less than retriangulation_min_ratio triangulated (poses have improved, images were added).
         Returns the points added."""
-        scene, tracks, pairs = self.scene, self.tracks, self.observation_pairs
-        num_images = len(scene.registered)
-        registered = scene.registered[tracks.image_index]
-        used = scene.obs_point >= 0
+        reconstruction, tracks, pairs = self.reconstruction, self.tracks, self.observation_pairs
+        num_images = len(reconstruction.registered)
+        registered = reconstruction.registered[tracks.image_index]
+        used = reconstruction.obs_point >= 0
         both_registered = registered[pairs.first] & registered[pairs.second]
         # A track seen in both images of a pair adds one observation pair to it (one observation per image).
         shared = np.bincount(pairs.image_pair[both_registered], minlength=num_images**2)
@@ -411,7 +491,7 @@ class _ModelBuilder:
         # A track qualifies when two of its registered images form an under-reconstructed pair.
         candidates = np.zeros(tracks.num_tracks, bool)
         candidates[tracks.track_index[pairs.first[both_registered & under[pairs.image_pair]]]] = True
-        return scene.triangulate_tracks(
+        return reconstruction.triangulate_tracks(
             np.flatnonzero(candidates), self.max_error, self.min_angle, self.mapper.triangulation_hypotheses
         )
 
@@ -421,18 +501,19 @@ class _ModelBuilder:
         changed, or until a later round's BA finds the model already near its optimum (relative decrease
         below that tolerance: what the previous round changed did not move it, and the filters would act
         on the same model again). Returns the last BA's relative cost decrease."""
-        scene = self.scene
+        reconstruction = self.reconstruction
         ba_config = self.refinement_ba_config()
         decrease = 0.0
         for round_ in range(max_rounds):
-            before = len(scene.used_observations())
-            result = scene.bundle_adjust(ba_config)
+            before = len(reconstruction.used_observations())
+            result = reconstruction.bundle_adjust(ba_config)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
             if round_ > 0 and decrease < ba_config.relative_error_tol:
                 break
             self.measure_noise()
-            changed = scene.complete_tracks(self.max_error) + scene.merge_tracks(self.max_error)
-            changed += scene.filter_points(self.max_error, self.min_angle)
+            changed = (reconstruction.complete_tracks(self.max_error)
+                       + reconstruction.merge_tracks(self.max_error))
+            changed += reconstruction.filter_points(self.max_error, self.min_angle)
             changed += self.retriangulate()
             self.refinement_rounds += 1
             if changed <= self.mapper.refinement_min_change * max(before, 1):
@@ -448,26 +529,44 @@ class _ModelBuilder:
                                       ba.max_iterations)
         decrease, iterations, covariance = 0.0, 0, None
         for _ in range(FINAL_BA_ROUNDS):
-            result = self.scene.bundle_adjust(final, intrinsics_covariance=True)
+            result = self.reconstruction.bundle_adjust(final, intrinsics_covariance=True)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
             iterations = result.iterations
             # The filter's limit follows the measured noise; so does the BA's covariance, which is for
             # measurement_sigma_px of noise.
             noise = self.measure_noise() / ba.measurement_sigma_px
             covariance = result.intrinsics_covariance and result.intrinsics_covariance.scaled(noise)
-            observations = len(self.scene.used_observations())
-            removed = self.scene.filter_points(self.max_error, self.min_angle)
+            observations = len(self.reconstruction.used_observations())
+            removed = self.reconstruction.filter_points(self.max_error, self.min_angle)
             if removed <= self.mapper.final_min_change * observations:
                 break
         return decrease, iterations, covariance
+
+    def mirror_warnings(self) -> list[str]:
+        """Warnings of near-mirror ambiguity: images whose verified pairs disagree with their final rotation,
+        and images refused or removed for such a disagreement during the reconstruction."""
+        names = self.tracks.image_names
+        warnings = []
+        for image in self.reconstruction.order:
+            problem = agreement_problem(self.rotation_agreement(image, self.reconstruction.R[image]),
+                                        self.mapper.verify_min_rotation_agreement, names)
+            if problem is not None:
+                warnings.append(f"near-mirror ambiguity: {names[image]} is registered, but {problem}")
+        flipped = sorted({names[check.image] for check in self.checks if NEAR_MIRROR in check.reason})
+        if flipped:
+            warnings.append(f"near-mirror ambiguity: {len(flipped)} image(s) matched a pose on the other "
+                            f"side of the object and were refused or removed at least once "
+                            f"({', '.join(flipped)}); symmetric objects need views that overlap their "
+                            "neighbours well")
+        return warnings
 
     def test_principal_point(self, covariance: IntrinsicsCovariance | None) -> PrincipalPointTest | None:
         """The refined principal point's shift from its start (the image centre) against its covariance;
         None when it was not refined."""
         if covariance is None or "cx" not in covariance.names:
             return None
-        camera = self.scene.cameras[self.scene.order[0]]
-        shift = np.array([camera.cx - self.scene.K[0, 2], camera.cy - self.scene.K[1, 2]])
+        camera = self.reconstruction.cameras[self.reconstruction.order[0]]
+        shift = np.array([camera.cx - self.reconstruction.K[0, 2], camera.cy - self.reconstruction.K[1, 2]])
         block = covariance.block(("cx", "cy"))
         d2 = float(shift @ np.linalg.solve(block, shift))
         sigma = np.sqrt(np.diag(block))
@@ -476,28 +575,30 @@ class _ModelBuilder:
 
     def release_principal_point(self) -> None:
         """From now on, refine the principal point if asked for (the final rounds)."""
-        self.scene.refine = replace(self.scene.refine, principal_point=self.refine.principal_point)
+        self.reconstruction.refine = replace(self.reconstruction.refine,
+                                             principal_point=self.refine.principal_point)
 
     def hold_principal_point(self) -> None:
         """Put the principal point back where it started and hold it in every later BA."""
-        scene = self.scene
-        scene.refine = replace(scene.refine, principal_point=False)
-        centred = replace(scene.cameras[scene.order[0]], cx=scene.K[0, 2], cy=scene.K[1, 2])
-        scene.use_cameras([centred] * len(scene.cameras))
+        reconstruction = self.reconstruction
+        reconstruction.refine = replace(reconstruction.refine, principal_point=False)
+        centred = replace(reconstruction.cameras[reconstruction.order[0]], cx=reconstruction.K[0, 2],
+                          cy=reconstruction.K[1, 2])
+        reconstruction.use_cameras([centred] * len(reconstruction.cameras))
 
     # -------------------------------------------------------------------------------------- loop
 
     def grow(self, num_images: int, images_done: int) -> None:
         """Register images until none more can be: each success triangulates and adjusts; a stall
         relaxes the thresholds once (after a global refinement that may add 2D-3D correspondences)."""
-        last_global = len(self.scene.order)
+        last_global = len(self.reconstruction.order)
         while True:
             registered = None
             for image in self.next_images():
                 if self.progress:
                     self.progress(
                         f"register {self.tracks.image_names[image]}",
-                        min(0.9, 0.05 + 0.85 * (images_done + len(self.scene.order)) / num_images),
+                        min(0.9, 0.05 + 0.85 * (images_done + len(self.reconstruction.order)) / num_images),
                     )
                 with self.timer.stage("registration"):
                     reason = self.register(image)
@@ -508,10 +609,11 @@ class _ModelBuilder:
                     break
                 self.failures[image] = reason
             if registered is None:
-                if self.thresholds.relaxed or not (self.available & ~self.scene.registered).any():
+                if self.thresholds.relaxed or not (self.available & ~self.reconstruction.registered).any():
                     return
                 with self.timer.stage("global refinement"):
                     self.global_refinement(self.mapper.growth_refinement_rounds)
+                    self.verify_registered()
                 self.thresholds.relax(self.mapper.relaxed_registration_factor)
                 self.trials[:] = 0
                 continue
@@ -519,10 +621,11 @@ class _ModelBuilder:
                 self.triangulate_image(registered)
             with self.timer.stage("local bundle adjustment"):
                 self.local_bundle_adjustment(registered)
-            if len(self.scene.order) >= self.mapper.global_ba_growth * last_global:
+            if len(self.reconstruction.order) >= self.mapper.global_ba_growth * last_global:
                 with self.timer.stage("global refinement"):
                     self.global_refinement(self.mapper.growth_refinement_rounds)
-                last_global = len(self.scene.order)
+                    self.verify_registered()
+                last_global = len(self.reconstruction.order)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -531,10 +634,10 @@ class _ModelBuilder:
 def _sparse_model(
     builder: _ModelBuilder, candidate: InitialPairCandidate, stats: ReconstructionStats
 ) -> SparseModel:
-    scene, tracks = builder.scene, builder.tracks
-    used = scene.used_observations()
-    point_ids, obs_point = np.unique(scene.obs_point[used], return_inverse=True)
-    errors = scene.errors(used)
+    reconstruction, tracks = builder.reconstruction, builder.tracks
+    used = reconstruction.used_observations()
+    point_ids, obs_point = np.unique(reconstruction.obs_point[used], return_inverse=True)
+    errors = reconstruction.errors(used)
     point_errors = np.bincount(obs_point, weights=errors, minlength=len(point_ids)) / np.maximum(
         np.bincount(obs_point, minlength=len(point_ids)), 1
     )
@@ -550,22 +653,22 @@ def _sparse_model(
         pose_i=CameraPose(R=np.eye(3), t=np.zeros(3)),
         pose_j=candidate.pose_j,
     )
-    track_ids = scene.point_track[point_ids]
+    track_ids = reconstruction.point_track[point_ids]
     return SparseModel(
         image_names=list(tracks.image_names),
-        poses=scene.poses,
+        poses=reconstruction.poses,
         unregistered={},
-        points=scene.point_xyz[point_ids].copy(),
+        points=reconstruction.point_xyz[point_ids].copy(),
         point_colors=tracks.colors[track_ids],
         point_track_ids=track_ids,
         obs_camera=tracks.image_index[used].copy(),
         obs_point=obs_point,
-        obs_uv=scene.observed_uv[used].copy(),
+        obs_uv=reconstruction.observed_uv[used].copy(),
         point_errors=point_errors,
         stats=stats,
         initial_pair_diagnostics=diagnostics,
-        registration_order=list(scene.order),
-        cameras=list(scene.cameras),
+        registration_order=list(reconstruction.order),
+        cameras=list(reconstruction.cameras),
     )
 
 
@@ -595,14 +698,17 @@ def reconstruct_models(
     progress: ProgressCallback | None = None,
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     pair_types: dict[tuple[int, int], str] | None = None,
+    pair_geometries: dict[tuple[int, int], TwoViewGeometry] | None = None,
 ) -> list[SparseModel]:
     """Every model incremental SfM can build from the tracks, largest first.
 
     A model starts from the best initial pair among images no earlier model holds and grows until no
     image registers; models under min_model_images are discarded (their pair is not tried again).
     `pair_types` maps (i, j), i < j, to geometric verification's label; planar/panoramic pairs never start
-    a model. `camera` (a 3x3 K, a Camera, or one Camera per image) is every image's initial camera; each
-    global BA refines the intrinsics as `refine` says, and the models' `cameras` carry the result.
+    a model. `pair_geometries` (the verified geometry of each pair, by (i, j)) lets each registration be
+    checked against its pairs' relative rotations (`verification`). `camera` (a 3x3 K, a Camera, or one
+    Camera per image) is every image's initial camera; each global BA refines the intrinsics as `refine`
+    says, and the models' `cameras` carry the result.
     Raises DegenerateConfigurationError naming, per image, why no model could start.
     """
     num_images = len(tracks.image_names)
@@ -619,6 +725,7 @@ def reconstruct_models(
     small_models: dict[tuple[int, int], str] = {}
     min_images = min(mapper.min_model_images, num_images)
     built: list[tuple[_ModelBuilder, SparseModel]] = []
+    votes = voting_pairs(pair_geometries or {}, K, num_images, mapper.verify_pair_min_inliers)
     while len(built) < mapper.max_models and available.sum() >= 2:
         if progress:
             progress("initial pair", 0.02 + 0.85 * (num_images - available.sum()) / num_images)
@@ -634,14 +741,14 @@ def reconstruct_models(
         if choice.candidate is None:
             break
         candidate = choice.candidate
-        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress)
+        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress, votes)
         with timer.stage("initial pair"):
             builder.initialize(candidate)
         builder.grow(num_images, num_images - int(available.sum()))
         pair = (candidate.geometry.i, candidate.geometry.j)
-        if len(builder.scene.order) < min_images:
+        if len(builder.reconstruction.order) < min_images:
             small_models[pair] = (
-                f"the model it started could register only {len(builder.scene.order)} "
+                f"the model it started could register only {len(builder.reconstruction.order)} "
                 f"images (need {min_images}, min_model_images)"
             )
             continue
@@ -649,21 +756,26 @@ def reconstruct_models(
             progress(
                 "bundle adjustment",
                 min(
-                    0.9, 0.05 + 0.85 * (num_images - available.sum() + len(builder.scene.order)) / num_images
+                    0.9,
+                    0.05 + 0.85 * (num_images - available.sum() + len(builder.reconstruction.order))
+                    / num_images,
                 ),
             )
-        before = summarize(builder.scene.errors(builder.scene.used_observations()))
+        before = summarize(builder.reconstruction.errors(builder.reconstruction.used_observations()))
         with timer.stage("bundle adjustment"):
             builder.release_principal_point()
             builder.global_refinement(mapper.refinement_max_rounds)
+            if builder.verify_registered():
+                builder.grow(num_images, num_images - int(available.sum()))
+                builder.global_refinement(mapper.refinement_max_rounds)
             decrease, iterations, covariance = builder.final_bundle_adjustment()
             principal_point_test = builder.test_principal_point(covariance)
             if principal_point_test is not None and not principal_point_test.kept:
                 # Not determined beyond its noise: the image centre is the better guess (model selection).
                 builder.hold_principal_point()
                 decrease, iterations, covariance = builder.final_bundle_adjustment()
-        after = summarize(builder.scene.errors(builder.scene.used_observations()))
-        available[builder.scene.order] = False
+        after = summarize(builder.reconstruction.errors(builder.reconstruction.used_observations()))
+        available[builder.reconstruction.order] = False
         stats = ReconstructionStats(
             reprojection_before_ba=before,
             reprojection_after_ba=after,
@@ -676,12 +788,14 @@ def reconstruct_models(
             refinement_rounds=builder.refinement_rounds,
             relaxed_thresholds=builder.thresholds.relaxed,
             final_cost_decrease=decrease,
-            noise_sigma_px=builder.scene.noise_sigma(config.filter.max_reprojection_px),
+            noise_sigma_px=builder.reconstruction.noise_sigma(config.filter.max_reprojection_px),
             reprojection_limit_px=builder.error_limit,
             intrinsics_sigma=covariance.sigma() if covariance is not None else {},
             principal_point_test=principal_point_test,
         )
-        built.append((builder, _sparse_model(builder, candidate, stats)))
+        model = _sparse_model(builder, candidate, stats)
+        model.checks, model.warnings = list(builder.checks), builder.mirror_warnings()
+        built.append((builder, model))
     if not built:
         raise DegenerateConfigurationError(_why_no_model(tracks, pairs, failures, small_models))
     if progress:

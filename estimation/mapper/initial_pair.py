@@ -21,8 +21,8 @@ from scipy import sparse
 
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.projection import reprojection_errors
 from estimation.geometry.triangulation import (
-    observation_errors,
     observations_for_pair,
     triangulate_nonlinear,
     triangulation_angle_deg,
@@ -95,7 +95,7 @@ def evaluate_initial_pair(
     pose_j = relative.pose
     obs = observations_for_pair(np.eye(3), np.zeros(3), pose_j.R, pose_j.t, uv_i[front], uv_j[front])
     points = triangulate_nonlinear(K, obs, relative.points[front]).points
-    errors = observation_errors(K, obs, points).reshape(2, -1).max(axis=0)
+    errors = reprojection_errors(K, obs, points).reshape(2, -1).max(axis=0)
     centers = np.concatenate([np.zeros((front.sum(), 3)), np.broadcast_to(pose_j.center, (front.sum(), 3))])
     angles = triangulation_angle_deg(centers, obs.point_index, points)
     accurate = errors <= config.filter.max_reprojection_px

@@ -17,7 +17,14 @@ import pytest
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import InputError
 from estimation.features.matching import match_descriptors
-from estimation.features.sift import detect_features, root_sift, sample_colors, sift_tracks
+from estimation.features.sift import (
+    adaptive_contrast_threshold,
+    detect_features,
+    image_contrast,
+    root_sift,
+    sample_colors,
+    sift_tracks,
+)
 from estimation.io.images import find_calibration, list_images, load_rgb
 from estimation.io.matchfile import load_match_tracks
 from estimation.parallel import WorkerPool
@@ -67,6 +74,46 @@ def test_the_default_contrast_threshold_keeps_opencvs_skip_of_flat_dog_samples()
     keypoints = detect_features(image, default).uv
     assert {tuple(uv) for uv in keypoints} <= {tuple(uv) for uv in colmap_like}
     assert len(keypoints) > 0.95 * len(colmap_like)
+
+
+def dark_low_contrast_image(width: int = 320, height: int = 240, seed: int = 0) -> np.ndarray:
+    """A dark object (a texture of std 6 grey levels around 30) on the right, a constant dark background (12,
+    a pixel in 20 off by one level) on the left."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.normal(size=(height, width)), (0, 0), 2.5)
+    gray = 30.0 + 6.0 * texture / texture.std()
+    speckle = rng.random((height, width // 2)) < 0.05
+    gray[:, : width // 2] = 12.0 + rng.integers(-1, 2, (height, width // 2)) * speckle
+    gray = np.clip(np.rint(gray), 0, 255).astype(np.uint8)
+    return np.repeat(gray[:, :, None], 3, axis=2)
+
+
+def test_the_contrast_threshold_follows_the_image_contrast_below_the_reference_only():
+    config = SiftConfig()
+    assert adaptive_contrast_threshold(0.07, config) == config.contrast_threshold
+    assert adaptive_contrast_threshold(0.055, config) == pytest.approx(0.22 * config.contrast_threshold)
+    assert adaptive_contrast_threshold(0.0, config) == pytest.approx(config.min_contrast_factor
+                                                                     * config.contrast_threshold)
+    assert adaptive_contrast_threshold(0.0, SiftConfig(low_contrast=0)) == config.contrast_threshold
+
+
+def test_a_constant_background_is_not_textured_and_the_object_sets_the_contrast():
+    image = dark_low_contrast_image()
+    contrast = image_contrast(image[:, :, 0], SiftConfig().constant_region_std)
+    assert not contrast.textured[:, : 150].any()
+    assert (contrast.textured[:, 170:] > 0).mean() > 0.99
+    assert 0.005 < contrast.rms < 0.05
+
+
+def test_a_dark_low_contrast_object_gets_keypoints_and_its_constant_background_none():
+    image = dark_low_contrast_image()
+    fixed = detect_features(image, SiftConfig(low_contrast=0)).uv
+    adaptive = detect_features(image, SiftConfig()).uv
+    assert len(adaptive) > 3 * max(len(fixed), 10)
+    assert adaptive[:, 0].min() > 150                # none on the background
+    photo = textured_image(320, 240, seed=0)         # a well-contrasted image is detected as before
+    np.testing.assert_array_equal(detect_features(photo, SiftConfig()).uv,
+                                  detect_features(photo, SiftConfig(low_contrast=0)).uv)
 
 
 def test_the_uint8_descriptors_are_opencvs_float_ones_and_give_their_rootsift_bitwise():
@@ -262,3 +309,12 @@ def test_a_gpu_matches_in_the_calling_process_and_the_workers_only_verify(monkey
     for pair in pairs:
         np.testing.assert_array_equal(gpu_matches[pair].index_b, cpu_matches[pair].index_b)
         np.testing.assert_array_equal(gpu_geometries[pair].inlier_mask, cpu_geometries[pair].inlier_mask)
+
+
+def test_a_large_low_contrast_image_is_measured_on_a_preview_and_masked_at_full_size():
+    image = dark_low_contrast_image(seed=1)
+    large = cv2.resize(image, (1600, 1200), interpolation=cv2.INTER_CUBIC)       # beyond the preview side
+    fixed = detect_features(large, SiftConfig(low_contrast=0)).uv
+    adaptive = detect_features(large, SiftConfig()).uv
+    assert len(adaptive) > 3 * max(len(fixed), 10)
+    assert adaptive[:, 0].min() > 750

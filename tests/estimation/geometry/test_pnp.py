@@ -10,10 +10,10 @@ from estimation.geometry.pnp import (
     pnp_linear,
     pnp_nonlinear,
     pnp_ransac,
-    projection_errors,
     refine_pose,
-    reprojection_errors,
+    reprojection_errors_per_hypothesis,
 )
+from estimation.geometry.projection import Observations, reprojection_errors
 from estimation.synthetic import make_scene, rotation_about_axis
 from estimation.types import CameraPose
 
@@ -96,22 +96,31 @@ def test_refine_pose_is_the_pose_of_nonlinear_pnp_without_its_error_summary():
         refine_pose(scene.K, points[:5], uv[:5], start)
 
 
+def one_pose_observations(pose: CameraPose, uv: np.ndarray) -> Observations:
+    """Point n seen at uv[n] by the one camera `pose`."""
+    n = len(uv)
+    return Observations(R=np.broadcast_to(pose.R, (n, 3, 3)), t=np.broadcast_to(pose.t, (n, 3)), uv=uv,
+                        point_index=np.arange(n), num_points=n)
+
+
 def test_reprojection_errors_are_infinite_behind_the_camera():
     pose = CameraPose(R=np.eye(3), t=np.zeros(3))
-    errors = reprojection_errors(np.eye(3), pose.R, pose.t, np.array([[0.0, 0, 2], [0.0, 0, -2]]),
-                                 np.zeros((2, 2)))
+    errors = reprojection_errors(np.eye(3), one_pose_observations(pose, np.zeros((2, 2))),
+                                 np.array([[0.0, 0, 2], [0.0, 0, -2]]))
     assert errors[0] == 0.0
     assert errors[1] == np.inf
 
 
-def test_projection_errors_score_every_hypothesis_like_the_single_pose_reprojection_error():
+def test_the_errors_per_hypothesis_score_every_hypothesis_like_the_reprojection_error_of_its_pose():
     scene = make_scene(num_points=50, noise_px=0.5, seed=7)
     points, uv, _ = correspondences(scene, 1)
     poses = [scene.poses[1], scene.poses[2]]
     P = np.array([np.concatenate([pose.R, pose.t[:, None]], axis=1) for pose in poses])
-    errors = projection_errors(scene.K, P, points, uv)
+    errors = reprojection_errors_per_hypothesis(scene.K, P, points, uv)
     assert errors.shape == (2, len(points))
     for pose, row in zip(poses, errors, strict=True):
-        np.testing.assert_allclose(row, reprojection_errors(scene.K, pose.R, pose.t, points, uv), rtol=1e-12)
-    behind = projection_errors(np.eye(3), np.eye(3, 4)[None], np.array([[0.0, 0, -2]]), np.zeros((1, 2)))
+        np.testing.assert_allclose(row, reprojection_errors(scene.K, one_pose_observations(pose, uv), points),
+                                   rtol=1e-12)
+    behind = reprojection_errors_per_hypothesis(np.eye(3), np.eye(3, 4)[None], np.array([[0.0, 0, -2]]),
+                                                np.zeros((1, 2)))
     assert behind[0, 0] == np.inf

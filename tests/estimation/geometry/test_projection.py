@@ -7,6 +7,7 @@ import pytest
 from estimation.geometry.projection import (
     COLMAP_MODEL_NAMES,
     Camera,
+    Observations,
     ideal_pixels,
     normalized_to_pixel,
     observation_cameras,
@@ -14,7 +15,6 @@ from estimation.geometry.projection import (
     project,
     reprojection_residuals,
 )
-from estimation.geometry.triangulation import Observations
 from estimation.synthetic import rotation_about_axis
 
 CAMERAS = {

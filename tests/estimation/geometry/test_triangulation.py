@@ -3,13 +3,11 @@
 import numpy as np
 import pytest
 
+from estimation.geometry.projection import Observations, reprojection_errors, reprojection_residuals
 from estimation.geometry.triangulation import (
-    Observations,
     _projection_jacobian,
-    observation_errors,
     observations_for_pair,
     ray_pair_angle_deg,
-    reprojection_residuals,
     sum_per_point,
     triangulate_linear,
     triangulate_nonlinear,
@@ -37,7 +35,7 @@ def test_linear_triangulation_is_exact_without_noise_for_two_views():
     obs = observations_for_pair(a.R, a.t, b.R, b.t, uv1, uv2)
     result = triangulate_linear(scene.K, obs)
     np.testing.assert_allclose(result.points, scene.points[ids], atol=1e-9)
-    assert observation_errors(scene.K, obs, result.points).max() < 1e-8
+    assert reprojection_errors(scene.K, obs, result.points).max() < 1e-8
 
 
 def test_linear_triangulation_uses_every_view_of_a_multi_view_track():
@@ -90,7 +88,7 @@ def test_noisy_triangulation_error_is_small_relative_to_the_scene():
     obs = all_view_observations(scene)
     result = triangulate_nonlinear(scene.K, obs, triangulate_linear(scene.K, obs).points)
     assert np.median(np.linalg.norm(result.points - scene.points, axis=1)) < 0.001 * scene.scene_size
-    assert np.median(observation_errors(scene.K, obs, result.points)) == pytest.approx(0.5, rel=0.5)
+    assert np.median(reprojection_errors(scene.K, obs, result.points)) == pytest.approx(0.5, rel=0.5)
 
 
 def test_triangulation_angle_is_the_largest_angle_between_viewing_rays():

@@ -1,5 +1,6 @@
-"""`reconstruct`: images folder in, cameras, points and their files out. The one entry point the CLI
-and the REST service call; it orchestrates input, features, the incremental pipeline and the outputs.
+"""The Structure from Motion pipeline, `reconstruct`: images folder in, cameras, points and their files out.
+The one entry point the CLI and the REST service call (as `estimation.reconstruct`); it orchestrates input,
+features, the incremental mapper and the outputs.
 """
 
 from __future__ import annotations
@@ -104,6 +105,11 @@ class FeatureTracks:
                                                 "h_e_inlier_ratio": round(geometry.h_e_inlier_ratio, 4)}
                     for (i, j), geometry in self.pair_types.geometries().items()}
         return replace(self, details={**self.details, "two_view_geometry_per_pair": per_pair})
+
+    def epipolar_geometries(self) -> dict:
+        """Each verified pair's geometry by (i, j), i < j (E, F, inliers), without waiting for the planarity
+        tests; empty for match files."""
+        return {} if self.pair_types is None else self.pair_types.epipolar_geometries()
 
     def close(self) -> None:
         """Ends the worker processes of planarity tests still running (`finished` ends them too)."""
@@ -332,7 +338,9 @@ def build_report(
         "features": {"source": features.source, "tracks": features.tracks.num_tracks,
                      "observations": int(len(features.tracks.track_index)), **features.details},
         "intrinsics": intrinsics_report(images, initial, model),
-        "warnings": list(initial.warnings),
+        "warnings": list(initial.warnings) + list(model.warnings),
+        "registration_checks": [{"image": images.names[check.image], "event": check.event,
+                                 "reason": check.reason} for check in model.checks],
         "cameras": [
             {"image": images.names[i], "R": pose.R.tolist(), "t": pose.t.tolist(), "C": pose.center.tolist()}
             for i, pose in sorted(model.poses.items())
@@ -419,7 +427,8 @@ def reconstruct(
     try:
         models = tuple(reconstruct_models(features.tracks, camera, config,
                                           progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
-                                          refine=initial.refine, pair_types=features.pair_types))
+                                          refine=initial.refine, pair_types=features.pair_types,
+                                          pair_geometries=features.epipolar_geometries()))
         features = features.finished()
     finally:
         features.close()

@@ -1,12 +1,12 @@
-"""The model under construction: registered images, 3D points and the observations that support them.
+"""The reconstruction being built: registered images, 3D points and the observations that support them.
 
-A `Scene` sits on the feature `Tracks` (the correspondence graph the matcher produced: a track is a set of
-keypoint observations linked by matches, at most one per image). A 3D point owns a subset of one track's
-observations; each observation belongs to at most one point (`obs_point`, -1 when it supports none). One
-track may be split into several points (observations that disagree), which `merge_tracks` joins again when
-one point explains them all, and `complete_tracks` continues a point into newly registered images, as
+A `Reconstruction` sits on the feature `Tracks` (the correspondence graph the matcher produced: a track is a
+set of keypoint observations linked by matches, at most one per image). A 3D point owns a subset of one
+track's observations; each observation belongs to at most one point (`obs_point`, -1 when it supports none).
+One track may be split into several points (observations that disagree), which `merge_tracks` joins again
+when one point explains them all, and `complete_tracks` continues a point into newly registered images, as
 COLMAP's IncrementalTriangulator does with its correspondence graph. Everything is vectorized over flat
-observation arrays; the named methods are the only way the mapper changes the scene.
+observation arrays; the named methods are the only way the mapper changes the reconstruction.
 
 Intrinsics: every image has a `Camera` (distortion included), refined by the global BA. The minimal
 solvers and triangulation work with the pinhole `K` of the first camera on `tracks.uv`, the measured
@@ -28,11 +28,11 @@ from estimation.geometry.projection import (
     as_camera,
     is_shared,
     observation_cameras,
+    reprojection_errors,
     transfer_pixels,
 )
 from estimation.geometry.triangulation import (
     Observations,
-    observation_errors,
     triangulate_nonlinear,
     triangulate_ransac,
     triangulation_angle_reaches,
@@ -65,7 +65,7 @@ def pixel_noise_sigma(errors: np.ndarray, variance_factors: np.ndarray) -> float
     return float(np.median(corrected) / np.sqrt(2.0 * np.log(2.0)))
 
 
-class Scene:
+class Reconstruction:
     """Registered images (world-to-camera poses) and points over the observations of `tracks`."""
 
     def __init__(self, tracks: Tracks, camera: CameraInput,
@@ -224,7 +224,7 @@ class Scene:
                            uv=self.observed_uv.take(obs_ids, axis=0), point_index=points,
                            num_points=len(self.point_alive))
         camera = observation_cameras(self.cameras, images)
-        return observation_errors(camera, obs, self.point_xyz)
+        return reprojection_errors(camera, obs, self.point_xyz)
 
     def noise_sigma(self, max_error_px: float) -> float:
         """Per-axis pixel noise (`pixel_noise_sigma`) of the observations within max_error_px of their
@@ -389,7 +389,7 @@ class Scene:
             obs = self.observations(involved, pair_index, len(keep_ids))
             points = triangulate_nonlinear(self.K, obs, self.point_xyz[keep_ids]).points
             worst = np.zeros(len(keep_ids))
-            np.maximum.at(worst, pair_index, observation_errors(self.K, obs, points))
+            np.maximum.at(worst, pair_index, reprojection_errors(self.K, obs, points))
             ok = worst < max_error_px
             if not ok.any():
                 break

@@ -1,4 +1,4 @@
-"""The Scene's named operations: points, observations, track completion and merging, filtering."""
+"""The Reconstruction's named operations: points, observations, track completion and merging, filtering."""
 
 import dataclasses
 
@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 
 from estimation.geometry.projection import Camera, observation_cameras
-from estimation.mapper.scene import Scene, pixel_noise_sigma
+from estimation.mapper.reconstruction import Reconstruction, pixel_noise_sigma
 from estimation.synthetic import make_scene
 
 
 @pytest.fixture()
 def posed():
-    """A Scene over a noise-free 5-image scene with every image registered at its true pose."""
+    """A Reconstruction over a noise-free 5-image scene with every image registered at its true pose."""
     truth = make_scene(num_points=50, seed=21)
-    scene = Scene(truth.tracks, truth.K)
+    scene = Reconstruction(truth.tracks, truth.K)
     for m, pose in enumerate(truth.poses):
         scene.register_image(m, pose)
     return truth, scene
@@ -90,7 +90,7 @@ def test_filter_points_drops_far_observations_and_narrow_points(posed):
 
 def test_triangulate_tracks_keeps_the_consistent_observations_of_tracks_with_outliers():
     truth = make_scene(num_points=200, noise_px=0.3, outlier_fraction=0.2, seed=22)
-    scene = Scene(truth.tracks, truth.K)
+    scene = Reconstruction(truth.tracks, truth.K)
     for m, pose in enumerate(truth.poses):
         scene.register_image(m, pose)
     added = scene.triangulate_tracks(np.arange(200), max_error_px=2.0, min_angle_deg=1.0,
@@ -131,8 +131,8 @@ def test_noise_sigma_is_measured_on_used_and_free_observations_within_the_limit(
 def test_errors_of_a_shared_camera_equal_those_of_the_same_camera_given_per_image():
     truth = make_scene(num_points=50, seed=21)
     camera = Camera.from_K(truth.K, "simple-radial", k1=0.05)
-    shared = Scene(truth.tracks, camera)
-    per_image = Scene(truth.tracks, [dataclasses.replace(camera) for _ in truth.poses])
+    shared = Reconstruction(truth.tracks, camera)
+    per_image = Reconstruction(truth.tracks, [dataclasses.replace(camera) for _ in truth.poses])
     obs = np.concatenate([observations_of_track(truth, t) for t in range(10)])
     images = truth.tracks.image_index[obs]
     assert observation_cameras(shared.cameras, images) is camera               # used as is

@@ -1,0 +1,130 @@
+"""Checks of an image's registration against evidence its pose was not fitted to.
+
+A pose from absolute-pose RANSAC explains its own inliers by construction; on a symmetric object a pose on
+the far side of the ring can explain as many (the features of both sides look alike), with a low
+reprojection error. So each registration is also held against:
+- its support: inliers and inlier ratio (COLMAP keeps >= 30 and >= 25 %), and the inliers' spread over
+  the image (a pose resting on one corner is poorly constrained);
+- the relative rotations that two-view geometry verified for its pairs with registered images, which were
+  estimated from the pair's own matches, not from the model's points: a placement on the far side of the
+  ring disagrees by ~180 deg with every true neighbour.
+Each check is a pure function with a typed result; the mapper (`incremental`) decides what to do.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from estimation.geometry.alignment import rotation_angle_deg
+from estimation.two_view.essential import essential_from_fundamental, pose_candidates
+from estimation.two_view.geometry import TwoViewGeometry
+
+NEAR_MIRROR = "a near-mirror placement"
+"""The words that end a refusal for disagreeing with the verified pairs (the warnings look for them)."""
+SPREAD_GRID = 8
+"""Cells per side of the grid that measures the inliers' spread over the image (64 cells)."""
+
+
+class InlierSupport(NamedTuple):
+    """How much of an image's 2D-3D correspondences a registration explains, and where they lie."""
+
+    inliers: int
+    correspondences: int
+    spread: float           # share of the image's grid cells holding an inlier (`inlier_spread`)
+
+    @property
+    def ratio(self) -> float:
+        return self.inliers / max(self.correspondences, 1)
+
+
+def inlier_spread(inlier_uv: np.ndarray, width: float, height: float, grid: int = SPREAD_GRID) -> float:
+    """#cells holding an inlier / grid^2, on a grid x grid split of the width x height image: a pose resting
+    on a few cells (one corner, one small part of the object) is poorly constrained. (Relative to where
+    the correspondences lie it would not work: the wrong ones lie anywhere.)"""
+    uv = np.asarray(inlier_uv, float).reshape(-1, 2)
+    index = np.clip((uv / [width, height] * grid).astype(np.int64), 0, grid - 1)
+    return len(np.unique(index[:, 0] * grid + index[:, 1])) / grid**2
+
+
+def support_problem(support: InlierSupport, min_inliers: float, min_ratio: float, min_spread: float
+                    ) -> str | None:
+    """Why the support is too weak (inliers >= min_inliers, ratio >= min_ratio, spread >= min_spread),
+    or None."""
+    if support.inliers < min_inliers or support.ratio < min_ratio:
+        return (f"absolute pose RANSAC found {support.inliers} inliers among {support.correspondences} 2D-3D "
+                f"correspondences (need {int(np.ceil(min_inliers))} and {min_ratio:.0%})")
+    if support.spread < min_spread:
+        return (f"its {support.inliers} inliers lie in {support.spread:.0%} of the image's "
+                f"{SPREAD_GRID}x{SPREAD_GRID} cells (need {min_spread:.0%})")
+    return None
+
+
+def essential_rotations(E: np.ndarray) -> np.ndarray:
+    """(2, 3, 3): the two rotations R of E ~ [t]x R (the true one and its twisted pair, 180 deg about the
+    baseline from it)."""
+    return np.stack([candidate.R for candidate in pose_candidates(E)[::2]])
+
+
+def essential_rotation_deviation_deg(rotations: np.ndarray, R_relative: np.ndarray) -> float:
+    """min over the two rotations R of E (`essential_rotations`) of angle(R, R_relative): how far a relative
+    rotation (x_2 = R_relative x_1 + t) is from the pair's verified epipolar geometry, without chirality
+    (a far-side placement is far from both)."""
+    return min(rotation_angle_deg(R, R_relative) for R in rotations)
+
+
+class VerifiedPair(NamedTuple):
+    """Two-view evidence about image `image` relative to the registered image `other`."""
+
+    other: int
+    rotations: np.ndarray  # (2, 3, 3) `essential_rotations` of E, x_image^T E x_other = 0 (normalized)
+    inliers: int           # the pair's verified inliers: the weight of its vote
+
+
+def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], K: np.ndarray, num_images: int,
+                 min_inliers: int) -> list[list[VerifiedPair]]:
+    """Image m -> its verified pairs with >= min_inliers inliers, E oriented so that x_m^T E x_other = 0
+    (E of pair (i, j) relates x_j^T E x_i = 0, so image i gets E^T); without E (no calibration), the
+    E = K^T F K of the pair's F under the initial K."""
+    votes: list[list[VerifiedPair]] = [[] for _ in range(num_images)]
+    for (i, j), geometry in geometries.items():
+        if geometry.num_inliers < min_inliers or (geometry.E is None and geometry.F is None):
+            continue
+        E = geometry.E if geometry.E is not None else essential_from_fundamental(geometry.F, K)
+        votes[j].append(VerifiedPair(i, essential_rotations(E), geometry.num_inliers))
+        votes[i].append(VerifiedPair(j, essential_rotations(E.T), geometry.num_inliers))
+    return votes
+
+
+class RotationAgreement(NamedTuple):
+    """How a pose's relative rotations agree with the verified pairs (the votes weighted by inliers)."""
+
+    agreeing_inliers: int
+    voting_inliers: int
+    deviations_deg: dict[int, float]   # other image -> deviation of the pose from that pair's E
+
+    @property
+    def share(self) -> float:
+        """Agreeing over voting inliers (1 without votes: nothing contradicts the pose)."""
+        return self.agreeing_inliers / self.voting_inliers if self.voting_inliers else 1.0
+
+
+def rotation_agreement(R_image: np.ndarray, pairs: list[VerifiedPair], R_of: dict[int, np.ndarray],
+                       max_deviation_deg: float) -> RotationAgreement:
+    """Each pair votes with its inliers for or against R_image: for when R_image R_other^T is within
+    max_deviation_deg of its E's rotation (`essential_rotation_deviation_deg`); R_of: other -> its R."""
+    deviations = {pair.other: essential_rotation_deviation_deg(pair.rotations, R_image @ R_of[pair.other].T)
+                  for pair in pairs}
+    agreeing = sum(pair.inliers for pair in pairs if deviations[pair.other] <= max_deviation_deg)
+    return RotationAgreement(agreeing, sum(pair.inliers for pair in pairs), deviations)
+
+
+def agreement_problem(agreement: RotationAgreement, min_share: float, image_names: list[str]) -> str | None:
+    """Why the rotation agreement is too weak (share of agreeing inliers below min_share), or None."""
+    if agreement.share >= min_share:
+        return None
+    worst = max(agreement.deviations_deg, key=agreement.deviations_deg.get)
+    return (f"its rotation disagrees with the verified two-view geometry of its pairs ({agreement.share:.0%} "
+            f"of their inliers agree, need {min_share:.0%}; {agreement.deviations_deg[worst]:.0f} deg off "
+            f"the pair with {image_names[worst]}): {NEAR_MIRROR}")

@@ -1,0 +1,127 @@
+"""Each registration is held against evidence it was not fitted to: its support and spread, and the
+relative rotations that two-view geometry verified for its pairs."""
+
+import numpy as np
+import pytest
+
+from estimation.config import ReconstructionConfig
+from estimation.geometry.alignment import aligned_pose_errors, relative_pose
+from estimation.geometry.linalg import skew
+from estimation.mapper.incremental import reconstruct_models
+from estimation.mapper.verification import (
+    InlierSupport,
+    VerifiedPair,
+    agreement_problem,
+    essential_rotation_deviation_deg,
+    essential_rotations,
+    inlier_spread,
+    rotation_agreement,
+    support_problem,
+    voting_pairs,
+)
+from estimation.synthetic import make_symmetric_ring, rotation_about_axis
+from estimation.two_view.geometry import TwoViewGeometry, TwoViewGeometryType, verify_epipolar
+from estimation.types import CameraPose
+
+
+def essential_of(pose: CameraPose) -> np.ndarray:
+    """E = [t]x R of a relative pose (x_2 = R x_1 + t)."""
+    return skew(pose.t) @ pose.R
+
+
+def test_inliers_over_the_whole_image_have_full_spread_and_a_corner_has_little():
+    grid = np.stack(np.meshgrid(np.linspace(0, 399, 40), np.linspace(0, 299, 30)), axis=-1).reshape(-1, 2)
+    assert inlier_spread(grid, 400, 300) == 1.0
+    corner = grid[(grid[:, 0] < 100) & (grid[:, 1] < 75)]
+    assert inlier_spread(corner, 400, 300) == pytest.approx(4 / 64)
+    assert inlier_spread(corner[:0], 400, 300) == 0.0
+
+
+def test_support_is_refused_below_each_of_its_three_minimums_and_names_the_numbers():
+    assert support_problem(InlierSupport(40, 100, 0.8), 30, 0.25, 0.25) is None
+    assert "12 inliers among 100" in support_problem(InlierSupport(12, 100, 0.8), 30, 0.25, 0.25)
+    assert "need 30 and 25%" in support_problem(InlierSupport(40, 200, 0.8), 30, 0.25, 0.25)
+    assert "lie in 10% of the image's 8x8 cells" in support_problem(InlierSupport(40, 100, 0.1), 30, 0.25,
+                                                                     0.25)
+
+
+def test_a_relative_rotation_agrees_with_its_own_essential_matrix_and_a_half_turn_does_not():
+    relative = CameraPose(rotation_about_axis(np.array([0.1, 1.0, 0.0]), np.radians(7)),
+                          np.array([1.0, 0.0, 0.1]))
+    E = essential_of(relative)
+    assert essential_rotation_deviation_deg(essential_rotations(E), relative.R) < 1e-6
+    # E is up to scale and sign
+    assert essential_rotation_deviation_deg(essential_rotations(-3.0 * E), relative.R) < 1e-6
+    flipped = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.pi) @ relative.R
+    assert essential_rotation_deviation_deg(essential_rotations(E), flipped) > 170
+
+
+def test_voting_pairs_orient_each_pair_from_the_voting_image_and_skip_weak_pairs():
+    poses = [CameraPose.from_center(rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(a)),
+                                    np.array([np.sin(np.radians(a)), 0.0, -np.cos(np.radians(a))]) * 5)
+             for a in (0, 10, 20)]
+    E_01 = essential_of(relative_pose(poses[0], poses[1]))     # x_1^T E x_0 = 0
+    strong = TwoViewGeometry(TwoViewGeometryType.CALIBRATED, np.ones(50, bool), None, E_01, None, 50, 50, 0)
+    weak = TwoViewGeometry(TwoViewGeometryType.CALIBRATED, np.ones(10, bool), None, E_01, None, 10, 10, 0)
+    votes = voting_pairs({(0, 1): strong, (1, 2): weak}, np.eye(3), 3, min_inliers=30)
+    assert [pair.other for pair in votes[0]] == [1] and [pair.other for pair in votes[1]] == [0]
+    assert votes[2] == []
+    R_of = {m: pose.R for m, pose in enumerate(poses)}
+    for image in (0, 1):
+        agreement = rotation_agreement(poses[image].R, votes[image], R_of, max_deviation_deg=5)
+        assert agreement.share == 1.0 and agreement.voting_inliers == 50
+
+
+def test_one_disagreeing_strong_pair_vetoes_a_rotation_at_full_agreement_and_names_the_pair():
+    turn = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.pi)
+    R_of = {1: np.eye(3), 2: np.eye(3)}
+    baseline = skew(np.array([1.0, 0.0, 0.0]))
+    pairs = [VerifiedPair(1, essential_rotations(baseline), 200),
+             VerifiedPair(2, essential_rotations(baseline @ turn), 100)]
+    agreement = rotation_agreement(np.eye(3), pairs, R_of, max_deviation_deg=30)
+    assert agreement.agreeing_inliers == 200 and agreement.share == pytest.approx(2 / 3)
+    assert agreement_problem(agreement, 0.5, ["a", "b", "c"]) is None
+    problem = agreement_problem(agreement, 1.0, ["a", "b", "c"])
+    assert "180 deg off the pair with c" in problem and "near-mirror" in problem
+    assert rotation_agreement(np.eye(3), [], R_of, 30).share == 1.0     # no vote contradicts
+
+
+@pytest.fixture(scope="module")
+def symmetric_ring():
+    """A 16-view ring around a half-turn symmetric object; image 5 matched 60 % of its features to the
+    far side, and the pairs sharing 40+ tracks verified as the front end does."""
+    ring = make_symmetric_ring(num_cameras=16, num_points=2000, confused=(5,), confusion=0.6, seed=0)
+    scene, config = ring.scene, ReconstructionConfig()
+    geometries = {}
+    for i in range(len(scene.poses)):
+        for j in range(i + 1, len(scene.poses)):
+            _, uv_i, uv_j = scene.tracks.pair_correspondences(i, j)
+            if len(uv_i) >= 40:
+                geometries[(i, j)] = verify_epipolar(uv_i, uv_j, scene.K, scene.K, config.two_view,
+                                                     config.ransac)
+    return ring, geometries
+
+
+def rotation_errors(model, scene) -> dict[int, float]:
+    registered = sorted(model.poses)
+    errors = aligned_pose_errors([model.poses[m] for m in registered], [scene.poses[m] for m in registered])
+    return dict(zip(registered, errors.rotation_deg, strict=True))
+
+
+def test_without_the_pairs_geometry_the_confused_image_is_placed_on_the_far_side(symmetric_ring):
+    ring, _ = symmetric_ring
+    model = reconstruct_models(ring.scene.tracks, ring.scene.K, ReconstructionConfig())[0]
+    assert rotation_errors(model, ring.scene)[5] > 170     # its support alone cannot tell
+
+
+def test_the_verified_pairs_refuse_the_mirrored_placement_and_every_registered_image_is_right(symmetric_ring):
+    ring, geometries = symmetric_ring
+    model = reconstruct_models(ring.scene.tracks, ring.scene.K, ReconstructionConfig(),
+                               pair_geometries=geometries)[0]
+    errors = rotation_errors(model, ring.scene)
+    assert max(errors.values()) < 1.0
+    assert len(errors) >= 15
+    assert 5 not in model.poses
+    assert "near-mirror" in model.unregistered[5]
+    assert any(check.image == 5 and check.event == "refused" for check in model.checks)
+    assert any("near-mirror ambiguity" in warning and "6.png" in warning for warning in model.warnings)
