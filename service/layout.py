@@ -1,7 +1,7 @@
 """Where a job's files live: its folder under the data folder, its inputs and outputs, and the names of
 the artefacts the service reads from the packages' outputs.
 
-The artefact names are the packages' own (estimation.api REPORT_NAME ..., neural.inference
+The artefact names are the packages' own (estimation.pipeline REPORT_NAME ..., neural.inference
 RUN_CONFIG_FILE, neural.training METRICS_FILE); they are spelled here because those modules load OpenCV,
 GTSAM or PyTorch, which the API process never imports. tests/service/test_layout.py holds them equal.
 """
@@ -19,9 +19,9 @@ WORKER_LOG_NAME = "worker.log"
 """stdout and stderr of a local job process, in its job folder."""
 
 RECONSTRUCTION_REPORT = "report.json"
-"""estimation.api.REPORT_NAME: what a reconstruction registered (in its output folder)."""
+"""estimation.pipeline.REPORT_NAME: what a reconstruction registered (in its output folder)."""
 RECONSTRUCTION_EXPORTS = ("points.ply", "colmap.zip", "transforms.json")
-"""The files a reconstruction's output serves (estimation.api PLY_NAME and TRANSFORMS_NAME; colmap.zip is
+"""The files a reconstruction's output serves (estimation.pipeline PLY_NAME and TRANSFORMS_NAME; colmap.zip is
 the service's own archive of its sparse/ folder)."""
 RUN_CONFIG = "config.json"
 """neural.inference.RUN_CONFIG_FILE: a NeRF run's configuration and camera."""

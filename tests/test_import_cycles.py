@@ -9,10 +9,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("estimation", "neural", "service")
-KNOWN_CYCLES: list[set[str]] = [
-    # Being removed (the triangulation observations move below projection); drop this entry once merged.
-    {"estimation.geometry.projection", "estimation.geometry.triangulation"},
-]
 
 SERVICE_FLOORS = [
     (
@@ -120,7 +116,7 @@ def test_the_cycle_finder_finds_a_cycle_hidden_in_a_function(tmp_path):
 
 
 def test_no_module_of_the_packages_is_part_of_an_import_cycle():
-    found = [component for component in cycles(import_graph()) if component not in KNOWN_CYCLES]
+    found = cycles(import_graph())
     assert found == [], "import cycles: " + "; ".join(" <-> ".join(sorted(c)) for c in found)
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from estimation.api import PLY_NAME, REPORT_NAME, TRANSFORMS_NAME
+from estimation.pipeline import PLY_NAME, REPORT_NAME, TRANSFORMS_NAME
 from neural.inference import RUN_CONFIG_FILE
 from neural.training import METRICS_FILE
 from service.layout import RECONSTRUCTION_EXPORTS, RECONSTRUCTION_REPORT, RUN_CONFIG, RUN_METRICS
