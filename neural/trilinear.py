@@ -15,7 +15,7 @@ from torch import Tensor
 #: The largest per-thread gradient copies (bytes, all threads) a split lookup may allocate. glibc hands
 #: blocks above 32 MiB (its largest mmap threshold) back to the system when freed, so larger copies are
 #: page-faulted in anew at every step: the fast model's 3-channel colour grid at 128^3 (2 x 25 MB) took
-#: 29 ms forward + backward split against 11.5 ms unsplit (README, "NeRF on lego").
+#: 29 ms forward + backward split against 11.5 ms unsplit (bench_nerf.py, benchmarks/RESULTS.md).
 MAX_SPLIT_GRADIENT_BYTES = 32 * 2**20
 
 

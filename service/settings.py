@@ -1,6 +1,6 @@
 """Service settings, read from environment variables prefixed with SFMNERF_ (pydantic-settings).
 
-Every field is documented in the README's settings table; the defaults give the embedded setup
+Every field is documented in docs/service.md's settings table; the defaults give the embedded setup
 (`sfmnerf serve`: a SQLite file and local worker processes, nothing else to install or start).
 """
 

@@ -73,7 +73,7 @@ class FastModelConfig(BaseModel):
         1e-2, gt=0, lt=1, description="opacity per sample step that counts a cell into the refitted box"
     )
     # Degree 1 on a grid twice as coarse: ~+1.7 dB on held-out lego views over diffuse colour at equal CPU
-    # time (README, "NeRF on lego"); one grid of all 12 coefficients costs 2.9x the time per step.
+    # time (bench_nerf.py, benchmarks/RESULTS.md); a grid of all 12 coefficients costs 2.9x time per step.
     sh_degree: int = Field(1, ge=0, le=1, description="spherical-harmonic degree of the colour (0: diffuse)")
     view_grid_stride: int = Field(
         2,

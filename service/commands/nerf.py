@@ -214,7 +214,7 @@ def eval_command(
 ) -> None:
     """PSNR and SSIM of the run's renders of DATA's split (default: the held-out val views, never trained
     on), at the training image size; per image and mean, printed and saved as JSON. No LPIPS: its backbone
-    weights cannot be installed offline (see README)."""
+    weights cannot be installed offline (see docs/nerf.md)."""
     from neural import evaluate
 
     try:
