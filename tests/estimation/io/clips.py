@@ -10,6 +10,9 @@ import cv2
 import numpy as np
 from PIL import Image
 
+from estimation.io.export import opengl_c2w_to_opencv_pose
+from estimation.types import CameraPose
+
 LEGO_TRAIN = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "lego_200" / "train"
 
 
@@ -27,16 +30,22 @@ def encode_clip(frames: list[np.ndarray], path: Path, fps: int = 10, metadata: d
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
         stream.options = {"crf": str(crf), "preset": "veryfast"}
         for rgb in frames:
-            container.mux(stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")))
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+            container.mux(stream.encode(frame))
         container.mux(stream.encode(None))
     return path
 
 
 def lego_centres() -> dict[str, np.ndarray]:
-    """Camera centre (world) of each lego train view by file name (the camera-to-world translation)."""
+    """Camera centre (world) of each lego train view by file name."""
+    return {name: pose.center for name, pose in lego_true_poses().items()}
+
+
+def lego_true_poses() -> dict[str, CameraPose]:
+    """World-to-camera (OpenCV axes) true pose of each lego train view by file name."""
     frames = json.loads((LEGO_TRAIN.parent / "transforms_train.json").read_text())["frames"]
-    return {Path(frame["file_path"]).name + ".png": np.array(frame["transform_matrix"])[:3, 3]
-            for frame in frames}
+    return {Path(frame["file_path"]).name + ".png":
+            opengl_c2w_to_opencv_pose(np.array(frame["transform_matrix"])) for frame in frames}
 
 
 def walk_order(centres: dict[str, np.ndarray], count: int) -> list[str]:
