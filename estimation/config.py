@@ -415,6 +415,10 @@ class VideoConfig(StrictConfig):
         "still camera gives few keyframes, not near-duplicates.",
     )
     jpeg_quality: int = Field(95, ge=50, le=100, description="Quality of the keyframes written as JPEG.")
+    max_frames: int = Field(
+        200_000, ge=2, description="Decoding stops with an error beyond this many frames (about 1.9 hours at "
+        "30 fps), whatever the container says of its duration.",
+    )
 
 
 class ReconstructionConfig(StrictConfig):

@@ -311,6 +311,8 @@ def analyse_video(path: Path, info: VideoInfo, config: VideoConfig,
     motions: list[FrameMotion] = [FrameMotion(0.0, 1.0)]
     previous = None
     for frame in decoded_frames(path):
+        if len(values) == config.max_frames:
+            raise InputError(f"{path}: more than {config.max_frames} frames (VideoConfig.max_frames)")
         gray = frame.reformat(width=width, height=height, format="gray").to_ndarray()
         values.append(sharpness(gray))
         if previous is not None:

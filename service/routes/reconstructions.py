@@ -29,6 +29,7 @@ from service.uploads import (
     save_stream,
 )
 from service.validation import check_isolated
+from service.video_uploads import is_video_upload, save_video
 
 router = APIRouter(prefix="/v1/reconstructions", tags=["reconstructions"])
 MATCH_NAME = re.compile(r"^matching(\d+)\.txt$")
@@ -59,6 +60,21 @@ def _k_from_numbers(numbers: str) -> str:
     return "\n".join(" ".join(tokens[row * 3 : row * 3 + 3]) for row in range(3)) + "\n"
 
 
+def _store_calibration(folder: Path, calibration: UploadFile | None, K: str | None) -> None:
+    """calibration.txt from the file or the 9 numbers of K, checked; none when neither is given."""
+    if calibration is not None and K:
+        raise invalid("calibration: give either the calibration file or K, not both")
+    if calibration is not None:
+        text = calibration.file.read(64 * 1024).decode("utf-8", errors="replace")
+        source = sanitize_filename(calibration.filename or CALIBRATION_NAME, "calibration")
+    elif K:
+        text, source = _k_from_numbers(K), "K"
+    else:   # no calibration: the reconstruction takes the focal length from EXIF or a prior, and refines it
+        return
+    _parse_k(text, source)
+    inside(folder, CALIBRATION_NAME).write_text(text)
+
+
 def _store_inputs(
     folder: Path,
     settings: Any,
@@ -69,6 +85,14 @@ def _store_inputs(
     features: str,
 ) -> None:
     """Saves and checks everything the reconstruction reads; UploadRejected on the first problem."""
+    if any(is_video_upload(upload) for upload in images):
+        if matches:
+            raise invalid("matches: match files go with photos, not with a video")
+        video = save_video(images, folder, settings)
+        check_isolated("input_video", {"field": "images", "path": str(folder / video.name),
+                                       "name": video.name}, settings)
+        _store_calibration(folder, calibration, K)
+        return
     saved = save_images(((f.filename, f.file) for f in images), folder, settings)
     if len(saved) < 2:
         raise invalid(f"images: {len(saved)} image(s) uploaded, a reconstruction needs at least 2")
@@ -79,18 +103,7 @@ def _store_inputs(
                 f"images: {image.name} is {image.width}x{image.height} but {first.name} is "
                 f"{first.width}x{first.height}; all images must have the same size"
             )
-    if calibration is not None and K:
-        raise invalid("calibration: give either the calibration file or K, not both")
-    if calibration is not None:
-        text = calibration.file.read(64 * 1024).decode("utf-8", errors="replace")
-        source = sanitize_filename(calibration.filename or CALIBRATION_NAME, "calibration")
-    elif K:
-        text, source = _k_from_numbers(K), "K"
-    else:   # no calibration: the reconstruction takes the focal length from EXIF or a prior, and refines it
-        text = None
-    if text is not None:
-        _parse_k(text, source)
-        inside(folder, CALIBRATION_NAME).write_text(text)
+    _store_calibration(folder, calibration, K)
 
     if features == "matches" and not matches:
         raise invalid("matches: features='matches' needs the matching<i>.txt files")
@@ -137,7 +150,8 @@ def create_reconstruction(
     client: ClientDep,
     executor: ExecutorDep,
     settings: SettingsDep,
-    images: Annotated[list[UploadFile], File(description="The photographs (PNG/JPEG), all of one size.")],
+    images: Annotated[list[UploadFile], File(description="The photographs (PNG/JPEG), all of one size, or "
+                                             "one video (MP4/MOV, MKV/WebM, AVI) whose keyframes are used.")],
     matches: Annotated[
         list[UploadFile] | None,
         File(description="Optional matching<i>.txt files (image ids are the images' numeric names)."),

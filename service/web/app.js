@@ -134,7 +134,7 @@ function listPage(main, page) {
 // ---- #/new : upload -------------------------------------------------------------------------------------
 
 const MATCH_FILE = /^matching\d+\.txt$/i;
-const IMAGE_FILE = /\.(png|jpe?g)$/i;
+const IMAGE_FILE = /\.(png|jpe?g|mp4|mov|m4v|mkv|webm|avi)$/i;  // photos, or one video of the object
 
 function uploadPage(main) {
   const chosen = { images: [], matches: [], calibration: null, zip: null };

@@ -144,3 +144,9 @@ def test_an_image_named_like_a_video_is_refused_as_unsupported(tmp_path):
     (tmp_path / "photo.png").rename(fake)
     with pytest.raises(InputError, match=r"photo\.mp4: .*not a supported video"):
         probe_video(fake)
+
+
+def test_decoding_stops_with_an_error_beyond_the_frame_limit(lego_clip, tmp_path):
+    path, _ = lego_clip
+    with pytest.raises(InputError, match=r"walk\.mp4: more than 20 frames"):
+        extract_keyframes(path, tmp_path / "frames", VideoConfig(max_frames=20))
