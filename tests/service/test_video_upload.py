@@ -3,20 +3,17 @@ a corrupt, unsupported or too large video is refused naming the file and the lim
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from neural import load_dataset
 from service.app import create_app
+from service.runner import output_dir
 from tests.estimation.io.clips import encode_clip, held_views, lego_centres, walk_order
-from tests.service.conftest import make_settings
-from tests.service.test_scenes import wait_for_scene
-
-QUICK_NERF = {"steps": "10", "batch_rays": "256", "orbit_frames": "2",
-              "options": json.dumps({"checkpoint_every": 10, "val_every": 10, "log_every": 5})}
+from tests.service.conftest import make_settings, wait_for_job
 
 
 @pytest.fixture(scope="module")
@@ -30,21 +27,22 @@ def video_file(name: str, content: bytes, media_type: str = "video/mp4") -> list
     return [("images", (name, content, media_type))]
 
 
-@pytest.mark.slow
-def test_a_scene_from_a_video_goes_through_its_keyframes_to_novel_views(client, walk_clip):
-    response = client.post("/v1/scenes", files=video_file("walk.mp4", walk_clip), data=QUICK_NERF)
+def test_a_reconstruction_job_from_a_video_reconstructs_its_keyframes(client, settings, walk_clip):
+    response = client.post("/v1/reconstructions", files=video_file("walk.mp4", walk_clip))
     assert response.status_code == 202, response.text
-    scene = wait_for_scene(client, response.json()["id"])
-    assert scene["state"] == "succeeded", scene
-    reconstruction = client.get(scene["links"]["reconstruction"]).json()
+    job = wait_for_job(client, response.json()["id"])
+    assert job["state"] == "succeeded", client.get(f"/v1/jobs/{job['id']}/logs").json()
+    reconstruction = client.get(f"/v1/reconstructions/{job['id']}").json()
     video = reconstruction["statistics"]["video"]
     assert video["file"] == "walk.mp4" and video["frames_decoded"] == 40
     assert reconstruction["statistics"]["images_total"] == video["keyframes"]
     assert len(reconstruction["cameras"]) == reconstruction["statistics"]["images_registered"] >= 3
-    transforms = client.get(scene["links"]["transforms.json"]).json()
+    transforms = client.get(f"/v1/reconstructions/{job['id']}/transforms.json").json()
     assert all(frame["file_path"].startswith("frames/") for frame in transforms["frames"])
-    # The NeRF trained on the keyframes and rendered the held-out ones.
-    assert scene["held_out"] and all(view["image"].isdigit() for view in scene["held_out"])
+    # What a scene's NeRF stage reads: the keyframes as the dataset's images.
+    dataset = load_dataset(output_dir(settings, job["id"]))
+    assert len(dataset.image_names) == len(reconstruction["cameras"])
+    assert all(name.startswith("frames/") for name in dataset.image_names)
 
 
 @pytest.mark.parametrize(("name", "content", "problem"), [
