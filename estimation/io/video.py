@@ -215,7 +215,9 @@ def blurred_frames(sharpness_values: np.ndarray, window: int, ratio: float) -> n
     """s_t < ratio * median(s_{t-window..t+window}): frames much less sharp than their neighbours (the
     scene's own texture changes slowly, motion blur and focus hunting from one frame to the next)."""
     values = np.asarray(sharpness_values, float)
-    padded = np.pad(values, window, mode="edge")
+    # Mirrored at the ends without repeating the end frame itself (a blurred first frame would otherwise
+    # fill its own window).
+    padded = np.pad(values, window, mode="reflect") if len(values) > window else np.pad(values, window, "edge")
     neighbourhood = np.lib.stride_tricks.sliding_window_view(padded, 2 * window + 1)
     return values < ratio * np.median(neighbourhood, axis=1)
 
