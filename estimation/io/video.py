@@ -217,7 +217,7 @@ def blurred_frames(sharpness_values: np.ndarray, window: int, ratio: float) -> n
     values = np.asarray(sharpness_values, float)
     # Mirrored at the ends without repeating the end frame itself (a blurred first frame would otherwise
     # fill its own window).
-    padded = np.pad(values, window, mode="reflect") if len(values) > window else np.pad(values, window, "edge")
+    padded = np.pad(values, window, mode="reflect" if len(values) > window else "edge")
     neighbourhood = np.lib.stride_tricks.sliding_window_view(padded, 2 * window + 1)
     return values < ratio * np.median(neighbourhood, axis=1)
 
