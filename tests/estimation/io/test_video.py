@@ -75,6 +75,7 @@ def test_sharpness_falls_with_blur_and_a_blurred_frame_among_sharp_ones_is_flagg
     assert sharpness(blurred) < 0.5 * sharpness(texture)
     values = np.array([sharpness(texture)] * 10 + [sharpness(blurred)] + [sharpness(texture)] * 10)
     assert np.flatnonzero(blurred_frames(values, window=5, ratio=0.6)).tolist() == [10]
+    assert np.flatnonzero(blurred_frames(values[10:], window=5, ratio=0.6)).tolist() == [0]   # at the start
     # A scene that gets less textured slowly is not blur.
     assert not blurred_frames(np.linspace(100.0, 50.0, 60), window=5, ratio=0.6).any()
 
