@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from estimation.io.video import VIDEO_SUFFIXES
+from estimation.io.images import VIDEO_SUFFIXES
 from service.settings import ServiceSettings
 from service.uploads import inside, invalid, sanitize_filename, save_stream, too_large
 

@@ -22,11 +22,9 @@ from PIL import ExifTags, Image
 
 from estimation.config import VideoConfig
 from estimation.errors import InputError
-from estimation.io.images import FULL_FRAME_DIAGONAL_MM, MIN_IMAGES
+from estimation.io.images import FULL_FRAME_DIAGONAL_MM, MIN_IMAGES, VIDEO_SUFFIXES
 from estimation.types import ProgressCallback
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv", ".webm", ".avi")
-"""Files with these suffixes (any case) are read as videos."""
 SUPPORTED_CONTAINERS = ("mov,mp4,m4a,3gp,3g2,mj2", "matroska,webm", "avi")
 """FFmpeg demuxer names accepted: MP4/QuickTime (phones), Matroska/WebM and AVI; any other format FFmpeg
 happens to recognise in the bytes (image sequences, playlists, network protocols) is refused."""
