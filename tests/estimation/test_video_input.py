@@ -15,10 +15,8 @@ LEGO_FOCAL_PX = 0.5 * 200 / np.tan(0.5 * 0.6911112070083618)
 
 
 def test_a_short_lego_clip_reconstructs_with_every_keyframe_registered(tmp_path):
-    """80 lego views along a walk, 2 frames each at 10 fps (3 first frames blurred), H.264; with lego's K
-    (the self-calibrated focal length of the same keyframes is tested in tests/estimation/io). Measured:
-    56 keyframes, all registered, mean rotation error 0.55 deg, max 2.8 deg (the keyframes as photos,
-    every pair matched: 0.56 and 2.7)."""
+    """75 lego views along a walk, 2 frames each at 10 fps (3 first frames blurred), H.264; with lego's K
+    (the focal length from the container's metadata is tested in tests/estimation/io)."""
     truth = lego_true_poses()
     names = walk_order({name: pose.center for name, pose in truth.items()}, len(truth))
     frames, sources = held_views(names, hold=2, blur_first_of=(10, 30, 50))
@@ -31,7 +29,7 @@ def test_a_short_lego_clip_reconstructs_with_every_keyframe_registered(tmp_path)
     report = result.report
     video = report["video"]
     assert video["frames_decoded"] == len(frames) and video["blurred_frames"] >= 3
-    assert video["keyframes"] == report["images_total"] >= 27          # 16 s of video: >= 100 per minute
+    assert video["keyframes"] == report["images_total"] >= 25          # 15 s of video: >= 100 per minute
     assert report["images_registered"] == report["images_total"], report["unregistered"]
     names_by_index = result.model.image_names
     registered = sorted(result.model.poses)

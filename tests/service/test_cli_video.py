@@ -17,7 +17,8 @@ def test_reconstruct_takes_a_video_and_reports_its_keyframes(tmp_path):
     assert result.exit_code == 0, result.output
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     keyframes = report["video"]["keyframes"]
-    assert f"video walk.mp4: 40 frames, 0 blurred, {keyframes} keyframes in frames/" in result.output
+    blurred = report["video"]["blurred_frames"]
+    assert f"video walk.mp4: 40 frames, {blurred} blurred, {keyframes} keyframes in frames/" in result.output
     assert "no focal length in the container" in result.output
     assert len(list((tmp_path / "out" / "frames").glob("*.jpg"))) == keyframes == report["images_total"]
     assert f"registered {report['images_registered']}/{keyframes} images" in result.output

@@ -48,16 +48,22 @@ def lego_true_poses() -> dict[str, CameraPose]:
             opengl_c2w_to_opencv_pose(np.array(frame["transform_matrix"])) for frame in frames}
 
 
-def walk_order(centres: dict[str, np.ndarray], count: int) -> list[str]:
-    """`count` view names along a nearest-neighbour walk over the camera centres, from the first name: the
-    order a hand-held camera moving around the object would see them in."""
+def walk_order(centres: dict[str, np.ndarray], count: int, max_step_deg: float = 45.0) -> list[str]:
+    """Up to `count` view names along a nearest-neighbour walk over the camera centres, from the first name:
+    the order a hand-held camera moving around the object would see them in. The walk stops before a step
+    of more than `max_step_deg` around the object (the views a greedy walk leaves for last are far apart:
+    no camera path jumps there)."""
     names = sorted(centres)
     walk = [names[0]]
     left = set(names[1:])
     while left and len(walk) < count:
         here = centres[walk[-1]]
-        walk.append(min(left, key=lambda name: (float(np.linalg.norm(centres[name] - here)), name)))
-        left.remove(walk[-1])
+        nearest = min(left, key=lambda name: (float(np.linalg.norm(centres[name] - here)), name))
+        cosine = here @ centres[nearest] / (np.linalg.norm(here) * np.linalg.norm(centres[nearest]))
+        if np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))) > max_step_deg:
+            break
+        walk.append(nearest)
+        left.remove(nearest)
     return walk
 
 
