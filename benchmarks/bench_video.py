@@ -5,8 +5,8 @@ loop closures) beside the photo reconstruction of the same views and pycolmap on
 The clip: lego_200's train views (composited on white) ordered by a nearest-neighbour walk over their
 camera centres (the order a hand-held camera moving around the object would see them), stopped before its
 first step of more than 45 deg (75 of the 80 views: the greedy walk leaves far-apart views for last),
-each held for --hold frames at --fps (a camera pausing and moving on), the first frame of every third view blurred
-(Gaussian, sigma 2.5: a shaky start), H.264 CRF 18 via PyAV. The rows:
+each held for --hold frames at --fps (a camera pausing and moving on), the first frame of every third view
+blurred (Gaussian, sigma 2.5: a shaky start), H.264 CRF 18 via PyAV. The rows:
 - photos (all views): ours on the walk's views as PNG (every pair matched);
 - photos (keyframe views): ours on the PNG views the keyframes show, the photo reconstruction of the same
   views: "vs photos" compares each row's rotations with it (--reference all-views: with the one above),
