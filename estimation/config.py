@@ -186,6 +186,15 @@ class SiftConfig(StrictConfig):
         10, ge=0, description="When the names are numbered, each image is also matched with its next ones."
     )
     vocabulary_size: int = Field(64, ge=2, description="k-means words of the VLAD vocabulary.")
+    pair_selection: Literal["auto", "video"] = Field(
+        "auto", description="auto: exhaustive up to exhaustive_up_to images, then retrieval + sequence; "
+        "video (frames of one video, numbered in order): each frame with its sequential_neighbours next "
+        "frames, plus loop_closure_neighbours retrieval pairs per frame outside that window.",
+    )
+    loop_closure_neighbours: int = Field(
+        5, ge=0, description="pair_selection video: most similar frames (VLAD) beyond the sequential window "
+        "matched per frame, so that a camera path returning to a place closes its loop.",
+    )
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="Device of the descriptor matching: cpu (numpy) or cuda (torch); auto: CUDA "
         "when an NVIDIA driver is present and torch sees a GPU (torch is not imported without a driver).",
@@ -426,6 +435,53 @@ class CameraConfig(StrictConfig):
     )
 
 
+class VideoConfig(StrictConfig):
+    """A video as input: its frames decoded, the blurred ones dropped and keyframes chosen by how far the
+    view moved since the last keyframe (`estimation.io.video`)."""
+
+    max_side: int = Field(
+        1920, ge=64, description="Keyframes are written with at most this longest side (never upscaled)."
+    )
+    analysis_max_side: int = Field(
+        480, ge=64, description="Sharpness and optical flow are measured on frames downscaled to this side."
+    )
+    tracked_corners: int = Field(
+        400, ge=10, description="Most corners tracked (KLT) from one frame into the next to measure motion."
+    )
+    blur_window: int = Field(
+        15, ge=1, description="A frame's sharpness is compared with the median over this many frames on "
+        "each side (half a second at 30 fps).",
+    )
+    blur_ratio: float = Field(
+        0.6, gt=0, lt=1, description="A frame is blurred, and never a keyframe, when its sharpness (variance "
+        "of the Laplacian) is below this fraction of its neighbours' median.",
+    )
+    keyframe_motion: float = Field(
+        0.05, gt=0, description="A new keyframe once the median optical flow since the last one reaches "
+        "this fraction of the image diagonal ...",
+    )
+    min_overlap: float = Field(
+        0.7, gt=0, lt=1, description="... or once fewer than this share of the tracked corners survived "
+        "since it.",
+    )
+    min_keyframes_per_minute: float = Field(
+        100, gt=0, description="The keyframe spacing shrinks (down to min_spacing_factor of the thresholds) "
+        "until the video gives at least this many keyframes per minute of footage ...",
+    )
+    max_keyframes_per_minute: float = Field(
+        300, gt=0, description="... and grows until it gives at most this many."
+    )
+    min_spacing_factor: float = Field(
+        0.25, gt=0, le=1, description="The spacing never shrinks below this fraction of the thresholds: a "
+        "still camera gives few keyframes, not near-duplicates.",
+    )
+    jpeg_quality: int = Field(95, ge=50, le=100, description="Quality of the keyframes written as JPEG.")
+    max_frames: int = Field(
+        200_000, ge=2, description="Decoding stops with an error beyond this many frames (about 1.9 hours at "
+        "30 fps), whatever the container says of its duration.",
+    )
+
+
 class ReconstructionConfig(StrictConfig):
     """Everything `estimation.reconstruct` needs besides the images folder."""
 
@@ -443,4 +499,5 @@ class ReconstructionConfig(StrictConfig):
     sift: SiftConfig = SiftConfig()
     two_view: TwoViewConfig = TwoViewConfig()
     mapper: MapperConfig = MapperConfig()
+    video: VideoConfig = VideoConfig()
     write_figures: bool = Field(True, description="Write the PNG figures into OUT/figures.")

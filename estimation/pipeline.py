@@ -31,6 +31,7 @@ from estimation.io.images import (
     load_rgb,
 )
 from estimation.io.matchfile import find_match_files, load_match_tracks
+from estimation.io.video import VideoKeyframes, extract_keyframes, is_video
 from estimation.mapper.incremental import ReprojectionSummary, SparseModel, reconstruct_models
 from estimation.types import ProgressCallback, Tracks
 
@@ -44,6 +45,8 @@ PLY_NAME = "points.ply"
 TRANSFORMS_NAME = "transforms.json"
 REPORT_NAME = "report.json"
 FIGURES_DIR = "figures"
+FRAMES_DIR = "frames"
+"""A video's keyframes, as images, under OUT/ (transforms.json points at them there)."""
 FIGURE_NAMES = {
     "initial_pair_matches": "initial_pair_matches.png",
     "triangulation": "triangulation_linear_vs_nonlinear.png",
@@ -390,6 +393,20 @@ def write_figures(out_dir: Path, images: ImageSet, model: SparseModel) -> dict[s
     return written
 
 
+def video_keyframes(path: Path, out_dir: Path, config: ReconstructionConfig,
+                    progress: ProgressCallback | None = None) -> VideoKeyframes | None:
+    """A video file's keyframes written into out_dir/FRAMES_DIR (`estimation.io.video`), or None when `path`
+    is not a video file (a folder of images)."""
+    if not is_video(path):
+        return None
+    return extract_keyframes(path, out_dir / FRAMES_DIR, config.video, progress)
+
+
+def video_config(config: ReconstructionConfig) -> ReconstructionConfig:
+    """`config` for a video's keyframes: pairs along the video plus loop closures (`pair_selection`)."""
+    return config.model_copy(update={"sift": config.sift.model_copy(update={"pair_selection": "video"})})
+
+
 @contextmanager
 def _timed(seconds: dict[str, float], name: str) -> Iterator[None]:
     """Adds the wall-clock seconds of the block to seconds[name]."""
@@ -404,13 +421,17 @@ def reconstruct(
     config: ReconstructionConfig = ReconstructionConfig(),
     progress: ProgressCallback | None = None,
 ) -> ReconstructionResult:
-    """Structure from Motion of a folder of images; writes sparse/, points.ply, transforms.json,
-    report.json and figures/ into out_dir. InputError (naming file, line or reason) on bad input."""
+    """Structure from Motion of a folder of images, or of a video's keyframes (`video_keyframes`); writes
+    sparse/, points.ply, transforms.json, report.json and figures/ into out_dir. InputError (naming file,
+    line or reason) on bad input."""
     images_dir, out_dir = Path(images_dir), Path(out_dir)
     seconds: dict[str, float] = {}
     report_input = _scaled(progress, 0.0, PROGRESS_INPUT_END)
     report_input("loading images", 0.0)
     with _timed(seconds, "input"):
+        video = video_keyframes(images_dir, out_dir, config, report_input)
+        if video is not None:
+            images_dir, config = video.folder, video_config(config)
         images = list_images(images_dir)
         initial = initial_intrinsics(images, find_calibration(images_dir, config.calibration), config.camera,
                                      find_distortion(images_dir, config.calibration))
@@ -450,6 +471,8 @@ def reconstruct(
         with _timed(seconds, "figures"):
             outputs.update(write_figures(out_dir, images, model))
     report = build_report(images, initial, features, model, seconds, models)
+    if video is not None:
+        report["video"] = video.summary()
     report["outputs"] = {name: os.path.relpath(path, out_dir) for name, path in outputs.items()}
     write_json(out_dir / REPORT_NAME, report)
     report_output("finished", 1.0)

@@ -27,6 +27,7 @@ from service.settings import ServiceSettings
 from service.store.job_store import JobStore
 from service.store.tables import Job
 from service.uploads import without_server_paths
+from service.video_uploads import input_video
 
 PROGRESS_WRITE_INTERVAL_SECONDS = 0.5
 """Progress of one stage is written at most this often (a NeRF step loop calls back every step)."""
@@ -126,7 +127,8 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
     if config.sift.workers == 0:      # "all cores": this job's share of them, beside the other jobs
         config.sift.workers = context.settings.threads_per_job()
     shutil.rmtree(context.output_dir, ignore_errors=True)  # a re-run starts from scratch
-    result = reconstruct(context.input_dir, context.output_dir, config, progress=context.progress)
+    images = input_video(context.input_dir) or context.input_dir
+    result = reconstruct(images, context.output_dir, config, progress=context.progress)
     model = result.model
     return {
         "registered_images": len(model.poses),

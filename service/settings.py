@@ -51,6 +51,15 @@ class ServiceSettings(BaseSettings):
     max_images: int = Field(500, ge=2, description="Most images in one reconstruction upload.")
     max_image_pixels: int = Field(40_000_000, ge=1, description="Most pixels (width x height) of one image.")
     max_zip_entries: int = Field(5000, ge=1, description="Most files in an uploaded dataset zip.")
+    max_input_video_bytes: int = Field(
+        400 * 2**20, ge=1, description="Largest video uploaded in place of photos, bytes."
+    )
+    max_input_video_seconds: float = Field(
+        300.0, gt=0, description="Longest video uploaded in place of photos, seconds."
+    )
+    max_input_video_pixels: int = Field(
+        3840 * 2160, ge=1, description="Most pixels (width x height) of a frame of an uploaded video."
+    )
     max_zip_uncompressed_bytes: int = Field(
         2 * 2**30, ge=1, description="Largest total uncompressed size of an uploaded dataset zip, bytes."
     )
@@ -186,6 +195,9 @@ class ServiceSettings(BaseSettings):
             "max_json_bytes": self.max_json_bytes,
             "max_render_pixels": self.max_render_pixels,
             "max_video_pixels": self.max_video_pixels,
+            "max_input_video_bytes": self.max_input_video_bytes,
+            "max_input_video_seconds": self.max_input_video_seconds,
+            "max_input_video_pixels": self.max_input_video_pixels,
         }
 
     def max_runtime_seconds(self, kind: str) -> float:

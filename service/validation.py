@@ -27,6 +27,7 @@ import numpy as np
 
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 from service.uploads import UploadRejected, decode_image, invalid, too_large, without_server_paths
+from service.video_uploads import check_input_video
 
 log = logging.getLogger(__name__)
 NPZ_MEMBER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}\.npy$")
@@ -138,6 +139,7 @@ def _check_reconstruction_inputs(arguments: dict[str, Any], settings: ServiceSet
 CHECKS: dict[str, Callable[[dict[str, Any], ServiceSettings], None]] = {
     "dataset": _check_dataset,
     "reconstruction_inputs": _check_reconstruction_inputs,
+    "input_video": check_input_video,
 }
 
 

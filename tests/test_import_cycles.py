@@ -16,7 +16,7 @@ SERVICE_FLOORS = [
         ["kinds", "errors", "settings", "layout", "params", "pipeline", "auth", "openapi", "celery_config"],
     ),
     ("store", ["store", "schemas"]),
-    ("checks and housekeeping", ["uploads", "validation", "webhooks", "housekeeping"]),
+    ("checks and housekeeping", ["uploads", "video_uploads", "validation", "webhooks", "housekeeping"]),
     ("how a job ends", ["job_end"]),
     ("running jobs", ["runner", "executor", "worker", "celery_app", "renders"]),
     ("actions", ["actions", "deps"]),

@@ -87,9 +87,41 @@ def retrieval_pairs(global_descriptors: np.ndarray, neighbours: int) -> set[tupl
     return {(min(i, int(j)), max(i, int(j))) for i in range(len(similarity)) for j in nearest[i]}
 
 
+def loop_closure_pairs(global_descriptors: np.ndarray, order: list[int], window: int, neighbours: int
+                       ) -> set[tuple[int, int]]:
+    """Each image with its `neighbours` most similar images (dot product of global descriptors) among those
+    more than `window` places away along `order`: the pairs a sequence's window misses when it returns."""
+    position = np.empty(len(order), int)
+    position[order] = np.arange(len(order))
+    similarity = global_descriptors @ global_descriptors.T
+    similarity[np.abs(position[:, None] - position[None, :]) <= window] = -np.inf
+    pairs: set[tuple[int, int]] = set()
+    for i, row in enumerate(similarity):
+        for j in np.argsort(-row)[:neighbours]:
+            if np.isfinite(row[j]):
+                pairs.add((min(i, int(j)), max(i, int(j))))
+    return pairs
+
+
+def video_pairs(names: list[str], descriptors: list[np.ndarray], config: SiftConfig
+                ) -> set[tuple[int, int]]:
+    """Frames of one video, numbered in order: each with its `sequential_neighbours` next frames, plus its
+    `loop_closure_neighbours` most similar frames (VLAD) beyond that window."""
+    order = sequence_order(names) or list(range(len(names)))
+    pairs = sequential_pairs(order, config.sequential_neighbours)
+    if config.loop_closure_neighbours and len(names) > config.sequential_neighbours + 1:
+        vocabulary = train_vocabulary(descriptors, config.vocabulary_size)
+        pairs |= loop_closure_pairs(np.stack([vlad(d, vocabulary) for d in descriptors]), order,
+                                    config.sequential_neighbours, config.loop_closure_neighbours)
+    return pairs
+
+
 def candidate_pairs(names: list[str], descriptors: list[np.ndarray], config: SiftConfig
                     ) -> list[tuple[int, int]]:
-    """All pairs up to `exhaustive_up_to` images; beyond, retrieval neighbours plus sequence neighbours."""
+    """All pairs up to `exhaustive_up_to` images; beyond, retrieval neighbours plus sequence neighbours.
+    The frames of a video (`pair_selection` video): `video_pairs`."""
+    if config.pair_selection == "video":
+        return sorted(video_pairs(names, descriptors, config))
     if len(names) <= config.exhaustive_up_to:
         return exhaustive_pairs(len(names))
     vocabulary = train_vocabulary(descriptors, config.vocabulary_size)

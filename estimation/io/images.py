@@ -21,6 +21,8 @@ from estimation.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 """Files with these suffixes (any case) are images; everything else in the folder is ignored."""
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv", ".webm", ".avi")
+"""Files with these suffixes (any case) are read as videos (`estimation.io.video`)."""
 CALIBRATION_FILE_NAME = "calibration.txt"
 DISTORTION_FILE_NAME = "distortion.json"
 """Written by `sfmnerf calibrate` next to calibration.txt; read with it (the OPENCV model, held fixed)."""

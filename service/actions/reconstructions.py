@@ -20,6 +20,7 @@ from service.store.job_store import JobStore
 from service.store.tables import Job, new_job_id
 from service.uploads import inside, invalid, removed_on_failure, sanitize_filename, save_images, save_stream
 from service.validation import check_isolated
+from service.video_uploads import is_video_upload, save_video
 
 MATCH_NAME = re.compile(r"^matching(\d+)\.txt$")
 CALIBRATION_NAME = "calibration.txt"
@@ -35,6 +36,7 @@ class InputFile:
 
     filename: str | None
     file: BinaryIO
+    content_type: str | None = None
 
 
 @dataclass
@@ -69,9 +71,40 @@ def _k_from_numbers(numbers: str) -> str:
     return "\n".join(" ".join(tokens[row * 3 : row * 3 + 3]) for row in range(3)) + "\n"
 
 
-def _store_inputs(folder: Path, settings: ServiceSettings, inputs: ReconstructionInputs) -> tuple[int, int]:
+def _store_calibration(folder: Path, calibration: InputFile | None, K: str | None) -> None:
+    """calibration.txt from the file or the 9 numbers of K, checked; none when neither is given."""
+    if calibration is not None and K:
+        raise invalid("calibration: give either the calibration file or K, not both")
+    if calibration is not None:
+        text = calibration.file.read(CALIBRATION_READ_BYTES).decode("utf-8", errors="replace")
+        source = sanitize_filename(calibration.filename or CALIBRATION_NAME, "calibration")
+    elif K:
+        text, source = _k_from_numbers(K), "K"
+    else:   # no calibration: the reconstruction takes the focal length from EXIF or a prior, and refines it
+        return
+    _parse_k(text, source)
+    inside(folder, CALIBRATION_NAME).write_text(text)
+
+
+def _store_video(folder: Path, settings: ServiceSettings, inputs: ReconstructionInputs) -> None:
+    """Saves the one uploaded video and probes it in the validation process; UploadRejected when refused."""
+    if inputs.matches:
+        raise invalid("matches: match files go with photos, not with a video")
+    video = save_video(inputs.images, folder, settings)
+    check_isolated("input_video", {"field": "images", "path": str(folder / video.name), "name": video.name},
+                   settings)
+    _store_calibration(folder, inputs.calibration, inputs.K)
+
+
+def _store_inputs(
+    folder: Path, settings: ServiceSettings, inputs: ReconstructionInputs
+) -> tuple[int, int] | None:
     """Saves and checks everything the reconstruction reads; UploadRejected on the first problem.
-    Returns the photos' (width, height)."""
+    Returns the photos' (width, height); None for a video, whose keyframes' size is known only once the
+    reconstruction has decoded them."""
+    if any(is_video_upload(upload) for upload in inputs.images):
+        _store_video(folder, settings, inputs)
+        return None
     saved = save_images(((f.filename, f.file) for f in inputs.images), folder, settings)
     if len(saved) < 2:
         raise invalid(f"images: {len(saved)} image(s) uploaded, a reconstruction needs at least 2")
@@ -82,19 +115,7 @@ def _store_inputs(folder: Path, settings: ServiceSettings, inputs: Reconstructio
                 f"images: {image.name} is {image.width}x{image.height} but {first.name} is "
                 f"{first.width}x{first.height}; all images must have the same size"
             )
-    calibration, K = inputs.calibration, inputs.K
-    if calibration is not None and K:
-        raise invalid("calibration: give either the calibration file or K, not both")
-    if calibration is not None:
-        text = calibration.file.read(CALIBRATION_READ_BYTES).decode("utf-8", errors="replace")
-        source = sanitize_filename(calibration.filename or CALIBRATION_NAME, "calibration")
-    elif K:
-        text, source = _k_from_numbers(K), "K"
-    else:   # no calibration: the reconstruction takes the focal length from EXIF or a prior, and refines it
-        text = None
-    if text is not None:
-        _parse_k(text, source)
-        inside(folder, CALIBRATION_NAME).write_text(text)
+    _store_calibration(folder, inputs.calibration, inputs.K)
 
     if inputs.features == "matches" and not inputs.matches:
         raise invalid("matches: features='matches' needs the matching<i>.txt files")
@@ -143,9 +164,9 @@ def create_reconstruction(
     folder = input_dir(settings, job_id)
     with removed_on_failure(job_dir(settings, job_id)):
         folder.mkdir(parents=True)
-        width, height = _store_inputs(folder, settings, inputs)
-        if check_image_size is not None:
-            check_image_size(width, height)
+        size = _store_inputs(folder, settings, inputs)
+        if check_image_size is not None and size is not None:
+            check_image_size(*size)
         config = ReconstructionConfig(features=inputs.features).model_dump(mode="json")
         if inputs.ransac_threshold_px is not None:
             config["ransac"]["threshold_px"] = inputs.ransac_threshold_px

@@ -1,4 +1,5 @@
-"""`sfmnerf reconstruct IMAGES_DIR --out OUT`: Structure from Motion through `estimation.reconstruct`."""
+"""`sfmnerf reconstruct IMAGES_DIR --out OUT` (or a video file instead of IMAGES_DIR): Structure from
+Motion through `estimation.reconstruct`."""
 
 from __future__ import annotations
 
@@ -80,7 +81,9 @@ class StageProgressBars:
 def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, features: str, relative_pose: str,
                 estimator: str, camera_model: str, single_camera: bool, refine_principal_point: bool | None,
                 all_models: bool, workers: int) -> None:
-    """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR."""
+    """Recover cameras and a coloured point cloud from the photographs in IMAGES_DIR, or from the
+    keyframes of a video (IMAGES_DIR a .mp4/.mov/.mkv/.webm/.avi file: sharp frames chosen as the view
+    moves, written to OUT/frames/)."""
     from estimation import InputError, ReconstructionConfig
     from estimation import reconstruct as run_reconstruction
     from estimation.config import CameraConfig, TwoViewConfig
@@ -99,6 +102,8 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
         raise click.ClickException(f"cannot write the outputs: {error}") from None
 
     report = result.report
+    if "video" in report:
+        click.echo(video_line(report["video"]))
     after = report["reprojection_error_px"]["after_ba"]
     click.echo(
         f"registered {report['images_registered']}/{report['images_total']} images, "
@@ -127,3 +132,11 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
         click.echo(f"not registered: {entry['image']} ({entry['reason']})")
     click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "
                f"in {report['seconds_total']:.1f} s")
+
+
+def video_line(video: dict) -> str:
+    """One line on a video input: frames decoded, blurred ones dropped, keyframes and the focal source."""
+    focal = f"focal {video['focal_35mm']:g} mm (35 mm equivalent) from the container" \
+        if video["focal_35mm"] is not None else "no focal length in the container"
+    return (f"video {video['file']}: {video['frames_decoded']} frames, {video['blurred_frames']} blurred, "
+            f"{video['keyframes']} keyframes in {video['frames_folder']}/; {focal}")

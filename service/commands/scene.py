@@ -20,7 +20,7 @@ STAGE_BAR_FORMAT = "{desc:<15} {bar} {n:5.1f}% [{elapsed}]"
 
 
 @click.command()
-@click.argument("photos_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("photos_dir", type=click.Path(exists=True, path_type=Path))
 @click.option(
     "--out",
     "out_dir",
@@ -56,7 +56,8 @@ def scene(
     orbit_frames: int | None,
     max_side: int | None,
 ) -> None:
-    """Reconstruct the photos in PHOTOS_DIR, train a NeRF on the poses, render an orbit and held-out views."""
+    """Reconstruct the photos in PHOTOS_DIR (or a video file's keyframes), train a NeRF on the poses, render
+    an orbit and held-out views."""
     from pydantic import ValidationError
     from tqdm import tqdm
 

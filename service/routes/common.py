@@ -25,8 +25,8 @@ def accepted(response: Response, job: JobOut) -> JobOut:
 
 def input_file(upload: UploadFile | None) -> InputFile | None:
     """A request's file as the actions take it."""
-    return None if upload is None else InputFile(upload.filename, upload.file)
+    return None if upload is None else InputFile(upload.filename, upload.file, upload.content_type)
 
 
 def input_files(uploads: list[UploadFile] | None) -> list[InputFile]:
-    return [InputFile(upload.filename, upload.file) for upload in uploads or []]
+    return [InputFile(upload.filename, upload.file, upload.content_type) for upload in uploads or []]

@@ -40,7 +40,8 @@ def create_reconstruction(
     client: ClientDep,
     executor: ExecutorDep,
     settings: SettingsDep,
-    images: Annotated[list[UploadFile], File(description="The photographs (PNG/JPEG), all of one size.")],
+    images: Annotated[list[UploadFile], File(description="The photographs (PNG/JPEG), all of one size, or "
+                                             "one video (MP4/MOV, MKV/WebM, AVI) whose keyframes are used.")],
     matches: Annotated[
         list[UploadFile] | None,
         File(description="Optional matching<i>.txt files (image ids are the images' numeric names)."),

@@ -187,7 +187,8 @@ def create_scene(
     executor: ExecutorDep,
     settings: SettingsDep,
     images: Annotated[
-        list[UploadFile] | None, File(description="The photographs (PNG/JPEG), all of one size.")
+        list[UploadFile] | None, File(description="The photographs (PNG/JPEG), all of one size, or one "
+                                      "video (MP4/MOV, MKV/WebM, AVI) whose keyframes are used.")
     ] = None,
     photos_zip: Annotated[
         UploadFile | None,

@@ -1,7 +1,7 @@
 // What each dropped file is for the upload form: photos, match files, a calibration file or a zip. Pure.
 
 const MATCH_FILE = /^matching\d+\.txt$/i;
-const IMAGE_FILE = /\.(png|jpe?g)$/i;
+const IMAGE_FILE = /\.(png|jpe?g|mp4|mov|m4v|mkv|webm|avi)$/i;  // photos, or one video of the object
 
 // "matches" | "calibration" | "zip" | "images", or null for a file the service would not take.
 export function fileRole(name) {
