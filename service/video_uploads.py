@@ -79,6 +79,9 @@ def check_input_video(arguments: dict[str, Any], settings: ServiceSettings) -> N
 
 
 def input_video(folder: Path) -> Path | None:
-    """The uploaded video of a job's input folder, or None when it holds photos."""
+    """The uploaded video of a job's input folder, or None when it holds photos (or is missing: the
+    reconstruction then names the missing folder)."""
+    if not Path(folder).is_dir():
+        return None
     videos = sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
     return videos[0] if videos else None

@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 
-from estimation.pipeline import initial_intrinsics
 from estimation.config import CameraConfig, VideoConfig
 from estimation.errors import InputError
 from estimation.io.images import exif_focal, list_images
@@ -23,6 +22,7 @@ from estimation.io.video import (
     select_keyframes,
     sharpness,
 )
+from estimation.pipeline import initial_intrinsics
 from tests.estimation.io.clips import encode_clip, held_views, lego_centres, walk_order
 
 FOCAL_KEY = "com.apple.quicktime.camera.focal_length.35mm_equivalent"
