@@ -326,23 +326,85 @@ def write_ply(path: Path, points: np.ndarray, colors: np.ndarray, binary: bool =
             ).encode("ascii"))
 
 
+PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+"""PLY scalar property types -> numpy type codes."""
+
+
+def read_ply_vertices(path: Path) -> np.ndarray:
+    """The vertex table (a structured array, one field per property) of an ASCII or binary little-endian PLY
+    file, any scalar properties (not only `write_ply`'s); InputError naming the file if it cannot be read."""
+    path = Path(path)
+    raw = path.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise InputError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    body = raw[raw.index(b"\n", end) + 1:] if b"\n" in raw[end:] else b""
+    fmt, count, properties, in_vertex = "", 0, [], False
+    for line in header:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                count = int(words[2])
+        elif words[0] == "property" and in_vertex:
+            if words[1] == "list":
+                raise InputError(f"{path}: list properties on vertices are not supported")
+            if words[1] not in PLY_TYPES:
+                raise InputError(f"{path}: unknown PLY property type {words[1]!r}")
+            properties.append((words[2], PLY_TYPES[words[1]]))
+    dtype = np.dtype([(name, "<" + code) for name, code in properties])
+    if fmt == "ascii":
+        rows = body.decode("ascii", errors="replace").split("\n")[:count]
+        try:
+            values = [tuple(float(v) for v in row.split()[: len(properties)]) for row in rows]
+        except ValueError as error:
+            raise InputError(f"{path}: bad vertex row ({error})") from None
+        if len(values) != count or any(len(row) != len(properties) for row in values):
+            raise InputError(f"{path}: expected {count} vertex rows of {len(properties)} values")
+        return np.array(values, dtype=dtype)
+    if fmt == "binary_little_endian":
+        if len(body) < count * dtype.itemsize:
+            raise InputError(f"{path}: file ends before its {count} vertices")
+        return np.frombuffer(body, dtype=dtype, count=count)
+    raise InputError(f"{path}: unsupported PLY format {fmt!r} (ascii or binary_little_endian)")
+
+
+def read_ply_points(path: Path) -> np.ndarray:
+    """x, y, z of the vertices of a PLY file (`read_ply_vertices`); (P,3) float64."""
+    vertices = read_ply_vertices(path)
+    if not {"x", "y", "z"} <= set(vertices.dtype.names or ()):
+        raise InputError(f"{path}: vertex element lacks x, y, z properties")
+    return np.stack([vertices[axis].astype(np.float64) for axis in "xyz"], axis=1).reshape(-1, 3)
+
+
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(points (N, 3) float, colors (N, 3) uint8) of a PLY written by `write_ply`."""
-    data = Path(path).read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise InputError(f"{path}: not a PLY file")
-    header = data[:end].decode("ascii").splitlines()
-    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    body = data[end + len(b"end_header\n"):]
-    if "format binary_little_endian 1.0" in header:
-        vertices = np.frombuffer(body, dtype=PLY_PROPERTIES, count=count)
-        points = np.stack([vertices[name] for name in "xyz"], axis=1).astype(float)
-        colors = np.stack([vertices[name] for name in ("red", "green", "blue")], axis=1)
-    else:
-        values = np.array(body.decode("ascii").split(), float).reshape(count, 6)
-        points, colors = values[:, :3], values[:, 3:].astype(np.uint8)
-    return points, colors
+    """(points (N, 3) float, colors (N, 3) uint8) of a coloured PLY such as `write_ply` writes."""
+    vertices = read_ply_vertices(path)
+    channels = ("red", "green", "blue")
+    if not set(channels) <= set(vertices.dtype.names or ()):
+        raise InputError(f"{path}: vertex element lacks red, green, blue properties")
+    colors = np.stack([vertices[name] for name in channels], axis=1).astype(np.uint8).reshape(-1, 3)
+    return read_ply_points(path), colors
+
+
+def read_colmap_points(path: Path) -> np.ndarray:
+    """X, Y, Z columns of COLMAP's points3D.txt (POINT3D_ID X Y Z R G B ERROR TRACK...); (P,3)."""
+    points = []
+    for line_number, line in _data_lines(Path(path)):
+        words = line.split()
+        if len(words) < 4:
+            raise InputError(f"{path}, line {line_number}: expected 'POINT3D_ID X Y Z ...'")
+        points.append(_parse_numbers(Path(path), line_number, words[1:4]))
+    return np.array(points, dtype=np.float64).reshape(-1, 3)
 
 
 # --- transforms.json ------------------------------------------------------------------------------
