@@ -180,6 +180,14 @@ class BundleAdjustmentResult:
         return huber_cost(self.final_residuals, config.huber_threshold_px, config.measurement_sigma_px)
 
 
+def along_ray_sigmas(points: np.ndarray, centres: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """sigma_o = sqrt(r_o^T Sigma_o r_o), r_o = (X_o - C_o) / ||X_o - C_o||: each point's std-dev along its
+    ray from a camera centre; points, centres (O, 3), covariances (O, 3, 3) -> (O,)."""
+    rays = np.asarray(points, float) - np.asarray(centres, float)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    return np.sqrt(np.einsum("oi,oij,oj->o", rays, covariances, rays))
+
+
 def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
     """World-to-camera (R, t) -> GTSAM's pose of the camera in the world (camera-to-world): (R^T, C)."""
     return gtsam.Pose3(gtsam.Rot3(pose.R.T), pose.center)

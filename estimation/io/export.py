@@ -5,6 +5,8 @@
   quaternion (qw qx qy qz) and translation per image, named by file name, point tracks and errors.
 - PLY point cloud with colours (binary little-endian or ASCII).
 - `transforms.json` in the nerfstudio / instant-ngp convention: camera-to-world in OpenGL axes.
+- `depths.npz`: every observed point with its uncertainty along each viewing ray (`write_depths`), the
+  depth supervision a radiance field trains with.
 
 Conventions crossed here, once:
 - Poses: `estimation` keeps world-to-camera (R, t) in OpenCV axes (x right, y down, z forward);
@@ -405,6 +407,76 @@ def read_colmap_points(path: Path) -> np.ndarray:
             raise InputError(f"{path}, line {line_number}: expected 'POINT3D_ID X Y Z ...'")
         points.append(_parse_numbers(Path(path), line_number, words[1:4]))
     return np.array(points, dtype=np.float64).reshape(-1, 3)
+
+
+# --- depths.npz -----------------------------------------------------------------------------------
+
+DEPTHS_NAME = "depths.npz"
+DEPTH_FIELDS = ("file_paths", "frame", "point", "sigma", "pixel_sigma")
+"""The arrays of a depths file:
+- file_paths (F,) str: the frames' file_path, as and in the order of transforms.json;
+- frame (O,) int: which frame (index into file_paths) observes the point of observation o;
+- point (O, 3) float: that point, in the world frame of transforms.json (its poses' units);
+- sigma (O,) float > 0: the point's std-dev along that frame's viewing ray, same units:
+  sqrt(r^T Sigma r), r the unit ray from the camera centre to the point, Sigma the point's marginal
+  covariance from the final bundle adjustment scaled to the measured pixel noise;
+- pixel_sigma () float > 0: that measured per-axis pixel noise."""
+
+
+@dataclass(frozen=True)
+class DepthObservations:
+    """The content of a depths file (`DEPTH_FIELDS`)."""
+
+    file_paths: list[str]
+    frame: np.ndarray
+    point: np.ndarray
+    sigma: np.ndarray
+    pixel_sigma: float
+
+
+def write_depths(path: Path, depths: DepthObservations) -> None:
+    """depths.npz (`DEPTH_FIELDS`), uncompressed; read back by `read_depths`."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as file:
+        np.savez(file, file_paths=np.array(depths.file_paths, dtype=str),
+                 frame=np.asarray(depths.frame, np.int64), point=np.asarray(depths.point, np.float64),
+                 sigma=np.asarray(depths.sigma, np.float64), pixel_sigma=np.float64(depths.pixel_sigma))
+
+
+def read_depths(path: Path) -> DepthObservations:
+    """A depths file, checked: InputError naming the file and the field that is missing, misshapen,
+    out of range, not finite, or (sigma, pixel_sigma) not positive."""
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as error:
+        raise InputError(f"{path}: not a depths file ({error})") from None
+    with archive:
+        missing = [name for name in DEPTH_FIELDS if name not in archive.files]
+        if missing:
+            raise InputError(f"{path}: missing field {missing[0]!r}")
+        arrays = {name: archive[name] for name in DEPTH_FIELDS}
+    file_paths, frame, point = arrays["file_paths"], arrays["frame"], arrays["point"]
+    sigma, pixel_sigma = arrays["sigma"], arrays["pixel_sigma"]
+    count = len(frame) if frame.ndim == 1 else -1
+    expected = {"file_paths": (file_paths.ndim == 1 and file_paths.dtype.kind == "U", "(F,) strings"),
+                "frame": (frame.ndim == 1 and frame.dtype.kind in "iu", "(O,) integers"),
+                "point": (point.shape == (count, 3) and point.dtype.kind == "f", "(O, 3) floats"),
+                "sigma": (sigma.shape == (count,) and sigma.dtype.kind == "f", "(O,) floats"),
+                "pixel_sigma": (pixel_sigma.shape == () and pixel_sigma.dtype.kind == "f", "one float")}
+    for name, (ok, shape) in expected.items():
+        if not ok:
+            raise InputError(f"{path}: field {name!r} must be {shape}, got {arrays[name].dtype} "
+                             f"{arrays[name].shape}")
+    if len(frame) and (frame.min() < 0 or frame.max() >= len(file_paths)):
+        raise InputError(f"{path}: field 'frame' refers to frames outside 0..{len(file_paths) - 1}")
+    for name in ("point", "sigma", "pixel_sigma"):
+        if not np.all(np.isfinite(arrays[name])):
+            raise InputError(f"{path}: field {name!r} has non-finite values")
+    for name in ("sigma", "pixel_sigma"):
+        if not np.all(arrays[name] > 0):
+            raise InputError(f"{path}: field {name!r} must be positive")
+    return DepthObservations(file_paths.tolist(), frame.astype(np.int64), point.astype(np.float64),
+                             sigma.astype(np.float64), float(pixel_sigma))
 
 
 # --- transforms.json ------------------------------------------------------------------------------

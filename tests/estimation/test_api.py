@@ -14,7 +14,7 @@ from estimation import InputError, ReconstructionConfig, reconstruct
 from estimation.api import initial_intrinsics
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import CameraConfig
-from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_ply
+from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_depths, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
 from estimation.synthetic import project
 
@@ -257,3 +257,20 @@ def test_the_distortion_json_of_sfmnerf_calibrate_comes_with_its_calibration_and
     (folder / "distortion.json").write_text("{}")
     with pytest.raises(InputError, match=r"distortion.json: expected the distortion.json of `sfmnerf"):
         find_distortion(folder)
+
+
+def test_the_depths_file_holds_every_observation_with_its_sigma_along_the_ray(unity):
+    result, _ = unity
+    depths = read_depths(result.out_dir / "depths.npz")
+    transforms = json.loads((result.out_dir / "transforms.json").read_text())
+    assert depths.file_paths == [frame["file_path"] for frame in transforms["frames"]]
+    model = result.model
+    assert len(depths.frame) == len(model.obs_point)
+    np.testing.assert_allclose(depths.point, model.points[model.obs_point])
+    # Well-triangulated points of an 800 px capture: millimetres to centimetres of a scene metres across.
+    scene_size = np.ptp(model.points, axis=0).max()
+    assert 0 < np.median(depths.sigma) < 0.01 * scene_size
+    # The per-axis noise: the residuals' RMS per axis, enlarged by the degrees of freedom the BA fitted.
+    rms = result.report["reprojection_error_px"]["after_ba"]["rms"]
+    residuals, free = 2 * len(model.obs_point), 6 * len(model.poses) + 3 * len(model.points) - 7
+    assert depths.pixel_sigma == pytest.approx(rms * np.sqrt(residuals / 2 / (residuals - free)), rel=0.02)
