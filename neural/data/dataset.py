@@ -17,6 +17,29 @@ from neural.scene import SceneInfo, SceneNormalization
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 
 
+@dataclass(frozen=True)
+class DepthRays:
+    """Rays of training photos with a known termination distance (a reconstruction's observed points).
+
+    Pixel (u, v) as `neural.rays` indexes it (its centre at u + 1/2), continuous; distance along the unit
+    ray from the camera centre and its std-dev, scene frame.
+    """
+
+    image: np.ndarray  # (O,) index into the dataset's images
+    u: np.ndarray  # (O,)
+    v: np.ndarray  # (O,)
+    distance: np.ndarray  # (O,)
+    sigma: np.ndarray  # (O,)
+
+    def of_images(self, indices: np.ndarray) -> DepthRays:
+        """The rays of these images only, their image index renumbered to the position in `indices`."""
+        position = np.full(int(max(self.image.max(initial=0), np.max(indices, initial=0))) + 1, -1)
+        position[indices] = np.arange(len(indices))
+        keep = position[self.image] >= 0
+        return DepthRays(position[self.image[keep]], self.u[keep], self.v[keep], self.distance[keep],
+                         self.sigma[keep])
+
+
 @dataclass
 class Dataset:
     """Posed images of one scene with their split indices and scene bounds."""
@@ -33,6 +56,7 @@ class Dataset:
     source: Path
     white_background: bool = True
     normalization: SceneNormalization = field(default_factory=SceneNormalization)
+    depth_rays: DepthRays | None = None  # a reconstruction's depths.npz, if it has one
 
     @property
     def height(self) -> int:

@@ -12,6 +12,7 @@ from estimation.errors import InputError
 from estimation.io.export import read_colmap_points, read_ply_points
 from neural.data.bounds import near_far_from_points, normalization_from_points
 from neural.data.dataset import SPLITS, Dataset
+from neural.data.depths import load_depth_rays
 from neural.data.files import check_rigid_pose, image_path, read_json, require
 from neural.data.images import ImageLoading
 from neural.errors import DatasetError
@@ -86,6 +87,9 @@ def load_reconstruction(
         images = [resample_to(image, camera, target)
                   for image, camera in zip(images, photo_cameras, strict=True)]
     fx, fy, cx, cy = to_nerfstudio_intrinsics(target)
+    depth_rays = load_depth_rays(
+        root, names, scene_poses, normalization, (fx, fy, cx, cy), (loaded_width, loaded_height)
+    )
     return Dataset(
         images=np.stack(images),
         poses=scene_poses.astype(np.float32),
@@ -99,6 +103,7 @@ def load_reconstruction(
         source=root,
         white_background=loading.white_background,
         normalization=normalization,
+        depth_rays=depth_rays,
     )
 
 
