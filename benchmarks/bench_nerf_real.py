@@ -5,6 +5,9 @@ Configurations (both the fast model with its default settings otherwise):
 - `unbounded`: what `sfmnerf nerf train` chooses for reconstructions: contracted unbounded scene, random
   background during training (renders on black);
 - `box`: the configuration before it: the sparse points' box with a white background.
+Both train the depth loss on the reconstruction's depths.npz (the default for reconstructions); the ablation
+of it is `--variant 'constant={"depth_uncertainty": "constant"}' --variant 'no-depth={"depth_supervision":
+false}'`.
 
 Each scene is reconstructed once with SIFT and its calibration.txt (`sfmnerf reconstruct`, full-size
 images: the command has no image-size option), into OUT/sfm/SCENE (kept and reused on a second run). Each
@@ -44,6 +47,8 @@ CONFIGURATIONS: dict[str, dict] = {
     "box": {"unbounded": False, "background": "white"},
 }
 RENDER_SIZE = (800, 600)
+#: `sfmnerf` of this checkout (the installed script may import another one).
+CLI = "import sys; from service.cli import main; sys.argv[0] = 'sfmnerf'; main()"
 
 
 def reconstruct(scene: str, out: Path) -> dict:
@@ -52,7 +57,8 @@ def reconstruct(scene: str, out: Path) -> dict:
     seconds = None
     if not (folder / "transforms.json").is_file():
         start = time.perf_counter()
-        command = ["sfmnerf", "reconstruct", str(STRECHA / scene), "--out", str(folder), "--features", "sift"]
+        command = [sys.executable, "-c", CLI, "reconstruct", str(STRECHA / scene), "--out", str(folder),
+                   "--features", "sift"]  # fmt: skip
         subprocess.run(command, check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
         seconds = time.perf_counter() - start
     report = json.loads((folder / "report.json").read_text())
@@ -129,6 +135,7 @@ def run_one(
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "peak_cuda_mib": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
         "train_config": stored["train"],
+        "depth_supervision": stored.get("depth_supervision"),
         "scene_info": stored["scene"],
         "load_average_before": load_before,
         "load_average_after_training": load_after,
@@ -156,7 +163,10 @@ def print_table(sfm: list[dict], results: list[dict]) -> None:
     print()
     for r in results:
         images = ", ".join(f"{m['name']} {m['psnr']:.2f} dB" for m in r["per_image"])
-        print(f"{r['scene']} {r['configuration']}: held-out {images}; {r['num_train_images']} train images")
+        depth = r.get("depth_supervision") or {}
+        depth_note = f"depth on {depth.get('rays')} rays" if depth.get("used") else "no depth"
+        print(f"{r['scene']} {r['configuration']}: held-out {images}; {r['num_train_images']} train images; "
+              f"{depth_note}")
 
 
 def main() -> None:

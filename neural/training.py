@@ -6,6 +6,7 @@ Orchestration only; the math lives in rays / sampling / rendering and the models
 from __future__ import annotations
 
 import json
+import logging
 import math
 import random
 import time
@@ -42,12 +43,17 @@ from neural.inference import (
     to_uint8,
 )
 from neural.models import RadianceModel, build_model, model_classes
-from neural.rays import pixel_rays
+from neural.rays import Rays, pixel_rays
+from neural.rendering import packed_depth_loss
 
 ProgressCallback = Callable[[str, float], None]
 MetricsCallback = Callable[[dict[str, Any]], None]
 METRICS_FILE = "metrics.jsonl"
 StopReason = Literal["steps", "minutes", "stop_requested"]
+#: Fewer depth rays in the training photos than this: too few points to supervise depth; trained without.
+MIN_DEPTH_RAYS = 100
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -94,6 +100,63 @@ class RayBatchSampler:
         v = v0 + torch.randint(crop_h, (num_rays,), generator=generator, device=self.device)
         rays = pixel_rays(self.poses[image], u, v, *self.intrinsics)
         return rays.origins, rays.directions, self.images[image, v, u]
+
+
+class DepthRaySampler:
+    """Random rays of the training photos with a known termination distance and its std-dev:
+    sigma = sqrt(s^2 + depth_min_sigma^2), s each point's own (covariance) or their median (constant)."""
+
+    def __init__(
+        self, dataset: Dataset, indices: np.ndarray, config: TrainConfig, device: torch.device
+    ) -> None:
+        assert dataset.depth_rays is not None
+        rays = dataset.depth_rays.of_images(indices)
+        self.poses = torch.as_tensor(dataset.poses[indices], device=device)
+        self.image = torch.as_tensor(rays.image, device=device)
+        self.u = torch.as_tensor(rays.u, dtype=self.poses.dtype, device=device)
+        self.v = torch.as_tensor(rays.v, dtype=self.poses.dtype, device=device)
+        self.distance = torch.as_tensor(rays.distance, dtype=self.poses.dtype, device=device)
+        self.median_sigma = float(np.median(rays.sigma)) if len(rays.sigma) else None
+        own = rays.sigma
+        if config.depth_uncertainty == "constant":
+            own = np.full_like(rays.sigma, self.median_sigma or 0.0)
+        sigma = np.sqrt(own**2 + config.depth_min_sigma**2)
+        self.sigma = torch.as_tensor(sigma, dtype=self.poses.dtype, device=device)
+        self.intrinsics = (dataset.fx, dataset.fy, dataset.cx, dataset.cy)
+
+    def __len__(self) -> int:
+        return int(self.image.shape[0])
+
+    def sample(self, num_rays: int, generator: torch.Generator) -> tuple[Rays, Tensor, Tensor]:
+        """Rays, their known distances and std-devs (R,) of random depth observations."""
+        pick = torch.randint(len(self), (num_rays,), generator=generator, device=self.image.device)
+        image = self.image[pick]
+        rays = pixel_rays(self.poses[image], self.u[pick], self.v[pick], *self.intrinsics)
+        return rays, self.distance[pick], self.sigma[pick]
+
+
+def depth_sampler_for(
+    dataset: Dataset, indices: np.ndarray, config: TrainConfig, model: RadianceModel, device: torch.device
+) -> tuple[DepthRaySampler | None, dict[str, Any]]:
+    """The depth rays a run trains with (None: without) and what config.json records about them."""
+    if not config.depth_supervision:
+        return None, {"used": False, "reason": "off"}
+    reason = None
+    if dataset.depth_rays is None:
+        reason = f"{dataset.source} has no depths file"
+    elif not model.packs_samples:
+        reason = f"model {config.model!r} does not render the per-sample weights the depth loss needs"
+    sampler = None if reason else DepthRaySampler(dataset, indices, config, device)
+    if sampler is not None and len(sampler) < MIN_DEPTH_RAYS:
+        reason = f"too few sparse points: {len(sampler)} depth rays in training photos (< {MIN_DEPTH_RAYS})"
+    if reason:
+        logger.warning("training without depth supervision: %s", reason)
+        return None, {"used": False, "reason": reason}
+    assert sampler is not None
+    record = {"used": True, "rays": len(sampler), "median_sigma": sampler.median_sigma,
+              "uncertainty": config.depth_uncertainty}  # fmt: skip
+    logger.info("depth supervision on %d rays (median sigma %.4g)", len(sampler), sampler.median_sigma)
+    return sampler, record
 
 
 def downscale(image: np.ndarray, factor: int) -> np.ndarray:
@@ -239,7 +302,11 @@ class Trainer:
             self._restore()
         else:
             self.optimizer = build_optimizer(self.model, self.config)
+        self.depth_sampler, depth_record = depth_sampler_for(
+            self.dataset, self.dataset.split("train"), self.config, self.model, self.device
+        )
         run_config = run_config_for(self.config, self.dataset, Path(data).resolve())
+        run_config["depth_supervision"] = depth_record
         if resume:
             check_same_data(read_run_config(run_dir), run_config, run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -333,6 +400,11 @@ class Trainer:
         lr = set_learning_rate(self.optimizer, learning_rate_factor(self.step, config))
         crop = config.precrop_fraction if self.step < config.precrop_steps else None
         origins, directions, target = self.sampler.sample(config.batch_rays, self.generator, crop)
+        num_colour = origins.shape[0]
+        if self.depth_sampler is not None:  # rendered in the same pass, after the colour rays
+            depth_rays, depth, sigma = self.depth_sampler.sample(config.depth_rays, self.generator)
+            origins = torch.cat([origins, depth_rays.origins.to(origins.dtype)])
+            directions = torch.cat([directions, depth_rays.directions.to(directions.dtype)])
         background = self.background
         if config.background == "random":  # nothing may show through: the scene must be opaque
             background = torch.rand(
@@ -342,10 +414,17 @@ class Trainer:
             origins, directions, self.dataset.near, self.dataset.far, background, train=True,
             generator=self.generator,
         )  # fmt: skip
-        mse = torch.mean((out.rgb - target) ** 2)
-        loss = mse + sum((torch.mean((aux - target) ** 2) for aux in out.aux_rgb), torch.zeros_like(mse))
+        mse = torch.mean((out.rgb[:num_colour] - target) ** 2)
+        loss = mse + sum(
+            (torch.mean((aux[:num_colour] - target) ** 2) for aux in out.aux_rgb), torch.zeros_like(mse)
+        )
         if out.extra_loss is not None:
             loss = loss + out.extra_loss
+        if self.depth_sampler is not None:
+            assert out.samples is not None
+            loss = loss + config.depth_weight * packed_depth_loss(
+                out.samples, num_colour, depth.to(mse.dtype), sigma.to(mse.dtype)
+            )
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

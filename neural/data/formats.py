@@ -16,11 +16,12 @@ from neural.errors import DatasetError
 
 DatasetFormat = Literal["blender", "npz", "reconstruction"]
 #: What each format defaults to where TrainConfig leaves it open: synthetic renders sit on a white, bounded
-#: world; photographs have content all around them and no known background.
+#: world; photographs have content all around them and no known background, and a reconstruction knows
+#: the depth of its sparse points.
 FORMAT_DEFAULTS: dict[str, dict[str, Any]] = {
-    "blender": {"background": "white", "unbounded": False},
-    "npz": {"background": "white", "unbounded": False},
-    "reconstruction": {"background": "random", "unbounded": True},
+    "blender": {"background": "white", "unbounded": False, "depth_supervision": False},
+    "npz": {"background": "white", "unbounded": False, "depth_supervision": False},
+    "reconstruction": {"background": "random", "unbounded": True, "depth_supervision": True},
 }
 
 
