@@ -70,6 +70,15 @@ class TrainConfig(BaseModel):
         None, ge=8, description="Train on the images shrunk to at most this many pixels on their longer side."
     )
     downscale: float | None = Field(None, ge=1, description="Train on the images shrunk by this factor.")
+    photo_appearance: bool = Field(
+        False,
+        description="Learn an affine colour transform per training photo (exposure, white balance); "
+        "novel views and held-out photos are rendered with the photos' mean, the identity.",
+    )
+    photo_appearance_weight: float = Field(
+        0.1, ge=0, description="Weight of the transforms' squared distance from the identity."
+    )
+    photo_appearance_lr: float = Field(1e-3, gt=0, description="Adam learning rate of the transforms.")
     depth_supervision: bool | None = Field(
         None,
         description="Add the ray-termination (depth) loss on the rays through the reconstruction's sparse "

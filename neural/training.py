@@ -20,6 +20,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from neural.appearance import PhotoAppearance
 from neural.checkpoints import (
     list_checkpoints,
     load_checkpoint,
@@ -87,8 +88,9 @@ class RayBatchSampler:
 
     def sample(
         self, num_rays: int, generator: torch.Generator, crop_fraction: float | None = None
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """origins (R,3), directions (R,3), target colours (R,3) of random pixels."""
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """origins (R,3), directions (R,3), target colours (R,3) and training-image index (R,) of random
+        pixels."""
         image = torch.randint(self.num_images, (num_rays,), generator=generator, device=self.device)
         if crop_fraction is None:
             u0, v0, crop_w, crop_h = 0, 0, self.width, self.height
@@ -99,7 +101,7 @@ class RayBatchSampler:
         u = u0 + torch.randint(crop_w, (num_rays,), generator=generator, device=self.device)
         v = v0 + torch.randint(crop_h, (num_rays,), generator=generator, device=self.device)
         rays = pixel_rays(self.poses[image], u, v, *self.intrinsics)
-        return rays.origins, rays.directions, self.images[image, v, u]
+        return rays.origins, rays.directions, self.images[image, v, u], image
 
 
 class DepthRaySampler:
@@ -173,8 +175,13 @@ def learning_rate_factor(step: int, config: TrainConfig) -> float:
     return config.lr_decay ** (step / config.lr_decay_steps)
 
 
-def build_optimizer(model: RadianceModel, config: TrainConfig) -> torch.optim.Adam:
+def build_optimizer(
+    model: RadianceModel, config: TrainConfig, appearance: PhotoAppearance | None = None
+) -> torch.optim.Adam:
     groups = model.param_groups(config.lr)
+    if appearance is not None:
+        groups.append({"params": list(appearance.parameters()), "lr": config.photo_appearance_lr,
+                       "name": "appearance"})  # fmt: skip
     for group in groups:
         group["initial_lr"] = group["lr"]
     # The fused kernel: one pass over each parameter instead of a dozen (6x faster on a 2-core CPU for the
@@ -296,12 +303,15 @@ class Trainer:
         self.model = build_model(self.config.model, self.dataset.scene, **self.config.model_options).to(
             self.device
         )
+        self.appearance = None
+        if self.config.photo_appearance:
+            self.appearance = PhotoAppearance(len(self.dataset.split("train"))).to(self.device)
         self.generator = torch.Generator(device=self.device).manual_seed(self.config.seed)
         self.step, self.elapsed_before, self.best_val_psnr, self.last_val_psnr = 0, 0.0, None, None
         if resume:
             self._restore()
         else:
-            self.optimizer = build_optimizer(self.model, self.config)
+            self.optimizer = build_optimizer(self.model, self.config, self.appearance)
         self.depth_sampler, depth_record = depth_sampler_for(
             self.dataset, self.dataset.split("train"), self.config, self.model, self.device
         )
@@ -331,7 +341,9 @@ class Trainer:
             self.device
         )
         load_model_state(self.model, payload["model_state"], path)
-        self.optimizer = build_optimizer(self.model, self.config)
+        if self.appearance is not None:
+            self.appearance.load_state_dict(payload["appearance_state"])
+        self.optimizer = build_optimizer(self.model, self.config, self.appearance)
         try:
             self.optimizer.load_state_dict(payload["optimizer_state"])
         except (ValueError, KeyError) as error:
@@ -396,10 +408,10 @@ class Trainer:
         self.model.train()
         if self.model.on_train_step(self.step):
             # The model replaced its parameters (e.g. upsampled grids): Adam starts afresh for them.
-            self.optimizer = build_optimizer(self.model, config)
+            self.optimizer = build_optimizer(self.model, config, self.appearance)
         lr = set_learning_rate(self.optimizer, learning_rate_factor(self.step, config))
         crop = config.precrop_fraction if self.step < config.precrop_steps else None
-        origins, directions, target = self.sampler.sample(config.batch_rays, self.generator, crop)
+        origins, directions, target, photo = self.sampler.sample(config.batch_rays, self.generator, crop)
         num_colour = origins.shape[0]
         if self.depth_sampler is not None:  # rendered in the same pass, after the colour rays
             depth_rays, depth, sigma = self.depth_sampler.sample(config.depth_rays, self.generator)
@@ -414,10 +426,13 @@ class Trainer:
             origins, directions, self.dataset.near, self.dataset.far, background, train=True,
             generator=self.generator,
         )  # fmt: skip
-        mse = torch.mean((out.rgb[:num_colour] - target) ** 2)
-        loss = mse + sum(
-            (torch.mean((aux[:num_colour] - target) ** 2) for aux in out.aux_rgb), torch.zeros_like(mse)
-        )
+        rgb, aux_rgb = out.rgb[:num_colour], [aux[:num_colour] for aux in out.aux_rgb]
+        if self.appearance is not None:
+            rgb, aux_rgb = self.appearance(rgb, photo), [self.appearance(aux, photo) for aux in aux_rgb]
+        mse = torch.mean((rgb - target) ** 2)
+        loss = mse + sum((torch.mean((aux - target) ** 2) for aux in aux_rgb), torch.zeros_like(mse))
+        if self.appearance is not None:
+            loss = loss + config.photo_appearance_weight * self.appearance.penalty()
         if out.extra_loss is not None:
             loss = loss + out.extra_loss
         if self.depth_sampler is not None:
@@ -476,6 +491,7 @@ class Trainer:
             "model_name": self.config.model,
             "model_config": self.model.config.model_dump(mode="json"),
             "model_state": self.model.state_dict(),
+            **({} if self.appearance is None else {"appearance_state": self.appearance.state_dict()}),
             "optimizer_state": self.optimizer.state_dict(),
             "train_config": self.config.model_dump(mode="json"),
             "scene": self.dataset.scene.to_dict(),

@@ -28,9 +28,10 @@ def read_metrics(run_dir):
     return [json.loads(line) for line in lines]
 
 
-def test_resume_gives_the_same_next_losses_as_an_uninterrupted_run(tiny_npz, tmp_path):
-    train(tiny_npz, tmp_path / "whole", tiny_config(steps=4))
-    train(tiny_npz, tmp_path / "split", tiny_config(steps=2))
+@pytest.mark.parametrize("photo_appearance", [False, True], ids=["field", "field+appearance"])
+def test_resume_gives_the_same_next_losses_as_an_uninterrupted_run(tiny_npz, tmp_path, photo_appearance):
+    train(tiny_npz, tmp_path / "whole", tiny_config(steps=4, photo_appearance=photo_appearance))
+    train(tiny_npz, tmp_path / "split", tiny_config(steps=2, photo_appearance=photo_appearance))
     resumed = train(tiny_npz, tmp_path / "split", TrainConfig(steps=4), resume=True)
     assert resumed.step == 4
     whole = {m["step"]: m["loss"] for m in read_metrics(tmp_path / "whole") if "loss" in m}
@@ -95,9 +96,9 @@ def test_precrop_samples_only_the_central_pixels(tiny_npz):
     def distance_to_centre_colours(colours):
         return torch.cdist(colours, centre, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1).values
 
-    _, _, cropped = sampler.sample(4000, generator, crop_fraction=0.5)
+    _, _, cropped, _ = sampler.sample(4000, generator, crop_fraction=0.5)
     assert distance_to_centre_colours(cropped).max() == 0  # every colour is a centre pixel's
-    _, _, anywhere = sampler.sample(4000, generator)
+    _, _, anywhere, _ = sampler.sample(4000, generator)
     assert distance_to_centre_colours(anywhere).max() > 0.01
 
 
