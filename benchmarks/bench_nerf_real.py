@@ -72,7 +72,8 @@ def reconstruct(scene: str, out: Path) -> dict:
 
 
 def run_one(
-    scene: str, configuration: str, settings: dict, out: Path, budget: dict, max_side: int, device: str
+    scene: str, configuration: str, settings: dict, out: Path, budget: dict, max_side: int, device: str,
+    frame: bool = True,
 ) -> dict:
     """Train, evaluate and time one (scene, configuration); called in the subprocess.
 
@@ -107,16 +108,18 @@ def run_one(
         name = Path(dataset.image_names[index]).stem
         Image.fromarray(to_uint8(dataset.images[index])).save(heldout / f"{name}_truth.png")
 
-    pose = dataset.normalization.pose_to_original(dataset.poses[dataset.split("val")[0]])
-    camera = view_camera(run, *RENDER_SIZE, None, None)
-    with torch.no_grad():
-        render_frame(run, pose, camera)  # warm-up
-        start = time.perf_counter()
-        frame = render_frame(run, pose, camera)
-        if run.device.type == "cuda":
-            torch.cuda.synchronize()
-        render_seconds = time.perf_counter() - start
-    Image.fromarray(to_uint8(frame.rgb)).save(run_dir / "render_800x600.png")
+    render_seconds = float("nan")
+    if frame:
+        pose = dataset.normalization.pose_to_original(dataset.poses[dataset.split("val")[0]])
+        camera = view_camera(run, *RENDER_SIZE, None, None)
+        with torch.no_grad():
+            render_frame(run, pose, camera)  # warm-up
+            start = time.perf_counter()
+            rendered = render_frame(run, pose, camera)
+            if run.device.type == "cuda":
+                torch.cuda.synchronize()
+            render_seconds = time.perf_counter() - start
+        Image.fromarray(to_uint8(rendered.rgb)).save(run_dir / "render_800x600.png")
     stored = json.loads((run_dir / "config.json").read_text())
     return {
         "scene": scene,
@@ -192,6 +195,7 @@ def main() -> None:
         help="train a scene's configurations at the same time, one process each (use --threads 1 on 2 "
         "cores): the same conditions for each, and one scene takes --minutes instead of twice that",
     )
+    parser.add_argument("--no-frame", action="store_true", help="skip the timed 800x600 frame (ablations)")
     parser.add_argument("--single", nargs=2, metavar=("SCENE", "CONFIGURATION"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     configurations = with_variants({name: CONFIGURATIONS[name] for name in args.configurations}, args.variant)
@@ -203,7 +207,8 @@ def main() -> None:
         torch.set_num_threads(args.threads)
         scene, configuration = args.single
         settings = configurations[configuration]
-        result = run_one(scene, configuration, settings, args.out, budget, args.max_side, args.device)
+        result = run_one(scene, configuration, settings, args.out, budget, args.max_side, args.device,
+                         frame=not args.no_frame)
         (args.out / f"result_{scene}_{configuration}.json").write_text(json.dumps(result, indent=2))
         return
 
@@ -224,7 +229,7 @@ def main() -> None:
                 "--out", str(args.out), "--max-side", str(args.max_side), "--threads", str(args.threads),
                 "--device", args.device, "--configurations", *args.configurations,
                 *(["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]),
-                *(f"--variant={spec}" for spec in args.variant),
+                *(f"--variant={spec}" for spec in args.variant), *(["--no-frame"] if args.no_frame else []),
             ]  # fmt: skip
             processes = [
                 subprocess.Popen([sys.executable, __file__, "--single", scene, c, *common], cwd=REPO)
