@@ -122,7 +122,7 @@ class TrainConfig(BaseModel):
 
     def for_data(self, data_defaults: dict[str, Any], model_supports_unbounded: bool) -> TrainConfig:
         """A copy with background / unbounded / depth_supervision filled from the data format's defaults
-        where unset.
+        where unset, and its model options for this model under the user's.
 
         An unbounded scene is the default only for models that render one; asking for it explicitly with
         another model is an error.
@@ -132,6 +132,9 @@ class TrainConfig(BaseModel):
             for name in ("background", "unbounded", "depth_supervision")
             if getattr(self, name) is None
         }
+        model_defaults = data_defaults.get("model_options", {}).get(self.model, {})
+        if model_defaults:
+            filled["model_options"] = {**model_defaults, **self.model_options}
         if "unbounded" in filled:
             filled["unbounded"] = filled["unbounded"] and model_supports_unbounded
         elif self.unbounded and not model_supports_unbounded:

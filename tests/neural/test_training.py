@@ -306,6 +306,8 @@ def test_a_reconstruction_trains_the_depth_loss_and_without_enough_points_says_w
     train(tmp_path / "sfm", tmp_path / "run", config)
     stored = json.loads((tmp_path / "run/config.json").read_text())
     assert stored["train"]["depth_supervision"] is True
+    # the photos' total variation under the user's own model options
+    assert stored["train"]["model_options"] == {**grids, "tv_density_weight": 1e-4, "tv_color_weight": 1e-3}
     depth = stored["depth_supervision"]
     assert depth["used"] is True and depth["rays"] > 100 and depth["uncertainty"] == "covariance"
     assert depth["median_sigma"] == pytest.approx(0.05 * stored["normalization"]["scale"])
@@ -323,4 +325,5 @@ def test_synthetic_data_trains_without_depth_supervision_by_default(tiny_npz, tm
     train(tiny_npz, tmp_path / "run", tiny_config(steps=1))
     stored = json.loads((tmp_path / "run/config.json").read_text())
     assert stored["train"]["depth_supervision"] is False
+    assert "tv_density_weight" not in stored["train"]["model_options"]
     assert stored["depth_supervision"] == {"used": False, "reason": "off"}
