@@ -5,6 +5,9 @@ Configurations (both the fast model with its default settings otherwise):
 - `unbounded`: what `sfmnerf nerf train` chooses for reconstructions: contracted unbounded scene, random
   background during training (renders on black);
 - `box`: the configuration before it: the sparse points' box with a white background.
+Both train the depth loss on the reconstruction's depths.npz (the default for reconstructions); the ablation
+of it is `--variant 'constant={"depth_uncertainty": "constant"}' --variant 'no-depth={"depth_supervision":
+false}'`.
 
 Each scene is reconstructed once with SIFT and its calibration.txt (`sfmnerf reconstruct`, full-size
 images: the command has no image-size option), into OUT/sfm/SCENE (kept and reused on a second run). Each
@@ -44,6 +47,8 @@ CONFIGURATIONS: dict[str, dict] = {
     "box": {"unbounded": False, "background": "white"},
 }
 RENDER_SIZE = (800, 600)
+#: `sfmnerf` of this checkout (the installed script may import another one).
+CLI = "import sys; from service.cli import main; sys.argv[0] = 'sfmnerf'; main()"
 
 
 def reconstruct(scene: str, out: Path) -> dict:
@@ -52,7 +57,8 @@ def reconstruct(scene: str, out: Path) -> dict:
     seconds = None
     if not (folder / "transforms.json").is_file():
         start = time.perf_counter()
-        command = ["sfmnerf", "reconstruct", str(STRECHA / scene), "--out", str(folder), "--features", "sift"]
+        command = [sys.executable, "-c", CLI, "reconstruct", str(STRECHA / scene), "--out", str(folder),
+                   "--features", "sift"]  # fmt: skip
         subprocess.run(command, check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
         seconds = time.perf_counter() - start
     report = json.loads((folder / "report.json").read_text())
@@ -66,7 +72,8 @@ def reconstruct(scene: str, out: Path) -> dict:
 
 
 def run_one(
-    scene: str, configuration: str, settings: dict, out: Path, budget: dict, max_side: int, device: str
+    scene: str, configuration: str, settings: dict, out: Path, budget: dict, max_side: int, device: str,
+    frame: bool = True,
 ) -> dict:
     """Train, evaluate and time one (scene, configuration); called in the subprocess.
 
@@ -101,16 +108,18 @@ def run_one(
         name = Path(dataset.image_names[index]).stem
         Image.fromarray(to_uint8(dataset.images[index])).save(heldout / f"{name}_truth.png")
 
-    pose = dataset.normalization.pose_to_original(dataset.poses[dataset.split("val")[0]])
-    camera = view_camera(run, *RENDER_SIZE, None, None)
-    with torch.no_grad():
-        render_frame(run, pose, camera)  # warm-up
-        start = time.perf_counter()
-        frame = render_frame(run, pose, camera)
-        if run.device.type == "cuda":
-            torch.cuda.synchronize()
-        render_seconds = time.perf_counter() - start
-    Image.fromarray(to_uint8(frame.rgb)).save(run_dir / "render_800x600.png")
+    render_seconds = float("nan")
+    if frame:
+        pose = dataset.normalization.pose_to_original(dataset.poses[dataset.split("val")[0]])
+        camera = view_camera(run, *RENDER_SIZE, None, None)
+        with torch.no_grad():
+            render_frame(run, pose, camera)  # warm-up
+            start = time.perf_counter()
+            rendered = render_frame(run, pose, camera)
+            if run.device.type == "cuda":
+                torch.cuda.synchronize()
+            render_seconds = time.perf_counter() - start
+        Image.fromarray(to_uint8(rendered.rgb)).save(run_dir / "render_800x600.png")
     stored = json.loads((run_dir / "config.json").read_text())
     return {
         "scene": scene,
@@ -129,6 +138,7 @@ def run_one(
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         "peak_cuda_mib": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
         "train_config": stored["train"],
+        "depth_supervision": stored.get("depth_supervision"),
         "scene_info": stored["scene"],
         "load_average_before": load_before,
         "load_average_after_training": load_after,
@@ -156,7 +166,10 @@ def print_table(sfm: list[dict], results: list[dict]) -> None:
     print()
     for r in results:
         images = ", ".join(f"{m['name']} {m['psnr']:.2f} dB" for m in r["per_image"])
-        print(f"{r['scene']} {r['configuration']}: held-out {images}; {r['num_train_images']} train images")
+        depth = r.get("depth_supervision") or {}
+        depth_note = f"depth on {depth.get('rays')} rays" if depth.get("used") else "no depth"
+        print(f"{r['scene']} {r['configuration']}: held-out {images}; {r['num_train_images']} train images; "
+              f"{depth_note}")
 
 
 def main() -> None:
@@ -182,6 +195,7 @@ def main() -> None:
         help="train a scene's configurations at the same time, one process each (use --threads 1 on 2 "
         "cores): the same conditions for each, and one scene takes --minutes instead of twice that",
     )
+    parser.add_argument("--no-frame", action="store_true", help="skip the timed 800x600 frame (ablations)")
     parser.add_argument("--single", nargs=2, metavar=("SCENE", "CONFIGURATION"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     configurations = with_variants({name: CONFIGURATIONS[name] for name in args.configurations}, args.variant)
@@ -193,7 +207,8 @@ def main() -> None:
         torch.set_num_threads(args.threads)
         scene, configuration = args.single
         settings = configurations[configuration]
-        result = run_one(scene, configuration, settings, args.out, budget, args.max_side, args.device)
+        result = run_one(scene, configuration, settings, args.out, budget, args.max_side, args.device,
+                         frame=not args.no_frame)
         (args.out / f"result_{scene}_{configuration}.json").write_text(json.dumps(result, indent=2))
         return
 
@@ -214,7 +229,7 @@ def main() -> None:
                 "--out", str(args.out), "--max-side", str(args.max_side), "--threads", str(args.threads),
                 "--device", args.device, "--configurations", *args.configurations,
                 *(["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]),
-                *(f"--variant={spec}" for spec in args.variant),
+                *(f"--variant={spec}" for spec in args.variant), *(["--no-frame"] if args.no_frame else []),
             ]  # fmt: skip
             processes = [
                 subprocess.Popen([sys.executable, __file__, "--single", scene, c, *common], cwd=REPO)

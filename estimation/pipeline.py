@@ -16,11 +16,19 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
-from estimation.config import CameraConfig, ReconstructionConfig
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement, along_ray_sigmas, bundle_adjust
+from estimation.config import BundleAdjustmentConfig, CameraConfig, ReconstructionConfig
 from estimation.errors import InputError
 from estimation.geometry.projection import Camera
-from estimation.io.export import transforms_dict, write_colmap_text, write_json, write_ply
+from estimation.io.export import (
+    DEPTHS_NAME,
+    DepthObservations,
+    transforms_dict,
+    write_colmap_text,
+    write_depths,
+    write_json,
+    write_ply,
+)
 from estimation.io.images import (
     ExifFocal,
     ImageSet,
@@ -371,6 +379,29 @@ def write_outputs(out_dir: Path, images: ImageSet, model: SparseModel, single_ca
             "transforms": out_dir / TRANSFORMS_NAME}
 
 
+def write_depths_file(out_dir: Path, images: ImageSet, model: SparseModel, config: BundleAdjustmentConfig
+                      ) -> Path:
+    """depths.npz (`export.write_depths`): every observation's point and its std-dev along the viewing ray,
+    from the point marginals of one more BA of the final model (converged: it barely moves), its gauge held
+    hard (first camera, scale) so that they are relative to the cameras, scaled to the measured noise."""
+    order = sorted(model.poses)
+    position = np.full(len(images.names), -1, np.int64)
+    position[order] = np.arange(len(order))
+    hard_gauge = config.model_copy(update={"scale_sigma_relative": config.fixed_camera_sigma})
+    result = bundle_adjust([model.cameras[m] for m in order], [model.poses[m] for m in order], model.points,
+                           position[model.obs_camera], model.obs_point, model.obs_uv, hard_gauge,
+                           point_covariances=True)
+    noise = result.measured_pixel_sigma
+    covariances = result.point_covariances * (noise / config.measurement_sigma_px) ** 2
+    centres = np.stack([model.poses[m].center for m in order])[position[model.obs_camera]]
+    points = model.points[model.obs_point]
+    sigma = along_ray_sigmas(points, centres, covariances[model.obs_point])
+    file_paths = [os.path.relpath(images.paths[m].resolve(), out_dir.resolve()) for m in order]
+    depths = DepthObservations(file_paths, position[model.obs_camera], points, sigma, noise)
+    write_depths(out_dir / DEPTHS_NAME, depths)
+    return out_dir / DEPTHS_NAME
+
+
 def write_figures(out_dir: Path, images: ImageSet, model: SparseModel) -> dict[str, Path]:
     """The initial pair's matches and triangulation, and the top view of everything, as PNGs."""
     from estimation.io import figures  # matplotlib is only needed here
@@ -422,8 +453,8 @@ def reconstruct(
     progress: ProgressCallback | None = None,
 ) -> ReconstructionResult:
     """Structure from Motion of a folder of images, or of a video's keyframes (`video_keyframes`); writes
-    sparse/, points.ply, transforms.json, report.json and figures/ into out_dir. InputError (naming file,
-    line or reason) on bad input."""
+    sparse/, points.ply, depths.npz, transforms.json, report.json and figures/ into out_dir. InputError
+    (naming file, line or reason) on bad input."""
     images_dir, out_dir = Path(images_dir), Path(out_dir)
     seconds: dict[str, float] = {}
     report_input = _scaled(progress, 0.0, PROGRESS_INPUT_END)
@@ -461,6 +492,7 @@ def reconstruct(
     out_dir.mkdir(parents=True, exist_ok=True)
     with _timed(seconds, "export"):
         outputs = write_outputs(out_dir, images, model, single_camera=not initial.refine.per_image)
+        outputs["depths"] = write_depths_file(out_dir, images, model, config.bundle_adjustment)
         if config.mapper.export_all_models:
             for number, other in enumerate(models[1:], start=2):
                 written = write_outputs(out_dir / MODELS_DIR / str(number), images, other,

@@ -70,6 +70,34 @@ class TrainConfig(BaseModel):
         None, ge=8, description="Train on the images shrunk to at most this many pixels on their longer side."
     )
     downscale: float | None = Field(None, ge=1, description="Train on the images shrunk by this factor.")
+    photo_appearance: bool = Field(
+        False,
+        description="Learn an affine colour transform per training photo (exposure, white balance); "
+        "novel views and held-out photos are rendered with the photos' mean, the identity.",
+    )
+    photo_appearance_weight: float = Field(
+        0.1, ge=0, description="Weight of the transforms' squared distance from the identity."
+    )
+    photo_appearance_lr: float = Field(1e-3, gt=0, description="Adam learning rate of the transforms.")
+    depth_supervision: bool | None = Field(
+        None,
+        description="Add the ray-termination (depth) loss on the rays through the reconstruction's sparse "
+        "points (its depths.npz). None: the data's default (true for `sfmnerf reconstruct` output, false for "
+        "Blender/npz). Without enough points the run trains without it and says so in config.json.",
+    )
+    depth_weight: float = Field(0.01, ge=0, description="Weight of the depth loss beside the colour MSE.")
+    depth_uncertainty: Literal["covariance", "constant"] = Field(
+        "covariance",
+        description="Each point's std-dev along its ray from the bundle adjustment's covariance, or one "
+        "std-dev (their median) for every point.",
+    )
+    depth_rays: int = Field(512, ge=1, description="Rays with a known depth rendered per step.")
+    depth_min_sigma: float = Field(
+        0.01,
+        gt=0,
+        description="Added in quadrature to each depth's std-dev, in scene units (the scene box spans "
+        "[-1, 1]): what a grid of the model's resolution can place.",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -93,14 +121,20 @@ class TrainConfig(BaseModel):
         return self.background in (None, "white")
 
     def for_data(self, data_defaults: dict[str, Any], model_supports_unbounded: bool) -> TrainConfig:
-        """A copy with background / unbounded filled from the data format's defaults where unset.
+        """A copy with background / unbounded / depth_supervision filled from the data format's defaults
+        where unset, and its model options for this model under the user's.
 
         An unbounded scene is the default only for models that render one; asking for it explicitly with
         another model is an error.
         """
         filled = {
-            name: data_defaults[name] for name in ("background", "unbounded") if getattr(self, name) is None
+            name: data_defaults[name]
+            for name in ("background", "unbounded", "depth_supervision")
+            if getattr(self, name) is None
         }
+        model_defaults = data_defaults.get("model_options", {}).get(self.model, {})
+        if model_defaults:
+            filled["model_options"] = {**model_defaults, **self.model_options}
         if "unbounded" in filled:
             filled["unbounded"] = filled["unbounded"] and model_supports_unbounded
         elif self.unbounded and not model_supports_unbounded:

@@ -7,6 +7,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+#: Added to a ray's opacity in the depth loss, so that an empty ray (no weight) stays finite.
+DEPTH_LOSS_EPSILON = 1e-4
+
 
 class RenderOutput(NamedTuple):
     """Per-ray colour (R,3), expected depth (R,), accumulated opacity (R,) and sample weights (R,S)."""
@@ -137,3 +140,27 @@ def volume_render_packed(
     weights, transmittance = packed_weights(sigma, deltas, ray_indices, num_rays)
     colour, depth, opacity = composite_packed(weights, rgb, t, ray_indices, num_rays, background)
     return PackedRenderOutput(colour, depth, opacity, weights, transmittance)
+
+
+class SampleWeights(NamedTuple):
+    """Packed samples of a render, sorted by ray: compositing weight (N,), distance t (N,), ray index (N,)."""
+
+    weights: Tensor
+    t: Tensor
+    ray_indices: Tensor
+
+
+def packed_depth_loss(samples: SampleWeights, first_ray: int, depth: Tensor, sigma: Tensor) -> Tensor:
+    """Mean over rays r = first_ray + k of log(1 + E_r / sigma_k^2), E_r = sum_i w_i (t_i - D_k)^2 / sum_i w_i
+
+    E_r is the mean squared distance of the ray's termination (the normalized weights) from the known
+    depth D_k: it pulls the weight to D_k and empties the ray in front of it and behind it; log(1 + x)
+    (Cauchy) keeps a wrong depth from dominating. depth, sigma (K,) of the rays first_ray ... first_ray+K-1.
+    """
+    count = depth.shape[0]
+    mine = samples.ray_indices >= first_ray
+    ray = samples.ray_indices[mine] - first_ray
+    weights, t = samples.weights[mine], samples.t[mine]
+    opacity = weights.new_zeros(count).index_add(0, ray, weights)
+    squared = weights.new_zeros(count).index_add(0, ray, weights * (t - depth[ray]).square())
+    return torch.log1p(squared / (opacity + DEPTH_LOSS_EPSILON) / sigma.square()).mean()

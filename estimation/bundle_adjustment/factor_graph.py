@@ -61,6 +61,8 @@ _LINEAR_SOLVERS = {
     "sequential_qr": "SEQUENTIAL_QR",
     "pcg_block_jacobi": "ITERATIVE",
 }
+POINT_COVARIANCE_CHUNK = 4096
+"""Points whose camera-uncertainty term is formed at once (bounds a (chunk, 3, cameras x 6) array)."""
 _ORDERING_TYPES = {"colamd": "COLAMD", "metis": "METIS", "natural": "NATURAL"}
 EQUAL_FOCALS_SIGMA_PX = 1e-3
 """Std-dev of fx - fy for a one-focal model on a Cal3DS2. Not fixed_intrinsics_sigma (1e-6): this factor
@@ -129,6 +131,17 @@ class BundleAdjustmentResult:
     error_inputs: _ErrorInputs = field(repr=False, compare=False)
     # of a shared refined camera, for measurement_sigma_px pixel noise; None unless asked for
     intrinsics_covariance: IntrinsicsCovariance | None = None
+    # (N, 3, 3) marginal covariance of each point for measurement_sigma_px pixel noise, conditioned on the
+    # intrinsics (NaN for points without observations); None unless asked for
+    point_covariances: np.ndarray | None = None
+
+    @property
+    def measured_pixel_sigma(self) -> float:
+        """Per-axis pixel noise of the observations at the optimum: sqrt(sum ||r||^2 / (2 O - n)), n the
+        number of free parameters (6 per variable camera, 3 per point, minus the 7 of the gauge)."""
+        r = self.error_inputs
+        free = 6 * len(np.unique(r.camera_index)) + 3 * len(np.unique(r.point_index)) - 7
+        return float(np.sqrt(np.sum(self.final_residuals**2) / max(2 * len(r.uv) - free, 1)))
 
     @cached_property
     def initial_residuals(self) -> np.ndarray:
@@ -165,6 +178,14 @@ class BundleAdjustmentResult:
         """The same after the adjustment."""
         config = self.error_inputs.config
         return huber_cost(self.final_residuals, config.huber_threshold_px, config.measurement_sigma_px)
+
+
+def along_ray_sigmas(points: np.ndarray, centres: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """sigma_o = sqrt(r_o^T Sigma_o r_o), r_o = (X_o - C_o) / ||X_o - C_o||: each point's std-dev along its
+    ray from a camera centre; points, centres (O, 3), covariances (O, 3, 3) -> (O,)."""
+    rays = np.asarray(points, float) - np.asarray(centres, float)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    return np.sqrt(np.einsum("oi,oij,oj->o", rays, covariances, rays))
 
 
 def camera_pose_to_gtsam(pose: CameraPose) -> gtsam.Pose3:
@@ -381,6 +402,36 @@ def _tangent_names(model: str, principal_point: bool) -> list[str]:
     return ["fx", "fy", "skew", "cx", "cy", "k1", "k2", "p1", "p2"]
 
 
+def _information(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, dim_of: Callable[[int], int]
+                 ) -> tuple[sparse.csc_matrix, list[int], np.ndarray]:
+    """H = J^T J (J: the whitened, robust-weighted Jacobian at `values`), its keys in column order and the
+    tangent dimension of each (`dim_of(key)`)."""
+    linear = graph.linearize(values)
+    rows, cols, entries = linear.sparseJacobian_()
+    keys = sorted(linear.keys())   # sparseJacobian_: columns in key order, 1-based (row, col, value)
+    dims = np.array([dim_of(key) for key in keys])
+    size = int(dims.sum())
+    in_a = cols <= size   # the last column is the right-hand side b of [A | b]
+    jacobian = sparse.csr_matrix(
+        (entries[in_a], (rows[in_a].astype(np.int64) - 1, cols[in_a].astype(np.int64) - 1)),
+        shape=(int(rows.max()), size))
+    return (jacobian.T @ jacobian).tocsc(), keys, dims
+
+
+def _point_block_inverses(information: sparse.csc_matrix, points: np.ndarray) -> np.ndarray:
+    """(P, 3, 3): the pseudo-inverse of each point's 3x3 block of H (columns `points`, three per point)."""
+    block_diagonal = information[points][:, points].tocoo()
+    blocks = np.zeros((len(points) // 3, 3, 3))
+    np.add.at(blocks, (block_diagonal.row // 3, block_diagonal.row % 3, block_diagonal.col % 3),
+              block_diagonal.data)
+    return np.linalg.pinv(blocks)
+
+
+def _block_diagonal(blocks: np.ndarray) -> sparse.bsr_matrix:
+    count = len(blocks)
+    return sparse.bsr_matrix((blocks, np.arange(count), np.arange(count + 1)), shape=(3 * count, 3 * count))
+
+
 def _intrinsics_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, calibration_key: int,
                            num_cameras: int, fixed_cameras: Sequence[int], model: str,
                            refine: IntrinsicsRefinement) -> IntrinsicsCovariance:
@@ -391,26 +442,13 @@ def _intrinsics_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Valu
     Computed here rather than by gtsam.Marginals, whose Cholesky refuses the whole system when one
     point or the near-hard priors make it nearly indeterminate (measured on a synthetic object ring);
     each point's 3x3 block is pseudo-inverted instead."""
-    linear = graph.linearize(values)
-    rows, cols, entries = linear.sparseJacobian_()
-    keys = sorted(linear.keys())   # sparseJacobian_: columns in key order, 1-based (row, col, value)
     calibration_dim = len(_tangent_names(model, refine.principal_point))
-    dims = np.array([6 if key < num_cameras else calibration_dim if key == calibration_key else 3
-                     for key in keys])
+    information, keys, dims = _information(graph, values, lambda key: (
+        6 if key < num_cameras else calibration_dim if key == calibration_key else 3))
     offsets = np.concatenate([[0], np.cumsum(dims)])
-    in_a = cols <= offsets[-1]   # the last column is the right-hand side b of [A | b]
-    jacobian = sparse.csr_matrix(
-        (entries[in_a], (rows[in_a].astype(np.int64) - 1, cols[in_a].astype(np.int64) - 1)),
-        shape=(int(rows.max()), int(offsets[-1])))
-    information = (jacobian.T @ jacobian).tocsc()
     is_point = np.repeat([num_cameras <= key != calibration_key for key in keys], dims)
     points, rest = np.flatnonzero(is_point), np.flatnonzero(~is_point)
-    block_diagonal = information[points][:, points].tocoo()
-    blocks = np.zeros((len(points) // 3, 3, 3))
-    np.add.at(blocks, (block_diagonal.row // 3, block_diagonal.row % 3, block_diagonal.col % 3),
-              block_diagonal.data)
-    inverse = sparse.bsr_matrix((np.linalg.pinv(blocks), np.arange(len(blocks)), np.arange(len(blocks) + 1)),
-                                shape=(len(points), len(points)))
+    inverse = _block_diagonal(_point_block_inverses(information, points))
     coupling = information[rest][:, points]
     schur = information[rest][:, rest].toarray() - (coupling @ inverse @ coupling.T).toarray()
     # Condition on the held variables: drop their rows and columns.
@@ -430,6 +468,31 @@ def _intrinsics_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Valu
     names = tuple(name for name, is_free in zip(_tangent_names(model, refine.principal_point), free,
                                                 strict=True) if is_free)
     return IntrinsicsCovariance(names, covariance[np.ix_(in_calibration, in_calibration)])
+
+
+def _point_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, num_cameras: int
+                       ) -> np.ndarray:
+    """(P, 3, 3) marginal covariance of each point variable (key order), the cameras marginalized out:
+    Sigma_p = H_pp^-1 + H_pp^-1 H_pc S^-1 H_cp H_pp^-1, S = H_cc - H_cp H_pp^-1 H_pc (Schur complement).
+
+    The same marginals gtsam.Marginals gives on a well-determined graph, computed block-wise like
+    `_intrinsics_covariance` (one nearly indeterminate point does not refuse them all)."""
+    information, keys, dims = _information(graph, values, lambda key: 6 if key < num_cameras else 3)
+    is_point = np.repeat([key >= num_cameras for key in keys], dims)
+    points, rest = np.flatnonzero(is_point), np.flatnonzero(~is_point)
+    block_inverses = _point_block_inverses(information, points)
+    if len(rest) == 0:
+        return block_inverses
+    coupling = information[points][:, rest].tocsr()   # H_pc, rows three per point
+    reduced = coupling.T @ _block_diagonal(block_inverses) @ coupling
+    camera_covariance = np.linalg.pinv(information[rest][:, rest].toarray() - reduced.toarray())
+    covariances = block_inverses.copy()
+    for begin in range(0, len(block_inverses), POINT_COVARIANCE_CHUNK):
+        end = min(begin + POINT_COVARIANCE_CHUNK, len(block_inverses))
+        lifted = np.einsum("pij,pjr->pir", block_inverses[begin:end],
+                           coupling[3 * begin:3 * end].toarray().reshape(end - begin, 3, -1))
+        covariances[begin:end] += np.einsum("pir,rs,pjs->pij", lifted, camera_covariance, lifted)
+    return covariances
 
 
 def _free_components(model: str, refine: IntrinsicsRefinement) -> np.ndarray:
@@ -616,6 +679,7 @@ def bundle_adjust(
     on_iteration: IterationHook | None = None,
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     intrinsics_covariance: bool = False,
+    point_covariances: bool = False,
 ) -> BundleAdjustmentResult:
     """Minimize the Huber-robust reprojection error over all observed cameras and points (config.optimizer).
 
@@ -630,6 +694,8 @@ def bundle_adjust(
     graph_error is GTSAM's objective: the robust cost plus the (near-zero) gauge priors.
     `intrinsics_covariance`: also the marginal covariance of a shared refined camera's intrinsics
     (how well the views determine them; one more elimination of the graph).
+    `point_covariances`: also each point's marginal covariance (the cameras marginalized out, the
+    intrinsics held; `_point_covariances`); refused with refined intrinsics.
     """
     start = time.perf_counter()
     cameras = per_pose_cameras(camera, len(poses))
@@ -639,6 +705,8 @@ def bundle_adjust(
     uv = np.asarray(uv, float)
     fixed_cameras = [int(c) for c in fixed_cameras]
     _validate(cameras, poses, points, camera_index, point_index, uv, fixed_cameras, scale_reference)
+    if point_covariances and refine.refines(cameras[0].model):
+        raise InputError("point covariances are computed with the intrinsics held; refine none of them")
     use_scale_prior = len(fixed_cameras) < 2 and scale_reference is not None
     observed = observation_cameras(cameras, camera_index)   # the camera of each observation, read once
 
@@ -703,6 +771,10 @@ def bundle_adjust(
         covariance = _intrinsics_covariance(graph, values, int(calibration_keys[0]), num_cameras,
                                             fixed_cameras, cameras[0].model, refine)
 
+    marginals = None
+    if point_covariances:
+        marginals = np.full((len(points), 3, 3), np.nan)
+        marginals[observed_points] = _point_covariances(graph, values, num_cameras)
     adjusted_observed = observation_cameras(adjusted_cameras, camera_index) if refines else observed
     # Copies of what the caller may change before reading the error figures.
     error_inputs = _ErrorInputs(observed, adjusted_observed, list(poses), points.copy(), camera_index.copy(),
@@ -715,4 +787,5 @@ def bundle_adjust(
         cameras=adjusted_cameras,
         error_inputs=error_inputs,
         intrinsics_covariance=covariance,
+        point_covariances=marginals,
     )

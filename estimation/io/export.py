@@ -5,6 +5,8 @@
   quaternion (qw qx qy qz) and translation per image, named by file name, point tracks and errors.
 - PLY point cloud with colours (binary little-endian or ASCII).
 - `transforms.json` in the nerfstudio / instant-ngp convention: camera-to-world in OpenGL axes.
+- `depths.npz`: every observed point with its uncertainty along each viewing ray (`write_depths`), the
+  depth supervision a radiance field trains with.
 
 Conventions crossed here, once:
 - Poses: `estimation` keeps world-to-camera (R, t) in OpenCV axes (x right, y down, z forward);
@@ -326,23 +328,155 @@ def write_ply(path: Path, points: np.ndarray, colors: np.ndarray, binary: bool =
             ).encode("ascii"))
 
 
+PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+"""PLY scalar property types -> numpy type codes."""
+
+
+def read_ply_vertices(path: Path) -> np.ndarray:
+    """The vertex table (a structured array, one field per property) of an ASCII or binary little-endian PLY
+    file, any scalar properties (not only `write_ply`'s); InputError naming the file if it cannot be read."""
+    path = Path(path)
+    raw = path.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise InputError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    body = raw[raw.index(b"\n", end) + 1:] if b"\n" in raw[end:] else b""
+    fmt, count, properties, in_vertex = "", 0, [], False
+    for line in header:
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            in_vertex = words[1] == "vertex"
+            if in_vertex:
+                count = int(words[2])
+        elif words[0] == "property" and in_vertex:
+            if words[1] == "list":
+                raise InputError(f"{path}: list properties on vertices are not supported")
+            if words[1] not in PLY_TYPES:
+                raise InputError(f"{path}: unknown PLY property type {words[1]!r}")
+            properties.append((words[2], PLY_TYPES[words[1]]))
+    dtype = np.dtype([(name, "<" + code) for name, code in properties])
+    if fmt == "ascii":
+        rows = body.decode("ascii", errors="replace").split("\n")[:count]
+        try:
+            values = [tuple(float(v) for v in row.split()[: len(properties)]) for row in rows]
+        except ValueError as error:
+            raise InputError(f"{path}: bad vertex row ({error})") from None
+        if len(values) != count or any(len(row) != len(properties) for row in values):
+            raise InputError(f"{path}: expected {count} vertex rows of {len(properties)} values")
+        return np.array(values, dtype=dtype)
+    if fmt == "binary_little_endian":
+        if len(body) < count * dtype.itemsize:
+            raise InputError(f"{path}: file ends before its {count} vertices")
+        return np.frombuffer(body, dtype=dtype, count=count)
+    raise InputError(f"{path}: unsupported PLY format {fmt!r} (ascii or binary_little_endian)")
+
+
+def read_ply_points(path: Path) -> np.ndarray:
+    """x, y, z of the vertices of a PLY file (`read_ply_vertices`); (P,3) float64."""
+    vertices = read_ply_vertices(path)
+    if not {"x", "y", "z"} <= set(vertices.dtype.names or ()):
+        raise InputError(f"{path}: vertex element lacks x, y, z properties")
+    return np.stack([vertices[axis].astype(np.float64) for axis in "xyz"], axis=1).reshape(-1, 3)
+
+
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(points (N, 3) float, colors (N, 3) uint8) of a PLY written by `write_ply`."""
-    data = Path(path).read_bytes()
-    end = data.find(b"end_header\n")
-    if not data.startswith(b"ply\n") or end < 0:
-        raise InputError(f"{path}: not a PLY file")
-    header = data[:end].decode("ascii").splitlines()
-    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    body = data[end + len(b"end_header\n"):]
-    if "format binary_little_endian 1.0" in header:
-        vertices = np.frombuffer(body, dtype=PLY_PROPERTIES, count=count)
-        points = np.stack([vertices[name] for name in "xyz"], axis=1).astype(float)
-        colors = np.stack([vertices[name] for name in ("red", "green", "blue")], axis=1)
-    else:
-        values = np.array(body.decode("ascii").split(), float).reshape(count, 6)
-        points, colors = values[:, :3], values[:, 3:].astype(np.uint8)
-    return points, colors
+    """(points (N, 3) float, colors (N, 3) uint8) of a coloured PLY such as `write_ply` writes."""
+    vertices = read_ply_vertices(path)
+    channels = ("red", "green", "blue")
+    if not set(channels) <= set(vertices.dtype.names or ()):
+        raise InputError(f"{path}: vertex element lacks red, green, blue properties")
+    colors = np.stack([vertices[name] for name in channels], axis=1).astype(np.uint8).reshape(-1, 3)
+    return read_ply_points(path), colors
+
+
+def read_colmap_points(path: Path) -> np.ndarray:
+    """X, Y, Z columns of COLMAP's points3D.txt (POINT3D_ID X Y Z R G B ERROR TRACK...); (P,3)."""
+    points = []
+    for line_number, line in _data_lines(Path(path)):
+        words = line.split()
+        if len(words) < 4:
+            raise InputError(f"{path}, line {line_number}: expected 'POINT3D_ID X Y Z ...'")
+        points.append(_parse_numbers(Path(path), line_number, words[1:4]))
+    return np.array(points, dtype=np.float64).reshape(-1, 3)
+
+
+# --- depths.npz -----------------------------------------------------------------------------------
+
+DEPTHS_NAME = "depths.npz"
+DEPTH_FIELDS = ("file_paths", "frame", "point", "sigma", "pixel_sigma")
+"""The arrays of a depths file:
+- file_paths (F,) str: the frames' file_path, as and in the order of transforms.json;
+- frame (O,) int: which frame (index into file_paths) observes the point of observation o;
+- point (O, 3) float: that point, in the world frame of transforms.json (its poses' units);
+- sigma (O,) float > 0: the point's std-dev along that frame's viewing ray, same units:
+  sqrt(r^T Sigma r), r the unit ray from the camera centre to the point, Sigma the point's marginal
+  covariance from the final bundle adjustment scaled to the measured pixel noise;
+- pixel_sigma () float > 0: that measured per-axis pixel noise."""
+
+
+@dataclass(frozen=True)
+class DepthObservations:
+    """The content of a depths file (`DEPTH_FIELDS`)."""
+
+    file_paths: list[str]
+    frame: np.ndarray
+    point: np.ndarray
+    sigma: np.ndarray
+    pixel_sigma: float
+
+
+def write_depths(path: Path, depths: DepthObservations) -> None:
+    """depths.npz (`DEPTH_FIELDS`), uncompressed; read back by `read_depths`."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as file:
+        np.savez(file, file_paths=np.array(depths.file_paths, dtype=str),
+                 frame=np.asarray(depths.frame, np.int64), point=np.asarray(depths.point, np.float64),
+                 sigma=np.asarray(depths.sigma, np.float64), pixel_sigma=np.float64(depths.pixel_sigma))
+
+
+def read_depths(path: Path) -> DepthObservations:
+    """A depths file, checked: InputError naming the file and the field that is missing, misshapen,
+    out of range, not finite, or (sigma, pixel_sigma) not positive."""
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as error:
+        raise InputError(f"{path}: not a depths file ({error})") from None
+    with archive:
+        missing = [name for name in DEPTH_FIELDS if name not in archive.files]
+        if missing:
+            raise InputError(f"{path}: missing field {missing[0]!r}")
+        arrays = {name: archive[name] for name in DEPTH_FIELDS}
+    file_paths, frame, point = arrays["file_paths"], arrays["frame"], arrays["point"]
+    sigma, pixel_sigma = arrays["sigma"], arrays["pixel_sigma"]
+    count = len(frame) if frame.ndim == 1 else -1
+    expected = {"file_paths": (file_paths.ndim == 1 and file_paths.dtype.kind == "U", "(F,) strings"),
+                "frame": (frame.ndim == 1 and frame.dtype.kind in "iu", "(O,) integers"),
+                "point": (point.shape == (count, 3) and point.dtype.kind == "f", "(O, 3) floats"),
+                "sigma": (sigma.shape == (count,) and sigma.dtype.kind == "f", "(O,) floats"),
+                "pixel_sigma": (pixel_sigma.shape == () and pixel_sigma.dtype.kind == "f", "one float")}
+    for name, (ok, shape) in expected.items():
+        if not ok:
+            raise InputError(f"{path}: field {name!r} must be {shape}, got {arrays[name].dtype} "
+                             f"{arrays[name].shape}")
+    if len(frame) and (frame.min() < 0 or frame.max() >= len(file_paths)):
+        raise InputError(f"{path}: field 'frame' refers to frames outside 0..{len(file_paths) - 1}")
+    for name in ("point", "sigma", "pixel_sigma"):
+        if not np.all(np.isfinite(arrays[name])):
+            raise InputError(f"{path}: field {name!r} has non-finite values")
+    for name in ("sigma", "pixel_sigma"):
+        if not np.all(arrays[name] > 0):
+            raise InputError(f"{path}: field {name!r} must be positive")
+    return DepthObservations(file_paths.tolist(), frame.astype(np.int64), point.astype(np.float64),
+                             sigma.astype(np.float64), float(pixel_sigma))
 
 
 # --- transforms.json ------------------------------------------------------------------------------

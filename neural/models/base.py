@@ -9,6 +9,7 @@ import torch
 from pydantic import BaseModel
 from torch import Tensor
 
+from neural.rendering import SampleWeights
 from neural.scene import SceneInfo
 
 __all__ = ["RadianceModel", "RayBundleOutput", "SceneInfo"]
@@ -20,7 +21,8 @@ class RayBundleOutput:
 
     rgb (R,3), depth (R,), opacity (R,); aux_rgb: further predictions of the same pixels that the trainer
     also fits with an MSE term each (e.g. the vanilla model's coarse network); extra_loss: regularizers
-    already weighted, added to the loss as they are.
+    already weighted, added to the loss as they are; samples: the packed samples' weights (training renders
+    of models that pack them; what the depth loss needs).
     """
 
     rgb: Tensor
@@ -28,6 +30,7 @@ class RayBundleOutput:
     opacity: Tensor
     aux_rgb: list[Tensor] = field(default_factory=list)
     extra_loss: Tensor | None = None
+    samples: SampleWeights | None = None
 
 
 class RadianceModel(torch.nn.Module):
@@ -43,6 +46,8 @@ class RadianceModel(torch.nn.Module):
     train_defaults: ClassVar[dict[str, Any]] = {}
     #: Whether the model renders `SceneInfo.unbounded` scenes (content beyond the scene box).
     supports_unbounded: ClassVar[bool] = False
+    #: Whether training renders return their packed samples' weights (`RayBundleOutput.samples`).
+    packs_samples: ClassVar[bool] = False
     config: BaseModel
 
     def __init__(self, scene: SceneInfo) -> None:

@@ -36,7 +36,7 @@ from neural.occupancy import (
     drop_occluded,
     render_packed_samples,
 )
-from neural.rendering import packed_distortion
+from neural.rendering import SampleWeights, packed_distortion
 from neural.sampling import contracted_space_samples
 from neural.trilinear import trilinear
 
@@ -187,6 +187,7 @@ class FastModel(GridSchedule, RadianceModel):
 
     model_name: ClassVar[str] = "fast"
     supports_unbounded: ClassVar[bool] = True
+    packs_samples: ClassVar[bool] = True
     # Grids take large Adam steps (DVGO uses 0.1); the raw density is a log-density, so 0.3 per step moves
     # sigma by ~35%. steps: the default length when neither steps nor minutes is given.
     train_defaults: ClassVar[dict[str, Any]] = {
@@ -339,7 +340,10 @@ class FastModel(GridSchedule, RadianceModel):
                 out.weights, samples.t, samples.deltas, samples.ray_indices, origins.shape[0]
             )
             extra_loss = distortion if extra_loss is None else extra_loss + distortion
-        return RayBundleOutput(rgb=out.rgb, depth=out.depth, opacity=out.opacity, extra_loss=extra_loss)
+        weights = SampleWeights(out.weights, samples.t, samples.ray_indices) if train else None
+        return RayBundleOutput(
+            rgb=out.rgb, depth=out.depth, opacity=out.opacity, extra_loss=extra_loss, samples=weights
+        )
 
     def _occupied_samples(
         self, origins: Tensor, directions: Tensor, near: float, far: float, jitter: Tensor | None

@@ -48,6 +48,10 @@ def nerf() -> None:
               help="Content beyond the scene box, contracted (default: unbounded for photos).")  # fmt: skip
 @click.option("--max-side", type=int, default=None, help="Train on images shrunk to this longer side (px).")
 @click.option("--downscale", type=float, default=None, help="Train on images shrunk by this factor.")
+@click.option("--depth-supervision/--no-depth-supervision", default=None,
+              help="Depth loss on a reconstruction's sparse points (default: on for them).")  # fmt: skip
+@click.option("--photo-appearance/--no-photo-appearance", default=None,
+              help="Learn a colour transform per training photo (default: off).")  # fmt: skip
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its latest checkpoint.")
 def train_command(data: Path, run_dir: Path, resume: bool, **options: Any) -> None:
     """Train a radiance field on DATA (Blender folder, tiny-NeRF .npz or `sfmnerf reconstruct` output)."""

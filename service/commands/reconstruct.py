@@ -50,7 +50,8 @@ class StageProgressBars:
 @click.command()
 @click.argument("images_dir", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
-              help="Output folder (created): sparse/, points.ply, transforms.json, report.json, figures/.")
+              help="Output folder (created): sparse/, points.ply, depths.npz, transforms.json, report.json, "
+                   "figures/.")
 @click.option("--calibration", type=click.Path(path_type=Path), default=None,
               help="3x3 K file; default: calibration.txt in IMAGES_DIR, and without one the camera is "
                    "calibrated from EXIF or a prior and refined.")
@@ -130,8 +131,8 @@ def reconstruct(images_dir: Path, out_dir: Path, calibration: Path | None, featu
         click.echo(f"warning: {warning}")
     for entry in report["unregistered"]:
         click.echo(f"not registered: {entry['image']} ({entry['reason']})")
-    click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, transforms.json, report.json, figures/) "
-               f"in {report['seconds_total']:.1f} s")
+    click.echo(f"wrote {result.out_dir}/ (sparse/, points.ply, depths.npz, transforms.json, report.json, "
+               f"figures/) in {report['seconds_total']:.1f} s")
 
 
 def video_line(video: dict) -> str:

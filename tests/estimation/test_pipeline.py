@@ -13,7 +13,7 @@ from PIL import ExifTags, Image
 from estimation import InputError, ReconstructionConfig, reconstruct
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import CameraConfig
-from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_ply
+from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_depths, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
 from estimation.pipeline import initial_intrinsics
 from estimation.synthetic import project
@@ -279,3 +279,20 @@ def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shar
     assert {"registration_checks", "unregistered"} <= report.keys()
     assert len(report["unregistered"]) == 50 - len(registered)
     assert all(entry["reason"] for entry in report["unregistered"])
+
+
+def test_the_depths_file_holds_every_observation_with_its_sigma_along_the_ray(unity):
+    result, _ = unity
+    depths = read_depths(result.out_dir / "depths.npz")
+    transforms = json.loads((result.out_dir / "transforms.json").read_text())
+    assert depths.file_paths == [frame["file_path"] for frame in transforms["frames"]]
+    model = result.model
+    assert len(depths.frame) == len(model.obs_point)
+    np.testing.assert_allclose(depths.point, model.points[model.obs_point])
+    # Well-triangulated points of an 800 px capture: millimetres to centimetres of a scene metres across.
+    scene_size = np.ptp(model.points, axis=0).max()
+    assert 0 < np.median(depths.sigma) < 0.01 * scene_size
+    # The per-axis noise: the residuals' RMS per axis, enlarged by the degrees of freedom the BA fitted.
+    rms = result.report["reprojection_error_px"]["after_ba"]["rms"]
+    residuals, free = 2 * len(model.obs_point), 6 * len(model.poses) + 3 * len(model.points) - 7
+    assert depths.pixel_sigma == pytest.approx(rms * np.sqrt(residuals / 2 / (residuals - free)), rel=0.02)

@@ -10,10 +10,10 @@ import pytest
 import torch
 from PIL import Image
 
-from estimation.io.export import transforms_dict, write_ply
+from estimation.io.export import DepthObservations, transforms_dict, write_depths, write_ply
 from estimation.synthetic import make_scene, project
 from estimation.types import CameraPose
-from neural.data import load_dataset
+from neural.data import ImageSize, load_dataset
 from neural.errors import DatasetError
 from neural.rays import pixel_rays
 
@@ -376,3 +376,48 @@ def test_a_camera_model_the_loader_cannot_undistort_is_refused_naming_it(tmp_pat
     edit_json(tmp_path / "transforms.json", lambda meta: meta.update(camera_model="OPENCV", k3=0.1))
     with pytest.raises(DatasetError, match="distortion term k3"):
         load_dataset(tmp_path)
+
+
+def write_depths_of(folder: Path, poses, points, sigma=0.05, file_paths=None):
+    """depths.npz of every point seen by every frame, as `sfmnerf reconstruct` writes it."""
+    frames = json.loads((folder / "transforms.json").read_text())["frames"]
+    frame = np.repeat(np.arange(len(poses)), len(points))
+    write_depths(folder / "depths.npz", DepthObservations(
+        file_paths or [f["file_path"] for f in frames], frame, np.tile(points, (len(poses), 1)),
+        np.full(len(frame), sigma), 0.5,
+    ))  # fmt: skip
+
+
+def test_depth_rays_pass_through_their_points_at_their_distance(tmp_path):
+    scene, poses, points = write_reconstruction(tmp_path)
+    write_depths_of(tmp_path, poses, points, sigma=0.07)
+    dataset = load_dataset(tmp_path, image_size=ImageSize(max_side=40))
+    depth = dataset.depth_rays
+    assert depth is not None and len(depth.image) > 0.9 * len(poses) * len(points)
+    c2w = torch.as_tensor(dataset.poses[depth.image], dtype=torch.float64)
+    rays = pixel_rays(c2w, torch.as_tensor(depth.u), torch.as_tensor(depth.v), dataset.fx, dataset.fy,
+                      dataset.cx, dataset.cy)  # fmt: skip
+    ends = (rays.origins + rays.directions * torch.as_tensor(depth.distance)[:, None]).numpy()
+    # each ray ends on a sparse point (float32 poses: to a millionth of the scene)
+    normalized = dataset.normalization.points_to_scene(points)
+    miss = np.linalg.norm(ends[:, None] - normalized[None], axis=2).min(axis=1)
+    assert miss.max() < 1e-5
+    np.testing.assert_allclose(depth.sigma, 0.07 * dataset.normalization.scale)
+    train = depth.of_images(dataset.split("train"))
+    assert set(train.image.tolist()) == {0, 1, 2, 3} and len(train.image) < len(depth.image)
+
+
+def test_a_depths_file_of_other_frames_or_with_bad_values_is_refused_naming_it(tmp_path):
+    scene, poses, points = write_reconstruction(tmp_path)
+    names = [f"images/{index + 1}.png" for index in range(5)]
+    write_depths_of(tmp_path, poses, points, file_paths=[*names[:4], "images/other.png"])
+    with pytest.raises(DatasetError, match=r"depths\.npz: field 'file_paths'\[4\] is 'images/other\.png'"):
+        load_dataset(tmp_path)
+    write_depths_of(tmp_path, poses[:4], points, file_paths=names[:4])
+    with pytest.raises(DatasetError, match=r"depths\.npz: field 'file_paths' lists 4 frames"):
+        load_dataset(tmp_path)
+    write_depths_of(tmp_path, poses, points, sigma=-1.0)
+    with pytest.raises(DatasetError, match=r"depths\.npz: field 'sigma' must be positive"):
+        load_dataset(tmp_path)
+    (tmp_path / "depths.npz").unlink()
+    assert load_dataset(tmp_path).depth_rays is None

@@ -203,11 +203,13 @@ def test_cli_photo_options_are_recorded_and_eval_and_render_default_to_the_train
     result = runner.invoke(
         main,
         ["nerf", "train", str(tmp_path / "sfm"), "--out", str(run), "--steps", "1", "--batch-rays", "32",
-         "--device", "cpu", "--bounded", "--background", "black", "--max-side", "40"],
+         "--device", "cpu", "--bounded", "--background", "black", "--max-side", "40",
+         "--no-depth-supervision", "--photo-appearance"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     config = json.loads((run / "config.json").read_text())
     assert (config["train"]["unbounded"], config["train"]["background"]) == (False, "black")
+    assert config["train"]["depth_supervision"] is False and config["train"]["photo_appearance"] is True
     assert not config["scene"]["unbounded"] and config["train"]["max_side"] == 40
     assert len(list((run / "image_cache").glob("*.npy"))) == 5  # the resized photos, cached in the run
 

@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from neural.rendering import volume_render
+from neural.rendering import SampleWeights, packed_depth_loss, packed_weights, volume_render
 
 
 def test_constant_density_slab_has_opacity_one_minus_exp_sigma_length():
@@ -76,3 +76,39 @@ def test_infinite_last_interval_closes_the_ray_without_exceeding_full_opacity():
     behind = math.exp(-1.0)  # transmittance reaching the last sample
     torch.testing.assert_close(out.rgb[0], torch.tensor([1 - behind, 0.0, behind]))
     torch.testing.assert_close(out.weights[0, 2], torch.tensor(behind))
+
+
+def test_the_depth_loss_pulls_the_termination_depth_to_the_given_depth():
+    """One ray through 64 learnable densities, a floater at t = 1 to start with: minimizing the depth loss
+    alone moves the termination to D = 3 (within a sample spacing) and empties the ray in front of it."""
+    t = torch.linspace(0.5, 4.5, 64, dtype=torch.float64)
+    deltas = torch.full_like(t, float(t[1] - t[0]))
+    raw = torch.where((t - 1.0).abs() < 0.1, 3.0, -3.0).requires_grad_(True)
+    rays = torch.zeros(64, dtype=torch.long)
+    optimizer = torch.optim.Adam([raw], lr=0.1)
+    target, sigma = torch.tensor([3.0], dtype=torch.float64), torch.tensor([0.05], dtype=torch.float64)
+
+    def termination():
+        weights, _ = packed_weights(torch.nn.functional.softplus(raw), deltas, rays, 1)
+        return SampleWeights(weights, t, rays)
+
+    before = termination().weights.detach()
+    for _ in range(300):
+        loss = packed_depth_loss(termination(), 0, target, sigma)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    weights = termination().weights.detach()
+    depth = float((weights * t).sum() / weights.sum())
+    assert float((before * t).sum() / before.sum()) < 1.5
+    assert abs(depth - 3.0) < float(deltas[0])
+    assert float(weights[t < 2.5].sum()) < 0.02 * float(weights.sum())
+
+
+def test_the_depth_loss_counts_only_the_rays_after_first_ray_each_against_its_own_depth():
+    t = torch.tensor([1.0, 2.0, 1.0, 2.0, 1.0, 2.0])
+    rays = torch.tensor([0, 0, 1, 1, 2, 2])
+    weights = torch.tensor([0.9, 0.0, 0.5, 0.5, 0.0, 1.0])
+    # rays 1 and 2 against depths 1 and 2, sigma 1: E = (0.5 * 0 + 0.5 * 1) / 1, and 0
+    loss = packed_depth_loss(SampleWeights(weights, t, rays), 1, torch.tensor([1.0, 2.0]), torch.ones(2))
+    torch.testing.assert_close(loss, torch.tensor((math.log1p(0.5 / (1 + 1e-4)) + 0.0) / 2))

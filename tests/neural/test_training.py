@@ -28,9 +28,10 @@ def read_metrics(run_dir):
     return [json.loads(line) for line in lines]
 
 
-def test_resume_gives_the_same_next_losses_as_an_uninterrupted_run(tiny_npz, tmp_path):
-    train(tiny_npz, tmp_path / "whole", tiny_config(steps=4))
-    train(tiny_npz, tmp_path / "split", tiny_config(steps=2))
+@pytest.mark.parametrize("photo_appearance", [False, True], ids=["field", "field+appearance"])
+def test_resume_gives_the_same_next_losses_as_an_uninterrupted_run(tiny_npz, tmp_path, photo_appearance):
+    train(tiny_npz, tmp_path / "whole", tiny_config(steps=4, photo_appearance=photo_appearance))
+    train(tiny_npz, tmp_path / "split", tiny_config(steps=2, photo_appearance=photo_appearance))
     resumed = train(tiny_npz, tmp_path / "split", TrainConfig(steps=4), resume=True)
     assert resumed.step == 4
     whole = {m["step"]: m["loss"] for m in read_metrics(tmp_path / "whole") if "loss" in m}
@@ -95,9 +96,9 @@ def test_precrop_samples_only_the_central_pixels(tiny_npz):
     def distance_to_centre_colours(colours):
         return torch.cdist(colours, centre, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1).values
 
-    _, _, cropped = sampler.sample(4000, generator, crop_fraction=0.5)
+    _, _, cropped, _ = sampler.sample(4000, generator, crop_fraction=0.5)
     assert distance_to_centre_colours(cropped).max() == 0  # every colour is a centre pixel's
-    _, _, anywhere = sampler.sample(4000, generator)
+    _, _, anywhere, _ = sampler.sample(4000, generator)
     assert distance_to_centre_colours(anywhere).max() > 0.01
 
 
@@ -292,3 +293,37 @@ def test_synthetic_data_keeps_the_white_bounded_world_and_old_run_configs_still_
     assert config["train"]["background"] == "white" and config["train"]["unbounded"] is False
     legacy = {k: v for k, v in config["train"].items() if k not in ("background", "unbounded")}
     assert TrainConfig.model_validate({**legacy, "white_background": False}).background == "black"
+
+
+def test_a_reconstruction_trains_the_depth_loss_and_without_enough_points_says_why(tmp_path, caplog):
+    from tests.neural.test_data import write_depths_of, write_reconstruction
+
+    _, poses, points = write_reconstruction(tmp_path / "sfm")
+    write_depths_of(tmp_path / "sfm", poses, points)
+    grids = dict(initial_voxels=8**3, final_voxels=8**3, upsample_steps=[1000])
+    config = TrainConfig(model="fast", model_options=grids, steps=2, batch_rays=64, depth_rays=32,
+                         device="cpu", max_side=40, log_every=1)  # fmt: skip
+    train(tmp_path / "sfm", tmp_path / "run", config)
+    stored = json.loads((tmp_path / "run/config.json").read_text())
+    assert stored["train"]["depth_supervision"] is True
+    # the photos' total variation under the user's own model options
+    assert stored["train"]["model_options"] == {**grids, "tv_density_weight": 1e-4, "tv_color_weight": 1e-3}
+    depth = stored["depth_supervision"]
+    assert depth["used"] is True and depth["rays"] > 100 and depth["uncertainty"] == "covariance"
+    assert depth["median_sigma"] == pytest.approx(0.05 * stored["normalization"]["scale"])
+    assert all(np.isfinite(record["loss"]) for record in read_metrics(tmp_path / "run") if "loss" in record)
+
+    write_depths_of(tmp_path / "sfm", poses, points[:10])  # 50 observations
+    with caplog.at_level("WARNING", logger="neural.training"):
+        train(tmp_path / "sfm", tmp_path / "few", config)
+    depth = json.loads((tmp_path / "few/config.json").read_text())["depth_supervision"]
+    assert depth["used"] is False and depth["reason"].startswith("too few sparse points")
+    assert "training without depth supervision: too few sparse points" in caplog.text
+
+
+def test_synthetic_data_trains_without_depth_supervision_by_default(tiny_npz, tmp_path):
+    train(tiny_npz, tmp_path / "run", tiny_config(steps=1))
+    stored = json.loads((tmp_path / "run/config.json").read_text())
+    assert stored["train"]["depth_supervision"] is False
+    assert "tv_density_weight" not in stored["train"]["model_options"]
+    assert stored["depth_supervision"] == {"used": False, "reason": "off"}

@@ -422,3 +422,38 @@ def test_a_one_focal_model_refines_its_principal_point_with_fx_equal_to_fy(model
     assert np.hypot(camera.cx - truth.cx, camera.cy - truth.cy) < 1.5  # started 15 px away
     assert camera.k1 == pytest.approx(truth.k1, rel=0.10)
     assert aligned_pose_errors(result.poses, scene.poses).rotation_deg.max() < 0.1
+
+
+def test_point_covariances_are_gtsams_marginals_and_the_noise_is_measured_from_the_residuals():
+    scene = make_scene(num_cameras=4, num_points=40, noise_px=0.5, seed=3)
+    config = BundleAdjustmentConfig()
+    result = run(scene, scene.poses, scene.points, config, point_covariances=True)
+    assert result.measured_pixel_sigma == pytest.approx(0.5, rel=0.1)
+    # The reference: gtsam.Marginals on the same least-squares problem (the residuals are far below the
+    # Huber threshold, so the robust weights are 1), the first camera held by a prior, the scale by a range.
+    pixel_noise = gtsam.noiseModel.Isotropic.Sigma(2, config.measurement_sigma_px)
+    calibration = _pinhole_calibration(Camera.from_K(scene.K))
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    point_key = len(scene.poses)
+    for camera, point, uv in zip(*observations(scene), strict=True):
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, pixel_noise, int(camera), point_key + int(point),
+                                                       calibration))
+    for camera, pose in enumerate(result.poses):
+        values.insert(camera, camera_pose_to_gtsam(pose))
+    for point, xyz in enumerate(result.points):
+        values.insert(point_key + point, xyz)
+    graph.add(gtsam.PriorFactorPose3(0, values.atPose3(0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-7)))
+    distance = float(np.linalg.norm(result.poses[0].center - result.poses[1].center))
+    graph.add(gtsam.RangeFactorPose3(0, 1, distance, gtsam.noiseModel.Isotropic.Sigma(
+        1, config.scale_sigma_relative * distance)))
+    marginals = gtsam.Marginals(graph, values)
+    for point in (0, 17, 39):
+        np.testing.assert_allclose(result.point_covariances[point],
+                                   marginals.marginalCovariance(point_key + point), rtol=1e-3, atol=1e-12)
+    assert result.point_covariances.shape == (40, 3, 3)
+
+
+def test_point_covariances_are_refused_with_refined_intrinsics():
+    scene = make_scene(num_cameras=3, num_points=30, seed=1)
+    with pytest.raises(InputError, match="intrinsics held"):
+        run(scene, scene.poses, scene.points, point_covariances=True, refine=IntrinsicsRefinement(focal=True))

@@ -7,13 +7,16 @@ import json
 import numpy as np
 import pytest
 
+from estimation.errors import InputError
 from estimation.io.export import (
     PIXEL_CENTER_SHIFT,
     opencv_pose_to_opengl_c2w,
     opengl_c2w_to_opencv_pose,
     quaternion_to_rotation,
+    read_colmap_points,
     read_colmap_text,
     read_ply,
+    read_ply_points,
     rotation_to_quaternion,
     transforms_dict,
     write_colmap_text,
@@ -119,6 +122,27 @@ def test_ply_round_trip_keeps_points_and_colours(tmp_path, binary):
     read_points, read_colors = read_ply(path)
     np.testing.assert_allclose(read_points, points, rtol=1e-6)          # stored as float32
     np.testing.assert_array_equal(read_colors, colors)
+
+
+def test_ply_points_are_read_from_any_vertex_layout(tmp_path):
+    path = tmp_path / "other.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty double nx\nproperty double z\n"
+                    "property float x\nproperty float y\nelement face 0\nend_header\n0 3 1 2\n0 6 4 5\n")
+    np.testing.assert_array_equal(read_ply_points(path), [[1, 2, 3], [4, 5, 6]])
+
+
+def test_bad_ply_and_points3d_files_are_refused_naming_them(tmp_path):
+    short = tmp_path / "short.ply"
+    short.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+                      b"property float y\nproperty float z\nend_header\n" + bytes(12))
+    with pytest.raises(InputError, match=r"short\.ply: file ends before its 3 vertices"):
+        read_ply_points(short)
+    points3d = tmp_path / "points3D.txt"
+    points3d.write_text("# comment\n1 0.5 1.5 2.5 255 0 0 0.1 1 0\n2 1.0 oops 3\n")
+    with pytest.raises(InputError, match=r"points3D\.txt, line 3: non-numeric"):
+        read_colmap_points(points3d)
+    points3d.write_text("1 0.5 1.5 2.5 255 0 0 0.1 1 0\n")
+    np.testing.assert_array_equal(read_colmap_points(points3d), [[0.5, 1.5, 2.5]])
 
 
 def test_transforms_json_frames_are_camera_to_world_in_opengl_axes(tmp_path):
