@@ -17,8 +17,8 @@ Data: 100x100 -> ../shared/data/lego_tiny.npz (the same views, downscaled), 200x
 not depend on the machine's load, --steps. Prints one table and writes results.json into --out.
 Run it under the shared lock:
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf.py --threads 2  # 100 px/2 min, 200 px/5 min
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf.py --tune --resolutions 100 --threads 2
+    python benchmarks/bench_nerf.py --threads 2  # 100 px/2 min, 200 px/5 min
+    python benchmarks/bench_nerf.py --tune --resolutions 100 --threads 2
     python benchmarks/bench_nerf.py --tune --configs today --steps 600 \
         --variant 'tv={"model": "fast", "model_options": {"tv_density_weight": 1e-4}}'
 """

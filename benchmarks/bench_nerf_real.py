@@ -19,8 +19,8 @@ Prints a table and writes OUT/results.json. With --side-by-side, a scene's confi
 time in their own processes (give each one thread: `--threads 1` on 2 cores), so they share the machine's
 conditions (load from others included) and a scene takes --minutes of wall-clock.
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf_real.py --minutes 3 --out /tmp/bench_real
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_nerf_real.py --side-by-side --threads 1 --out /tmp/r
+    python benchmarks/bench_nerf_real.py --minutes 3 --out /tmp/bench_real
+    python benchmarks/bench_nerf_real.py --side-by-side --threads 1 --out /tmp/r
     python benchmarks/bench_nerf_real.py --scenes fountain-P11 --configurations unbounded --steps 300 \
         --max-side 400 --threads 1 --variant 'tv={"model_options": {"tv_density_weight": 1e-4}}'
 """
