@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from neural.config import ModelName
-from service import webhooks
+from service import strict_json, webhooks
 from service.db import JobKind, JobState, new_job_id
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
 from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
@@ -51,9 +51,9 @@ def _train_config(options: str | None, overrides: dict[str, Any]) -> dict[str, A
     from neural import TrainConfig
 
     try:
-        extra = json.loads(options) if options else {}
-    except json.JSONDecodeError as error:
-        raise invalid(f"options: not valid JSON ({error})") from None
+        extra = strict_json.loads(options, "options") if options else {}
+    except strict_json.JsonRefused as refused:
+        raise invalid(str(refused)) from None
     if not isinstance(extra, dict):
         raise invalid("options: expected a JSON object of training settings")
     try:
