@@ -16,6 +16,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 WORKER_SETTINGS_ENV = "SFMNERF_WORKER_SETTINGS_JSON"
 """Environment variable through which the local executor hands its settings to a job process."""
+LOCAL_HOST_NAMES = ("localhost", "*.localhost", "127.0.0.1", "::1")
+"""The names an open service (no token) answers to by default: only this machine's."""
 
 
 class ServiceSettings(BaseSettings):
@@ -146,6 +148,13 @@ class ServiceSettings(BaseSettings):
         'as JSON, e.g. ["10.0.0.0/8"].',
     )
 
+    trusted_hosts: list[str] | None = Field(
+        None,
+        description="Host names the service answers to (other Host headers: 400, against DNS rebinding), "
+        'as JSON, e.g. ["api.example.org", "*.example.org"]; "*": any. Default: the localhost names '
+        "when no token is configured, any host otherwise.",
+    )
+
     @field_validator("api_token", "database_url", "clients_file", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
@@ -181,6 +190,14 @@ class ServiceSettings(BaseSettings):
             "max_render_pixels": self.max_render_pixels,
             "max_video_pixels": self.max_video_pixels,
         }
+
+    def effective_trusted_hosts(self) -> list[str]:
+        """SFMNERF_TRUSTED_HOSTS, or its default: localhost names when open, any host behind a token."""
+        if self.trusted_hosts is not None:
+            return [host.lower() for host in self.trusted_hosts]
+        if self.api_token is None and self.clients_file is None:
+            return list(LOCAL_HOST_NAMES)
+        return ["*"]
 
     def max_runtime_seconds(self, kind: str) -> float:
         """The longest a job of this kind may run (SFMNERF_MAX_RUNTIME_<KIND>_MINUTES)."""

@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.db import TERMINAL_STATES, JobStore
-from service.settings import ServiceSettings
+from service.settings import LOCAL_HOST_NAMES, ServiceSettings
 
 JOB_TIMEOUT_SECONDS = 180.0
 TINY_MODEL_OPTIONS = {
@@ -125,6 +125,7 @@ def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:
         "webhook_attempts": 3,
         "webhook_poll_seconds": 0.1,
         "cancel_grace_seconds": 1.0,
+        "trusted_hosts": ["testserver", *LOCAL_HOST_NAMES],  # TestClient's Host is "testserver"
     }
     values.update(overrides)
     return ServiceSettings(**values)
