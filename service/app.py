@@ -25,7 +25,7 @@ from service.routes import jobs, nerf, previews, reconstructions, scenes, web
 from service.scenes import SceneRunner, SceneSupervisor
 from service.security_headers import SecurityHeaders, TrustedHosts
 from service.settings import ServiceSettings
-from service.uploads import UploadRejected, sweep_orphan_folders
+from service.uploads import UploadRejected, sweep_orphan_folders, without_server_paths
 from service.webhooks import WebhookSender
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @app.exception_handler(UploadRejected)
     async def _rejected(_request: Request, error: UploadRejected) -> JSONResponse:
-        return JSONResponse({"detail": error.detail}, status_code=error.status_code)
+        detail = without_server_paths(error.detail, settings)  # the last guard; messages name uploads
+        return JSONResponse({"detail": detail}, status_code=error.status_code, headers=error.headers)
 
     @app.exception_handler(json.JSONDecodeError)
     async def _bad_json(_request: Request, error: json.JSONDecodeError) -> JSONResponse:
