@@ -63,9 +63,10 @@ class ServiceSettings(BaseSettings):
         description="Largest accepted body of a request that is not a multipart upload, bytes.",
     )
     validation_memory_bytes: int = Field(
-        4 * 2**30,
+        512 * 2**20,
         ge=2**27,
-        description="Address space of the process that decodes and checks an upload (over it: 413).",
+        description="Address space of the process that decodes and checks an upload; an upload whose "
+        "headers say it needs more is refused (413) before it is decompressed.",
     )
     validation_timeout_seconds: float = Field(
         300.0, gt=0, description="Longest time the check of one upload may take (over it: 413)."
@@ -148,6 +149,11 @@ class ServiceSettings(BaseSettings):
         'as JSON, e.g. ["10.0.0.0/8"].',
     )
 
+    validation_workers: int = Field(
+        2,
+        ge=1,
+        description="Upload checks (one process each) running at once; more get 429 with Retry-After.",
+    )
     trusted_hosts: list[str] | None = Field(
         None,
         description="Host names the service answers to (other Host headers: 400, against DNS rebinding), "
