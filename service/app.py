@@ -15,6 +15,7 @@ from fastapi.responses import JSONResponse
 
 from service import openapi
 from service.auth import AuthMiddleware
+from service.child_processes import reap_leftovers
 from service.db import JobState, JobStore
 from service.deps import SettingsDep, StoreDep, current_client, visible_job
 from service.executor import make_executor
@@ -56,6 +57,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        reap_leftovers(settings.data_dir)  # render and validation processes of a killed API
         store = JobStore(settings.resolved_database_url)  # applies the schema migrations
         sweep_orphan_folders(settings.jobs_dir, store)
         executor = make_executor(settings, store)

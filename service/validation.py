@@ -1,8 +1,9 @@
 """The heavy checks of an upload (decoding images, parsing match files, loading a dataset) in a child process.
 
-`check_isolated(check, arguments, settings)` runs `python -m service.validation CHECK` with the arguments as
-JSON on stdin; the child limits its own address space (SFMNERF_VALIDATION_MEMORY_BYTES) and Pillow's pixel
-limit (SFMNERF_MAX_IMAGE_PIXELS) before it reads anything, and prints its verdict as one JSON line. So a
+`check_isolated(check, arguments, settings)` runs `python -m service.validation CHECK API_PID` with the
+arguments as JSON on stdin; the child dies with the API (service.child_processes), limits its own address
+space (SFMNERF_VALIDATION_MEMORY_BYTES) and Pillow's pixel limit (SFMNERF_MAX_IMAGE_PIXELS) before it
+reads anything, and prints its verdict as one JSON line. So a
 decompression bomb or a huge dataset costs the child its memory, never the API. At most
 SFMNERF_VALIDATION_WORKERS children run at once (one per upload); an upload finding them all busy gets 429.
 
@@ -31,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from service.child_processes import become_child_of
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 from service.uploads import UploadRejected, decode_image, invalid, too_large, without_server_paths
 
@@ -227,7 +229,7 @@ def _run_check(check: str, arguments: dict[str, Any], field: str, settings: Serv
     env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
     try:
         child = subprocess.run(
-            [sys.executable, "-m", "service.validation", check],
+            [sys.executable, "-m", "service.validation", check, str(os.getpid())],
             input=json.dumps(arguments),
             capture_output=True,
             text=True,
@@ -255,8 +257,9 @@ def _run_check(check: str, arguments: dict[str, Any], field: str, settings: Serv
     raise invalid(f"{field}: the upload could not be read")
 
 
-def main(check: str) -> int:
+def main(check: str, parent_pid: int) -> int:
     settings = ServiceSettings.model_validate_json(os.environ[WORKER_SETTINGS_ENV])
+    become_child_of(parent_pid, settings.data_dir)
     limit = settings.validation_memory_bytes
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     from PIL import Image
@@ -276,4 +279,4 @@ def main(check: str) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1]))
+    sys.exit(main(sys.argv[1], int(sys.argv[2])))
