@@ -5,14 +5,22 @@ loopback). Each probe of issue 11 is posted with the token, then the server's pe
 (/proc/PID/status VmHWM) and its current RSS are read. The heavy checks run in validation processes, so
 the API's peak stays where start-up left it.
 
-    python benchmarks/bench_upload_memory.py
+    python benchmarks/bench_upload_memory.py [--concurrent 1,8] [--baseline /path/to/other/checkout]
 
 Probes: a 40x2000x2000x3 float64 .npz of zeros (3.8 GB declared, ~0.5 MB on the wire), a 12000^2 PNG and
 a 15000^2 PNG inside Blender dataset zips, and a 15000^2 PNG as a reconstruction image.
+
+Then uploads at once (1 and 8 by default): the same count of 40x2000x2000x3 uint8 .npz of zeros (0.5 GB
+declared, ~0.5 MB on the wire) and of the real lego_200 dataset zip (accepted: each is checked in a
+validation process), while the resident memory of the API's whole process tree (the API, its validation,
+render and job processes) is sampled every 20 ms. `--baseline` runs the same uploads against another
+checkout's service in the same run (mind its memory: without the header checks each upload of zeros may
+take a validation process of several GB).
 """
 
 from __future__ import annotations
 
+import argparse
 import io
 import json
 import os
@@ -20,8 +28,11 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import zipfile
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
@@ -37,12 +48,12 @@ TOKEN = "bench-token"
 ZERO_CHUNK = bytes(2**20)
 
 
-def npz_of_zeros(path: Path, shape: tuple[int, ...]) -> None:
-    """An .npz whose images.npy is float64 zeros of `shape`, streamed into the zip (never in memory)."""
-    header = {"descr": "<f8", "fortran_order": False, "shape": shape}
+def npz_of_zeros(path: Path, shape: tuple[int, ...], dtype: str = "<f8") -> None:
+    """An .npz whose images.npy is zeros of `shape`, streamed into the zip (never in memory)."""
+    header = {"descr": dtype, "fortran_order": False, "shape": shape}
     text = repr(header).encode("latin1")
     text += b" " * (64 - (10 + len(text) + 1) % 64) + b"\n"
-    size = int(np.prod(shape)) * 8
+    size = int(np.prod(shape)) * np.dtype(dtype).itemsize
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
         with zf.open("images.npy", "w", force_zip64=True) as member:
             member.write(b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text)
@@ -78,8 +89,115 @@ def memory_mb(pid: int) -> tuple[float, float]:
     return int(fields["VmHWM"].split()[0]) / 1024, int(fields["VmRSS"].split()[0]) / 1024
 
 
+def tree_rss_mb(pid: int) -> float:
+    """Resident memory of a process and all its descendants, MB (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(parent, []).append(int(entry.name))
+    total, pending = 0.0, [pid]
+    while pending:
+        current = pending.pop()
+        pending.extend(children.get(current, []))
+        try:
+            total += memory_mb(current)[1]
+        except (OSError, KeyError):
+            continue  # ended meanwhile
+    return total
+
+
+class TreePeak:
+    """Samples the process tree's resident memory in a thread; `peak` is the largest sum seen."""
+
+    def __init__(self, pid: int, period: float = 0.02) -> None:
+        self.pid, self.period, self.peak = pid, period, 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, tree_rss_mb(self.pid))
+            time.sleep(self.period)
+
+    def __enter__(self) -> TreePeak:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def lego_200_zip() -> bytes:
+    """The lego_200 Blender dataset as a client uploads it."""
+    folder = ROOT.parent / "shared" / "data" / "lego_200"
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as zf:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file() and path.suffix in (".png", ".json"):
+                zf.write(path, f"lego_200/{path.relative_to(folder)}")
+    return buffer.getvalue()
+
+
+def concurrent_uploads(tmp: Path, root: Path, counts: list[int], uploads: dict[str, bytes]) -> None:
+    """For each count: that many uploads of each kind at once; statuses and the tree's peak RSS."""
+    port = free_port()
+    server = start_server(tmp / f"data-{root.name}-{port}", port, root=root)
+    headers = {"Authorization": f"Bearer {TOKEN}"}
+
+    def post(name: str) -> int:
+        files = [("dataset", (name, uploads[name], "application/octet-stream"))]
+        response = httpx.post(
+            f"http://127.0.0.1:{port}/v1/nerf", files=files, data={"steps": "1"}, headers=headers, timeout=600
+        )
+        if response.status_code == 202:  # only the check is measured: the job is not left to train
+            httpx.delete(f"http://127.0.0.1:{port}/v1/jobs/{response.json()['id']}", headers=headers)
+        return response.status_code
+
+    try:
+        idle = tree_rss_mb(server.pid)
+        for name in uploads:
+            for count in counts:
+                started = time.monotonic()
+                with TreePeak(server.pid) as peak, ThreadPoolExecutor(count) as pool:
+                    statuses = Counter(pool.map(post, [name] * count))
+                seconds = time.monotonic() - started
+                shown = ", ".join(f"{n}x {status}" for status, n in sorted(statuses.items()))
+                print(
+                    f"| {root} | {count} x {name} ({len(uploads[name]) / 1024:.0f} KB) | {shown} | "
+                    f"{seconds:.1f} | {idle:.0f} MB | {peak.peak:.0f} MB |"
+                )
+    finally:
+        server.kill()
+        server.wait()
+
+
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--concurrent", default="1,8", help="upload counts at once, comma separated")
+    parser.add_argument("--baseline", type=Path, help="another checkout to measure in the same run")
+    parser.add_argument("--skip-probes", action="store_true", help="only the concurrent uploads")
+    arguments = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
+    os.environ["SFMNERF_API_TOKEN"] = TOKEN  # inherited by the server processes
+    if not arguments.skip_probes:
+        single_probes()
+    counts = [int(n) for n in arguments.concurrent.split(",")]
+    with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
+        zeros = Path(tmp) / "zeros-u8.npz"
+        npz_of_zeros(zeros, (40, 2000, 2000, 3), "|u1")
+        uploads = {"zeros-u8.npz": zeros.read_bytes(), "lego_200.zip": lego_200_zip()}
+        print("\n| service | uploads at once | statuses | seconds | tree RSS idle | tree peak RSS |")
+        print("|---|---|---|---|---|---|")
+        for root in [ROOT, *([arguments.baseline] if arguments.baseline else [])]:
+            concurrent_uploads(Path(tmp), root, counts, uploads)
+
+
+def single_probes() -> None:
     with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
         npz = Path(tmp) / "zeros.npz"
         npz_of_zeros(npz, (40, 2000, 2000, 3))
@@ -91,7 +209,6 @@ def main() -> None:
             ("reconstructions", "images", "15000.png", png_15000),
         ]
         del png_12000, png_15000
-        os.environ["SFMNERF_API_TOKEN"] = TOKEN  # inherited by the server process
         port = free_port()
         server = start_server(Path(tmp) / "data", port)
         try:

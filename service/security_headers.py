@@ -41,6 +41,7 @@ def content_security_policy(script_hashes: list[str]) -> str:
         "script-src": " ".join(["'self'", *script_hashes]),
         "style-src": "'self'",
         "img-src": "'self' data: blob:",
+        "media-src": "'self' blob:",
         "connect-src": "'self'",
         "worker-src": "'self' blob:",
         "object-src": "'none'",

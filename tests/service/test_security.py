@@ -280,7 +280,11 @@ def test_a_request_without_a_token_is_refused_before_its_body_is_read(clients_se
         "raw_path": b"/v1/reconstructions",
         "query_string": b"",
         "root_path": "",
-        "headers": [(b"content-type", b"multipart/form-data; boundary=x"), (b"content-length", b"314572800")],
+        "headers": [
+            (b"host", b"localhost"),
+            (b"content-type", b"multipart/form-data; boundary=x"),
+            (b"content-length", b"314572800"),
+        ],
         "client": ("127.0.0.1", 1),
         "server": ("127.0.0.1", 80),
     }
