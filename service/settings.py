@@ -154,6 +154,12 @@ class ServiceSettings(BaseSettings):
         ge=1,
         description="Upload checks (one process each) running at once; more get 429 with Retry-After.",
     )
+    max_queued_jobs_per_client: int = Field(
+        20, ge=1, description="Jobs a named client may have waiting; more are answered 429 with Retry-After."
+    )
+    max_disk_bytes_per_client: int = Field(
+        20 * 2**30, ge=0, description="Bytes a named client's jobs may take on disk; more: new work gets 507."
+    )
     trusted_hosts: list[str] | None = Field(
         None,
         description="Host names the service answers to (other Host headers: 400, against DNS rebinding), "

@@ -13,6 +13,7 @@ from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDe
 from service.housekeeping import delete_job as delete_job_and_files
 from service.housekeeping import disk_space_problem
 from service.models import ErrorOut, JobList, JobOut, LogsOut
+from service.quotas import check_client_quota
 from service.runner import announce_end, input_dir
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -23,10 +24,12 @@ DELETE_WAIT_SECONDS = 10.0
 NO_SPACE = {507: {"model": ErrorOut, "description": "The server's disk is too full for new work."}}
 
 
-def require_disk_space(settings: SettingsDep) -> None:
-    """507 Insufficient Storage for new work while the disk is below SFMNERF_MIN_FREE_DISK_BYTES."""
+def require_disk_space(settings: SettingsDep, store: StoreDep, client: ClientDep) -> None:
+    """507 Insufficient Storage for new work while the disk is below SFMNERF_MIN_FREE_DISK_BYTES; the
+    client's quotas (service.quotas): 429 or 507."""
     if (problem := disk_space_problem(settings)) is not None:
         raise HTTPException(status.HTTP_507_INSUFFICIENT_STORAGE, problem)
+    check_client_quota(store, client, settings)
 
 
 def accepted(response: Response, job: JobOut) -> JobOut:
