@@ -69,3 +69,26 @@ def test_a_client_over_its_disk_quota_gets_507_naming_it(tmp_path):
         response = client.post("/v1/reconstructions", files=files, headers=auth)
         assert response.status_code == 507
         assert "SFMNERF_MAX_DISK_BYTES_PER_CLIENT=1000" in response.json()["detail"]
+
+
+def test_webhooks_are_claimed_in_turns_and_one_client_never_holds_every_sender(tmp_path):
+    """8 webhooks of alice due before bob's: bob's is the second claimed; alice never has more than 2
+    deliveries under way."""
+    from datetime import timedelta
+
+    from service.db import utcnow
+
+    store = JobStore(make_settings(tmp_path / "data").resolved_database_url)
+
+    def finished_with_webhook(owner: str) -> str:
+        job = store.create(JobKind.reconstruction, {}, owner=owner, webhook_url="http://example.org/hook")
+        store.finish(job.id, store.claim(job.id, "test"), JobState.succeeded)
+        store.queue_webhook(job.id)
+        return job.id
+
+    alices = [finished_with_webhook("alice") for _ in range(8)]
+    bobs = finished_with_webhook("bob")
+    stale_before = utcnow() - timedelta(minutes=5)
+    claims = [store.claim_webhook(stale_before, per_owner=2) for _ in range(4)]
+    assert [job.id if job else None for job in claims] == [alices[0], bobs, alices[1], None]
+    store.dispose()
