@@ -14,8 +14,8 @@ Then uploads at once (1 and 8 by default): the same count of 40x2000x2000x3 uint
 declared, ~0.5 MB on the wire) and of the real lego_200 dataset zip (accepted: each is checked in a
 validation process), while the resident memory of the API's whole process tree (the API, its validation,
 render and job processes) is sampled every 20 ms. `--baseline` runs the same uploads against another
-checkout's service in the same run (mind its memory: without the header checks each upload of zeros may
-take a validation process of several GB).
+checkout's service in the same run, with `--baseline-concurrent` uploads at once (1 by default: without
+the header checks each upload of zeros may take a validation process of several GB).
 """
 
 from __future__ import annotations
@@ -180,6 +180,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--concurrent", default="1,8", help="upload counts at once, comma separated")
     parser.add_argument("--baseline", type=Path, help="another checkout to measure in the same run")
+    parser.add_argument("--baseline-concurrent", default="1", help="upload counts at once for the baseline")
     parser.add_argument("--skip-probes", action="store_true", help="only the concurrent uploads")
     arguments = parser.parse_args()
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
@@ -193,8 +194,10 @@ def main() -> None:
         uploads = {"zeros-u8.npz": zeros.read_bytes(), "lego_200.zip": lego_200_zip()}
         print("\n| service | uploads at once | statuses | seconds | tree RSS idle | tree peak RSS |")
         print("|---|---|---|---|---|---|")
-        for root in [ROOT, *([arguments.baseline] if arguments.baseline else [])]:
-            concurrent_uploads(Path(tmp), root, counts, uploads)
+        concurrent_uploads(Path(tmp), ROOT, counts, uploads)
+        if arguments.baseline:
+            baseline_counts = [int(n) for n in arguments.baseline_concurrent.split(",")]
+            concurrent_uploads(Path(tmp), arguments.baseline, baseline_counts, uploads)
 
 
 def single_probes() -> None:
