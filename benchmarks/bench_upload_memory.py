@@ -42,7 +42,7 @@ from PIL import Image
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run as a script from anywhere: the tests' server helpers
 
-from tests.service.servers import free_port, start_server  # noqa: E402
+from tests.service.servers import descendants, free_port, start_server  # noqa: E402
 
 TOKEN = "bench-token"
 ZERO_CHUNK = bytes(2**20)
@@ -91,20 +91,10 @@ def memory_mb(pid: int) -> tuple[float, float]:
 
 def tree_rss_mb(pid: int) -> float:
     """Resident memory of a process and all its descendants, MB (from /proc)."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(parent, []).append(int(entry.name))
-    total, pending = 0.0, [pid]
-    while pending:
-        current = pending.pop()
-        pending.extend(children.get(current, []))
+    total = 0.0
+    for member in [pid, *descendants(pid)]:
         try:
-            total += memory_mb(current)[1]
+            total += memory_mb(member)[1]
         except (OSError, KeyError):
             continue  # ended meanwhile
     return total

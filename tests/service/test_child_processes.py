@@ -9,7 +9,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import httpx
 import numpy as np
@@ -20,7 +19,7 @@ from service.app import create_app
 from service.child_processes import PROCESSES_DIR, start_time
 from service.settings import WORKER_SETTINGS_ENV
 from tests.service.conftest import TINY_MODEL_OPTIONS, make_settings, tiny_nerf_npz
-from tests.service.servers import ROOT, free_port, start_server
+from tests.service.servers import ROOT, descendants, free_port, start_server
 
 GONE_SECONDS = 10.0
 
@@ -35,23 +34,6 @@ def wait_gone(pids: list[int]) -> list[int]:
     while time.monotonic() < deadline and any(running(pid) for pid in pids):
         time.sleep(0.1)
     return [pid for pid in pids if running(pid)]
-
-
-def descendants(pid: int) -> list[int]:
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                continue
-            children.setdefault(parent, []).append(int(entry.name))
-    found, pending = [], list(children.get(pid, []))
-    while pending:
-        current = pending.pop()
-        found.append(current)
-        pending.extend(children.get(current, []))
-    return found
 
 
 def test_a_validation_process_dies_with_its_killed_parent(tmp_path):
