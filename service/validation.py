@@ -50,10 +50,13 @@ VALIDATION_BASE_BYTES = 192 * 2**20
 measured with benchmarks/bench_upload_memory.py --probe)."""
 NPZ_LOADED_EXTRA_BYTES = 12
 """load_npz holds each element as given plus three float32 copies (converted, clipped, stacked)."""
+CHECK_IMAGE_SIDE = 64
+"""The check decodes every image file whole but keeps it at most this large: its memory does not grow
+with the photos' resolution, only with the largest one's."""
 IMAGE_KEPT_BYTES_PER_PIXEL = 24
-"""A loaded image file: its RGB float32 pixels (12 bytes) and their copy in the stacked array (12)."""
-IMAGE_DECODING_BYTES_PER_PIXEL = 16
-"""The RGBA float32 of the one image being decoded."""
+"""A kept (shrunk) image: its RGB float32 pixels (12 bytes) and their copy in the stacked array (12)."""
+IMAGE_DECODING_BYTES_PER_PIXEL = 32
+"""The one image being decoded: 8-bit RGBA (4), its float32 (16) and the composited RGB float32 (12)."""
 DATASET_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
@@ -78,7 +81,8 @@ def check_loading_memory(needed: int, what: str, settings: ServiceSettings) -> N
 
 
 def folder_loading_bytes(folder: Path, settings: ServiceSettings) -> int:
-    """The memory its image files take once loaded, from their headers (no pixel is decoded)."""
+    """The memory the check of a dataset whose files lie in folder needs for its images, from their
+    headers (no pixel is decoded): the largest decoded whole, every one kept at CHECK_IMAGE_SIDE."""
     from PIL import Image
 
     kept = largest = 0
@@ -91,7 +95,7 @@ def folder_loading_bytes(folder: Path, settings: ServiceSettings) -> int:
             pixels = settings.max_image_pixels + 1
         except (OSError, SyntaxError, ValueError):
             continue  # not an image: the validation process names it if the dataset uses it
-        kept += pixels * IMAGE_KEPT_BYTES_PER_PIXEL
+        kept += min(pixels, CHECK_IMAGE_SIDE**2) * IMAGE_KEPT_BYTES_PER_PIXEL
         largest = max(largest, pixels * IMAGE_DECODING_BYTES_PER_PIXEL)
     return kept + largest
 
@@ -165,12 +169,13 @@ def _check_dataset(arguments: dict[str, Any], settings: ServiceSettings) -> None
     every file it names inside `within` (the job folder)."""
     from PIL import Image
 
-    from neural.data import load_dataset
+    from neural.data import ImageSize, load_dataset
     from neural.errors import DatasetError
 
     field = arguments["field"]
     try:
-        load_dataset(Path(arguments["path"]), within=Path(arguments["within"]))
+        shrunk = ImageSize(max_side=CHECK_IMAGE_SIDE)
+        load_dataset(Path(arguments["path"]), image_size=shrunk, within=Path(arguments["within"]))
     except DatasetError as error:
         if isinstance(error.__cause__, (Image.DecompressionBombError, Image.DecompressionBombWarning)):
             raise too_large(f"{field}: {error} (SFMNERF_MAX_IMAGE_PIXELS)") from None
@@ -207,7 +212,7 @@ def check_isolated(check: str, arguments: dict[str, Any], settings: ServiceSetti
     field in those messages."""
     field = arguments.get("field", "upload")
     if check == "dataset" and Path(arguments["path"]).is_dir():
-        needed = folder_loading_bytes(Path(arguments["path"]), settings)
+        needed = folder_loading_bytes(Path(arguments["within"]), settings)  # the files it may name
         check_loading_memory(needed, f"{field}: the dataset's images", settings)
     slots = validation_slots(settings.validation_workers)
     if not slots.acquire(blocking=False):

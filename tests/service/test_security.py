@@ -158,13 +158,13 @@ def test_an_npz_needing_more_memory_than_a_validation_process_has_is_refused_fro
 
 
 def test_a_dataset_whose_image_headers_need_more_memory_is_refused_before_decoding(tmp_path, monkeypatch):
-    """8 PNGs of 1000x1000 (a few KB each) take ~190 MB once loaded: over a 256 MB validation process."""
+    """A 3000x3000 PNG (a few KB) takes ~290 MB while it is decoded: over a 256 MB validation process."""
     import service.validation as validation
 
     started = []
     monkeypatch.setattr(validation, "_run_check", lambda *args: started.append(args))
-    names = [f"train/r_{i}" for i in range(8)]
-    archive = blender_zip(names, {f"{name}.png": png_bytes(1000, 1000) for name in names})
+    names = ["train/r_0", "train/r_1"]
+    archive = blender_zip(names, {"train/r_0.png": png_bytes(), "train/r_1.png": png_bytes(3000, 3000)})
     with TestClient(create_app(make_settings(tmp_path / "data", validation_memory_bytes=2**28))) as client:
         response = post_dataset(client, "big.zip", archive)
         assert_refused(response, 413, "dataset", "SFMNERF_VALIDATION_MEMORY_BYTES=268435456")
@@ -172,6 +172,7 @@ def test_a_dataset_whose_image_headers_need_more_memory_is_refused_before_decodi
 
 
 def test_the_default_validation_memory_is_a_few_hundred_mb_that_the_real_datasets_fit(shared_data, tmp_path):
+    """lego_200 (100 views) and the 3072x2048 photos of Strecha's fountain as a dataset of 11 views."""
     from service.settings import ServiceSettings
     from service.validation import check_isolated
 
@@ -179,6 +180,14 @@ def test_the_default_validation_memory_is_a_few_hundred_mb_that_the_real_dataset
     assert ServiceSettings.model_fields["validation_memory_bytes"].default <= 512 * 2**20
     lego = shared_data / "lego_200"
     check_isolated("dataset", {"path": str(lego), "field": "dataset", "within": str(lego)}, settings)
+    fountain = tmp_path / "fountain"
+    fountain.mkdir()
+    photos = sorted((shared_data / "strecha" / "fountain-P11").glob("*.jpg"))
+    frames = [{"file_path": f"./{p.stem}", "transform_matrix": np.eye(4).tolist()} for p in photos]
+    for photo in photos:
+        (fountain / f"{photo.stem}.png").write_bytes(photo.read_bytes())  # Pillow reads the JPEG inside
+    (fountain / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    check_isolated("dataset", {"path": str(fountain), "field": "dataset", "within": str(tmp_path)}, settings)
 
 
 def test_an_upload_finding_every_validation_slot_busy_answers_429_with_retry_after(tmp_path, monkeypatch):
