@@ -201,6 +201,8 @@ class ServiceSettings(BaseSettings):
             "max_json_bytes": self.max_json_bytes,
             "max_render_pixels": self.max_render_pixels,
             "max_video_pixels": self.max_video_pixels,
+            "max_queued_jobs_per_client": self.max_queued_jobs_per_client,
+            "max_disk_bytes_per_client": self.max_disk_bytes_per_client,
         }
 
     def effective_trusted_hosts(self) -> list[str]:
