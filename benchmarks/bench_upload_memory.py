@@ -6,6 +6,7 @@ loopback). Each probe of issue 11 is posted with the token, then the server's pe
 the API's peak stays where start-up left it.
 
     python benchmarks/bench_upload_memory.py [--concurrent 1,8] [--baseline /path/to/other/checkout]
+    python benchmarks/bench_upload_memory.py --address-space
 
 Probes: a 40x2000x2000x3 float64 .npz of zeros (3.8 GB declared, ~0.5 MB on the wire), a 12000^2 PNG and
 a 15000^2 PNG inside Blender dataset zips, and a 15000^2 PNG as a reconstruction image.
@@ -16,6 +17,10 @@ validation process), while the resident memory of the API's whole process tree (
 render and job processes) is sampled every 20 ms. `--baseline` runs the same uploads against another
 checkout's service in the same run, with `--baseline-concurrent` uploads at once (1 by default: without
 the header checks each upload of zeros may take a validation process of several GB).
+
+`--address-space`: the smallest SFMNERF_VALIDATION_MEMORY_BYTES (to 16 MiB) with which each check of the
+real data passes, by bisection: what the validation process needs besides a dataset (VALIDATION_BASE_BYTES)
+and how far the default is from what accepted datasets need.
 """
 
 from __future__ import annotations
@@ -166,13 +171,69 @@ def concurrent_uploads(tmp: Path, root: Path, counts: list[int], uploads: dict[s
         server.wait()
 
 
+def check_passes(check: str, arguments: dict, memory_mib: int, data_dir: Path) -> bool:
+    from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
+
+    settings = ServiceSettings(data_dir=data_dir, validation_memory_bytes=memory_mib * 2**20)
+    child = subprocess.run(
+        [sys.executable, "-m", "service.validation", check, str(os.getpid())],
+        input=json.dumps(arguments),
+        capture_output=True,
+        text=True,
+        env={**os.environ, WORKER_SETTINGS_ENV: settings.to_worker_json(), "PYTHONPATH": str(ROOT),
+             "OMP_NUM_THREADS": "1", "MALLOC_ARENA_MAX": "1"},  # as service.validation starts it
+        cwd=ROOT,
+    )
+    return child.returncode == 0 and json.loads(child.stdout.splitlines()[-1])["status"] == 200
+
+
+def address_space() -> None:
+    """The smallest validation memory limit each check of the real data passes with (bisection)."""
+    data = ROOT.parent / "shared" / "data"
+    hall, fountain = data / "unity_hall", data / "strecha" / "fountain-P11"
+    with tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp:
+        photos = sorted(fountain.glob("*.jpg"))
+        frames = [{"file_path": f"./{p.stem}", "transform_matrix": np.eye(4).tolist()} for p in photos]
+        for photo in photos:
+            (Path(tmp) / f"{photo.stem}.png").write_bytes(photo.read_bytes())
+        meta = {"camera_angle_x": 0.8, "frames": frames}
+        (Path(tmp) / "transforms_train.json").write_text(json.dumps(meta))
+        cases = {
+            "lego_tiny.npz (90 views of 100x100)": ("dataset", data / "lego_tiny.npz", data),
+            "lego_200 (100 views of 200x200)": ("dataset", data / "lego_200", data / "lego_200"),
+            "fountain-P11 as a dataset (11 views of 3072x2048)": ("dataset", Path(tmp), Path(tmp)),
+        }
+        print("\n| check | smallest SFMNERF_VALIDATION_MEMORY_BYTES that passes |\n|---|---|")
+        for name, (check, path, within) in cases.items():
+            arguments = {"path": str(path), "field": "dataset", "within": str(within)}
+            print(f"| {name} | {smallest_limit_mib(check, arguments, Path(tmp))} MiB |", flush=True)
+        images = sorted(p.name for p in hall.glob("*.png"))
+        arguments = {"field": "images", "folder": str(hall), "images": images, "matches": [],
+                     "image_ids": [], "width": 800, "height": 600}  # fmt: skip
+        needed = smallest_limit_mib("reconstruction_inputs", arguments, Path(tmp))
+        print(f"| Unity Hall photos (5 of 800x600) | {needed} MiB |")
+
+
+def smallest_limit_mib(check: str, arguments: dict, data_dir: Path, low: int = 128, high: int = 4096) -> int:
+    if not check_passes(check, arguments, high, data_dir):
+        return -1
+    while high - low > 16:
+        middle = (low + high) // 2
+        low, high = (low, middle) if check_passes(check, arguments, middle, data_dir) else (middle, high)
+    return high
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--concurrent", default="1,8", help="upload counts at once, comma separated")
     parser.add_argument("--baseline", type=Path, help="another checkout to measure in the same run")
     parser.add_argument("--baseline-concurrent", default="1", help="upload counts at once for the baseline")
     parser.add_argument("--skip-probes", action="store_true", help="only the concurrent uploads")
+    parser.add_argument("--address-space", action="store_true", help="only the validation memory bisection")
     arguments = parser.parse_args()
+    if arguments.address_space:
+        address_space()
+        return
     print(subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     os.environ["SFMNERF_API_TOKEN"] = TOKEN  # inherited by the server processes
     if not arguments.skip_probes:

@@ -46,8 +46,8 @@ STDERR_TAIL_CHARS = 2000
 OUT_OF_MEMORY_EXIT = 3
 RETRY_AFTER_SECONDS = 5
 VALIDATION_BASE_BYTES = 192 * 2**20
-"""Address space of a validation process before it loads a dataset: Python, numpy and Pillow (170-205 MiB
-measured with benchmarks/bench_upload_memory.py --probe)."""
+"""Address space of a validation process before it loads a dataset: Python, numpy and Pillow (the checks of
+the real data pass with 143-205 MiB: benchmarks/bench_upload_memory.py --address-space)."""
 NPZ_LOADED_EXTRA_BYTES = 12
 """load_npz holds each element as given plus three float32 copies (converted, clipped, stacked)."""
 CHECK_IMAGE_SIDE = 64
@@ -231,7 +231,8 @@ def check_isolated(check: str, arguments: dict[str, Any], settings: ServiceSetti
 def _run_check(check: str, arguments: dict[str, Any], field: str, settings: ServiceSettings) -> None:
     env = {k: v for k, v in os.environ.items() if k != "SFMNERF_API_TOKEN"}
     env[WORKER_SETTINGS_ENV] = settings.to_worker_json()
-    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    # One malloc arena: each thread's own arena (the parent watchdog's) would reserve 64 MiB of the limit.
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MALLOC_ARENA_MAX="1")
     try:
         child = subprocess.run(
             [sys.executable, "-m", "service.validation", check, str(os.getpid())],
