@@ -94,7 +94,8 @@ def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_vie
     page.mouse.down()
     page.mouse.move(box["x"] + box["width"] / 2 + 40, box["y"] + box["height"] / 2, steps=4)
     page.mouse.up()
-    page.wait_for_function(f"document.getElementById('novel-{nerf_id}').dataset.renders >= 2", timeout=60_000)
+    # A second render after the drag (a selector: the page's CSP forbids the eval of wait_for_function).
+    page.wait_for_selector(f"#novel-{nerf_id}[data-renders]:not([data-renders='1'])", timeout=60_000)
     page.wait_for_selector(f"#video-{nerf_id}", timeout=60_000)
     assert len(page.query_selector_all("#held-out img")) == 1  # LLFF hold-out of 5 photos: frame 0
     assert page.query_selector(f"#psnr-{nerf_id}") is not None
