@@ -41,8 +41,7 @@ ORPHAN_MIN_AGE_SECONDS = 600.0
 
 
 class UploadRejected(ServiceError):
-    """An upload the service refuses; `status_code` is 413 (a limit), 422 (bad content) or 429 (busy, with
-    a Retry-After header)."""
+    """An upload the service refuses; `status_code` is 413 (a limit) or 422 (bad content)."""
 
 
 def too_large(detail: str) -> UploadRejected:

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from service.child_processes import become_child_of
+from service.errors import busy
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 from service.uploads import UploadRejected, decode_image, invalid, too_large, without_server_paths
 
@@ -216,11 +217,10 @@ def check_isolated(check: str, arguments: dict[str, Any], settings: ServiceSetti
         check_loading_memory(needed, f"{field}: the dataset's images", settings)
     slots = validation_slots(settings.validation_workers)
     if not slots.acquire(blocking=False):
-        raise UploadRejected(
-            429,
+        raise busy(
             f"{field}: all {settings.validation_workers} upload checks are busy "
             f"(SFMNERF_VALIDATION_WORKERS); retry after {RETRY_AFTER_SECONDS} s",
-            headers={"Retry-After": str(RETRY_AFTER_SECONDS)},
+            RETRY_AFTER_SECONDS,
         )
     try:
         _run_check(check, arguments, field, settings)
