@@ -12,66 +12,26 @@ from typing import Any
 
 from fastapi import Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
-from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import openapi
 from service.auth import AuthMiddleware
+from service.child_processes import reap_leftovers
 from service.deps import SettingsDep, StoreDep, current_client, visible_job
 from service.errors import ServiceError
 from service.executor import make_executor
+from service.http_limits import BodyLimits
 from service.kinds import JobState
 from service.renders import RenderQueue
 from service.routes import jobs, nerf, previews, reconstructions, scenes, web
 from service.scene_supervisor import SceneSteps, SceneSupervisor
 from service.schemas import HealthOut, InfoOut, ReadyOut
+from service.security_headers import SecurityHeaders, TrustedHosts
 from service.settings import ServiceSettings
 from service.store.job_store import JobStore
-from service.uploads import sweep_orphan_folders
+from service.uploads import sweep_orphan_folders, without_server_paths
 from service.webhooks import WebhookSender
 
 log = logging.getLogger(__name__)
-
-
-class BodySizeLimit:
-    """Answers 413 to request bodies above the limit, declared (Content-Length) or streamed.
-
-    Multipart uploads may reach SFMNERF_MAX_UPLOAD_BYTES; every other body (JSON) SFMNERF_MAX_JSON_BYTES.
-    """
-
-    def __init__(self, app: ASGIApp, settings: ServiceSettings) -> None:
-        self.app = app
-        self.settings = settings
-
-    def _limit(self, scope: Scope) -> tuple[int, str]:
-        content_type = dict(scope["headers"]).get(b"content-type", b"")
-        if content_type.lower().startswith(b"multipart/form-data"):
-            return self.settings.max_upload_bytes, "SFMNERF_MAX_UPLOAD_BYTES"
-        return self.settings.max_json_bytes, "SFMNERF_MAX_JSON_BYTES"
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        max_bytes, variable = self._limit(scope)
-        detail = f"the request body is larger than the limit {variable}={max_bytes}"
-        declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > max_bytes:
-            await JSONResponse({"detail": detail}, status_code=413)(scope, receive, send)
-            return
-        received = 0
-
-        async def limited_receive() -> Message:
-            nonlocal received
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > max_bytes:
-                    # An HTTPException passes FastAPI's body parsing unchanged and becomes the response.
-                    raise StarletteHTTPException(413, detail)
-            return message
-
-        await self.app(scope, limited_receive, send)
 
 
 @cache
@@ -99,6 +59,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        reap_leftovers(settings.data_dir)  # render and validation processes of a killed API
         store = JobStore(settings.resolved_database_url)  # applies the schema migrations
         sweep_orphan_folders(settings.jobs_dir, store)
         executor = make_executor(settings, store)
@@ -128,13 +89,17 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         **({"docs_url": None, "redoc_url": None, "openapi_url": None} if settings.docs == "off" else {}),
     )
     app.state.settings = settings
-    # The last added runs first: the token is checked before the body limit and before any body is read.
-    app.add_middleware(BodySizeLimit, settings=settings)
+    # The last added runs first: the Host, then the token, are checked before the body limit and before any
+    # body is read.
+    app.add_middleware(BodyLimits, settings=settings)
     app.add_middleware(AuthMiddleware, settings=settings)
+    app.add_middleware(SecurityHeaders)
+    app.add_middleware(TrustedHosts, settings=settings)
 
     @app.exception_handler(ServiceError)
     async def _refused(_request: Request, error: ServiceError) -> JSONResponse:
-        return JSONResponse({"detail": error.detail}, status_code=error.status_code)
+        detail = without_server_paths(error.detail, settings)  # the last guard; messages name uploads
+        return JSONResponse({"detail": detail}, status_code=error.status_code, headers=error.headers)
 
     @app.exception_handler(json.JSONDecodeError)
     async def _bad_json(_request: Request, error: json.JSONDecodeError) -> JSONResponse:

@@ -1,5 +1,5 @@
 """FastAPI dependencies shared by the routers: settings, store, executor, the caller, what it may see, disk
-space for new work."""
+space and the caller's quotas for new work."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from service.auth import Client
 from service.errors import no_space
 from service.executor import Executor
 from service.housekeeping import disk_space_problem
+from service.quotas import check_client_quota
 from service.settings import ServiceSettings
 from service.store.job_store import JobStore
 
@@ -61,7 +62,9 @@ def visible_job(request: Request, store: StoreDep, client: ClientDep) -> None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
 
 
-def require_disk_space(settings: SettingsDep) -> None:
-    """507 Insufficient Storage for new work while the disk is below SFMNERF_MIN_FREE_DISK_BYTES."""
+def require_disk_space(settings: SettingsDep, store: StoreDep, client: ClientDep) -> None:
+    """507 Insufficient Storage for new work while the disk is below SFMNERF_MIN_FREE_DISK_BYTES; the
+    client's quotas (service.quotas): 429 or 507."""
     if (problem := disk_space_problem(settings)) is not None:
         raise no_space(problem)
+    check_client_quota(store, client, settings)

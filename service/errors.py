@@ -9,13 +9,14 @@ from __future__ import annotations
 
 
 class ServiceError(Exception):
-    """A refusal with its HTTP status (404 not found, 409 conflict, 413 over a limit, 422 bad input, 507 no
-    disk space)."""
+    """A refusal with its HTTP status (404 not found, 409 conflict, 413 over a limit, 422 bad input, 429 busy
+    or over a quota, 507 no disk space) and the headers it needs (Retry-After)."""
 
-    def __init__(self, status_code: int, detail: str) -> None:
+    def __init__(self, status_code: int, detail: str, headers: dict[str, str] | None = None) -> None:
         super().__init__(detail)
         self.status_code = status_code
         self.detail = detail
+        self.headers = headers
 
 
 def not_found(detail: str) -> ServiceError:
@@ -28,3 +29,8 @@ def conflict(detail: str) -> ServiceError:
 
 def no_space(detail: str) -> ServiceError:
     return ServiceError(507, detail)
+
+
+def busy(detail: str, retry_after_seconds: int) -> ServiceError:
+    """429 Too Many Requests, with the seconds after which to try again."""
+    return ServiceError(429, detail, headers={"Retry-After": str(retry_after_seconds)})

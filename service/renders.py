@@ -76,8 +76,12 @@ class RenderSpec:
 _models: OrderedDict[tuple[str, int, int], Any] = OrderedDict()
 
 
-def _init_render_process(threads: int) -> None:
+def _init_render_process(threads: int, parent_pid: int, data_dir: str) -> None:
     import torch
+
+    from service.child_processes import become_child_of
+
+    become_child_of(parent_pid, Path(data_dir))
 
     torch.set_num_threads(threads)
 
@@ -211,7 +215,7 @@ class RenderQueue:
                 max_workers=self.settings.render_workers,
                 mp_context=multiprocessing.get_context("spawn"),  # never fork a threaded server
                 initializer=_init_render_process,
-                initargs=(self.settings.threads_per_job(),),
+                initargs=(self.settings.threads_per_job(), os.getpid(), str(self.settings.data_dir)),
             )
         future = self._pool.submit(render_png, spec, str(cache_dir) if cache_dir else None)
         try:

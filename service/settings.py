@@ -18,6 +18,8 @@ from service.kinds import JobKind, require_every_kind
 
 WORKER_SETTINGS_ENV = "SFMNERF_WORKER_SETTINGS_JSON"
 """Environment variable through which the local executor hands its settings to a job process."""
+LOCAL_HOST_NAMES = ("localhost", "*.localhost", "127.0.0.1", "::1")
+"""The names an open service (no token) answers to by default: only this machine's."""
 
 
 class ServiceSettings(BaseSettings):
@@ -72,9 +74,10 @@ class ServiceSettings(BaseSettings):
         description="Largest accepted body of a request that is not a multipart upload, bytes.",
     )
     validation_memory_bytes: int = Field(
-        4 * 2**30,
+        512 * 2**20,
         ge=2**27,
-        description="Address space of the process that decodes and checks an upload (over it: 413).",
+        description="Address space of the process that decodes and checks an upload; an upload whose "
+        "headers say it needs more is refused (413) before it is decompressed.",
     )
     validation_timeout_seconds: float = Field(
         300.0, gt=0, description="Longest time the check of one upload may take (over it: 413)."
@@ -161,6 +164,24 @@ class ServiceSettings(BaseSettings):
         'as JSON, e.g. ["10.0.0.0/8"].',
     )
 
+    validation_workers: int = Field(
+        2,
+        ge=1,
+        description="Upload checks (one process each) running at once; more get 429 with Retry-After.",
+    )
+    max_queued_jobs_per_client: int = Field(
+        20, ge=1, description="Jobs a named client may have waiting; more are answered 429 with Retry-After."
+    )
+    max_disk_bytes_per_client: int = Field(
+        20 * 2**30, ge=0, description="Bytes a named client's jobs may take on disk; more: new work gets 507."
+    )
+    trusted_hosts: list[str] | None = Field(
+        None,
+        description="Host names the service answers to (other Host headers: 400, against DNS rebinding), "
+        'as JSON, e.g. ["api.example.org", "*.example.org"]; "*": any. Default: the localhost names '
+        "when no token is configured, any host otherwise.",
+    )
+
     @field_validator("api_token", "database_url", "clients_file", mode="before")
     @classmethod
     def _empty_is_unset(cls, value: object) -> object:
@@ -198,7 +219,17 @@ class ServiceSettings(BaseSettings):
             "max_input_video_bytes": self.max_input_video_bytes,
             "max_input_video_seconds": self.max_input_video_seconds,
             "max_input_video_pixels": self.max_input_video_pixels,
+            "max_queued_jobs_per_client": self.max_queued_jobs_per_client,
+            "max_disk_bytes_per_client": self.max_disk_bytes_per_client,
         }
+
+    def effective_trusted_hosts(self) -> list[str]:
+        """SFMNERF_TRUSTED_HOSTS, or its default: localhost names when open, any host behind a token."""
+        if self.trusted_hosts is not None:
+            return [host.lower() for host in self.trusted_hosts]
+        if self.api_token is None and self.clients_file is None:
+            return list(LOCAL_HOST_NAMES)
+        return ["*"]
 
     def max_runtime_seconds(self, kind: str) -> float:
         """The longest a job of this kind may run (SFMNERF_MAX_RUNTIME_<KIND>_MINUTES)."""

@@ -111,8 +111,15 @@ def verify_image(path: Path, shown_name: str, settings: ServiceSettings) -> tupl
             f"SFMNERF_MAX_IMAGE_PIXELS={settings.max_image_pixels}"
         ) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
-        raise invalid(f"images: {shown_name} is not a complete PNG/JPEG image ({error})") from None
+        raise not_an_image(error, path, shown_name) from None
     return image_format, width, height
+
+
+def not_an_image(error: Exception, path: Path, shown_name: str) -> UploadRejected:
+    """422 for an image the decoder refused; its message (which may quote the stored path) names the
+    file as the client called it."""
+    reason = str(error).replace(str(path), shown_name).replace(str(path.parent), "")
+    return invalid(f"images: {shown_name} is not a complete PNG/JPEG image ({reason})")
 
 
 def decode_image(path: Path, shown_name: str) -> None:
@@ -121,7 +128,7 @@ def decode_image(path: Path, shown_name: str) -> None:
         with Image.open(path) as image:
             image.load()
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
-        raise invalid(f"images: {shown_name} is not a complete PNG/JPEG image ({error})") from None
+        raise not_an_image(error, path, shown_name) from None
 
 
 def check_image_count(count: int, settings: ServiceSettings) -> None:

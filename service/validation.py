@@ -1,10 +1,15 @@
 """The heavy checks of an upload (decoding images, parsing match files, loading a dataset) in a child process.
 
-`check_isolated(check, arguments, settings)` runs `python -m service.validation CHECK` with the arguments as
-JSON on stdin; the child limits its own address space (SFMNERF_VALIDATION_MEMORY_BYTES) and Pillow's pixel
-limit (SFMNERF_MAX_IMAGE_PIXELS) before it reads anything, and prints its verdict as one JSON line. So a
-decompression bomb or a huge dataset costs the child its memory, never the API. `check_npz_headers` is
-the cheap part that stays in the API: the .npy headers inside an .npz, read before anything is inflated.
+`check_isolated(check, arguments, settings)` runs `python -m service.validation CHECK API_PID` with the
+arguments as JSON on stdin; the child dies with the API (service.child_processes), limits its own address
+space (SFMNERF_VALIDATION_MEMORY_BYTES) and Pillow's pixel limit (SFMNERF_MAX_IMAGE_PIXELS) before it
+reads anything, and prints its verdict as one JSON line. So a
+decompression bomb or a huge dataset costs the child its memory, never the API. At most
+SFMNERF_VALIDATION_WORKERS children run at once (one per upload); an upload finding them all busy gets 429.
+
+The cheap part stays in the API: the .npy headers inside an .npz and the image headers of a dataset
+folder, read before anything is inflated, give the memory loading the dataset needs; an upload that would
+need more than the child may have is refused there, so no accepted dataset meets the child's limit.
 """
 
 from __future__ import annotations
@@ -17,14 +22,18 @@ import re
 import resource
 import subprocess
 import sys
+import threading
 import warnings
 import zipfile
 from collections.abc import Callable
+from functools import cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from service.child_processes import become_child_of
+from service.errors import busy
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 from service.uploads import UploadRejected, decode_image, invalid, too_large, without_server_paths
 from service.video_uploads import check_input_video
@@ -37,6 +46,60 @@ NPZ_HEADER_READERS = {
 }
 STDERR_TAIL_CHARS = 2000
 OUT_OF_MEMORY_EXIT = 3
+RETRY_AFTER_SECONDS = 5
+VALIDATION_BASE_BYTES = 192 * 2**20
+"""Address space of a validation process before it loads a dataset: Python, numpy and Pillow (the checks of
+the real data pass with 143-205 MiB: benchmarks/bench_upload_memory.py --address-space)."""
+NPZ_LOADED_EXTRA_BYTES = 12
+"""load_npz holds each element as given plus three float32 copies (converted, clipped, stacked)."""
+CHECK_IMAGE_SIDE = 64
+"""The check decodes every image file whole but keeps it at most this large: its memory does not grow
+with the photos' resolution, only with the largest one's."""
+IMAGE_KEPT_BYTES_PER_PIXEL = 24
+"""A kept (shrunk) image: its RGB float32 pixels (12 bytes) and their copy in the stacked array (12)."""
+IMAGE_DECODING_BYTES_PER_PIXEL = 32
+"""The one image being decoded: 8-bit RGBA (4), its float32 (16) and the composited RGB float32 (12)."""
+DATASET_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@cache
+def validation_slots(workers: int) -> threading.BoundedSemaphore:
+    """The API process's validation processes: SFMNERF_VALIDATION_WORKERS at most at once."""
+    return threading.BoundedSemaphore(workers)
+
+
+def loading_budget(settings: ServiceSettings) -> int:
+    """Bytes a dataset may take once loaded, so that checking it fits in the validation process."""
+    return settings.validation_memory_bytes - VALIDATION_BASE_BYTES
+
+
+def check_loading_memory(needed: int, what: str, settings: ServiceSettings) -> None:
+    if needed > loading_budget(settings):
+        raise too_large(
+            f"{what} needs about {needed // 2**20} MiB once loaded, more than the "
+            f"{loading_budget(settings) // 2**20} MiB that the limit "
+            f"SFMNERF_VALIDATION_MEMORY_BYTES={settings.validation_memory_bytes} leaves for a dataset"
+        )
+
+
+def folder_loading_bytes(folder: Path, settings: ServiceSettings) -> int:
+    """The memory the check of a dataset whose files lie in folder needs for its images, from their
+    headers (no pixel is decoded): the largest decoded whole, every one kept at CHECK_IMAGE_SIDE."""
+    from PIL import Image
+
+    kept = largest = 0
+    images = [p for p in folder.rglob("*") if p.suffix.lower() in DATASET_IMAGE_SUFFIXES and p.is_file()]
+    for path in images[: settings.max_zip_entries]:
+        try:
+            with Image.open(path) as image:
+                pixels = image.size[0] * image.size[1]
+        except Image.DecompressionBombError:
+            pixels = settings.max_image_pixels + 1
+        except (OSError, SyntaxError, ValueError):
+            continue  # not an image: the validation process names it if the dataset uses it
+        kept += min(pixels, CHECK_IMAGE_SIDE**2) * IMAGE_KEPT_BYTES_PER_PIXEL
+        largest = max(largest, pixels * IMAGE_DECODING_BYTES_PER_PIXEL)
+    return kept + largest
 
 
 def check_npz_headers(path: Path, field: str, shown_name: str, settings: ServiceSettings) -> None:
@@ -56,7 +119,7 @@ def check_npz_headers(path: Path, field: str, shown_name: str, settings: Service
                 f"{field}: {shown_name} holds {len(infos)} arrays, more than the limit "
                 f"SFMNERF_MAX_ZIP_ENTRIES={settings.max_zip_entries}"
             )
-        total = 0
+        total = loaded = 0
         for info in infos:
             if not NPZ_MEMBER.match(info.filename):
                 raise invalid(f"{field}: {shown_name} member {info.filename!r} is not a named .npy array")
@@ -65,6 +128,7 @@ def check_npz_headers(path: Path, field: str, shown_name: str, settings: Service
             if dtype.hasobject:
                 raise invalid(f"{what} holds Python objects; only numeric arrays are accepted")
             total += math.prod(shape) * dtype.itemsize
+            loaded += math.prod(shape) * (dtype.itemsize + NPZ_LOADED_EXTRA_BYTES)
             if total > settings.max_zip_uncompressed_bytes:
                 raise too_large(
                     f"{what} {shape} of {dtype} makes the arrays larger than the limit "
@@ -79,6 +143,7 @@ def check_npz_headers(path: Path, field: str, shown_name: str, settings: Service
                     f"{what}: images of {shape[2]}x{shape[1]} pixels, more than the limit "
                     f"SFMNERF_MAX_IMAGE_PIXELS={settings.max_image_pixels}"
                 )
+        check_loading_memory(loaded, f"{field}: {shown_name}", settings)
 
 
 def _npy_header(
@@ -106,12 +171,13 @@ def _check_dataset(arguments: dict[str, Any], settings: ServiceSettings) -> None
     every file it names inside `within` (the job folder)."""
     from PIL import Image
 
-    from neural.data import load_dataset
+    from neural.data import ImageSize, load_dataset
     from neural.errors import DatasetError
 
     field = arguments["field"]
     try:
-        load_dataset(Path(arguments["path"]), within=Path(arguments["within"]))
+        shrunk = ImageSize(max_side=CHECK_IMAGE_SIDE)
+        load_dataset(Path(arguments["path"]), image_size=shrunk, within=Path(arguments["within"]))
     except DatasetError as error:
         if isinstance(error.__cause__, (Image.DecompressionBombError, Image.DecompressionBombWarning)):
             raise too_large(f"{field}: {error} (SFMNERF_MAX_IMAGE_PIXELS)") from None
@@ -144,15 +210,34 @@ CHECKS: dict[str, Callable[[dict[str, Any], ServiceSettings], None]] = {
 
 
 def check_isolated(check: str, arguments: dict[str, Any], settings: ServiceSettings) -> None:
-    """Runs CHECKS[check] in a child process; raises its UploadRejected, or 413 when it ran out of memory
-    or time. `arguments["field"]` names the request field in those messages."""
+    """Runs CHECKS[check] in a child process; raises its UploadRejected, 413 when it would run or ran out
+    of memory or time, 429 when every validation slot is busy. `arguments["field"]` names the request
+    field in those messages."""
     field = arguments.get("field", "upload")
+    if check == "dataset" and Path(arguments["path"]).is_dir():
+        needed = folder_loading_bytes(Path(arguments["within"]), settings)  # the files it may name
+        check_loading_memory(needed, f"{field}: the dataset's images", settings)
+    slots = validation_slots(settings.validation_workers)
+    if not slots.acquire(blocking=False):
+        raise busy(
+            f"{field}: all {settings.validation_workers} upload checks are busy "
+            f"(SFMNERF_VALIDATION_WORKERS); retry after {RETRY_AFTER_SECONDS} s",
+            RETRY_AFTER_SECONDS,
+        )
+    try:
+        _run_check(check, arguments, field, settings)
+    finally:
+        slots.release()
+
+
+def _run_check(check: str, arguments: dict[str, Any], field: str, settings: ServiceSettings) -> None:
     env = {k: v for k, v in os.environ.items() if k != "SFMNERF_API_TOKEN"}
     env[WORKER_SETTINGS_ENV] = settings.to_worker_json()
-    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    # One malloc arena: each thread's own arena (the parent watchdog's) would reserve 64 MiB of the limit.
+    env.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MALLOC_ARENA_MAX="1")
     try:
         child = subprocess.run(
-            [sys.executable, "-m", "service.validation", check],
+            [sys.executable, "-m", "service.validation", check, str(os.getpid())],
             input=json.dumps(arguments),
             capture_output=True,
             text=True,
@@ -180,8 +265,9 @@ def check_isolated(check: str, arguments: dict[str, Any], settings: ServiceSetti
     raise invalid(f"{field}: the upload could not be read")
 
 
-def main(check: str) -> int:
+def main(check: str, parent_pid: int) -> int:
     settings = ServiceSettings.model_validate_json(os.environ[WORKER_SETTINGS_ENV])
+    become_child_of(parent_pid, settings.data_dir)
     limit = settings.validation_memory_bytes
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     from PIL import Image
@@ -201,4 +287,4 @@ def main(check: str) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1]))
+    sys.exit(main(sys.argv[1], int(sys.argv[2])))

@@ -8,7 +8,8 @@ DNS answer cannot redirect it. Redirects are not followed, proxies from the envi
 
 Deliveries are a persistent outbox in the job store: whichever process ends a job marks its webhook
 pending (`JobStore.queue_webhook`, a job process too), and the `WebhookSender` threads of every API process
-claim due ones and send them. A restart loses none (a pending one waits in the database), a claim whose
+claim due ones and send them, in turns across clients and at most SENDER_THREADS_PER_OWNER of one client's
+at once. A restart loses none (a pending one waits in the database), a claim whose
 sender died is taken over after the longest a delivery can take, and a webhook that never answers holds
 neither a request nor a job slot. The job's log says only "webhook delivered" or "webhook failed"; the
 reasons go to the server log.
@@ -36,6 +37,8 @@ from service.uploads import invalid
 
 log = logging.getLogger(__name__)
 SENDER_THREADS = 4
+SENDER_THREADS_PER_OWNER = 2
+"""Deliveries of one client under way at once: its silent webhooks never hold every sender thread."""
 CLAIM_MARGIN_SECONDS = 30.0
 
 Network = IPv4Network | IPv6Network
@@ -167,7 +170,7 @@ class WebhookSender:
     def send_one(self) -> bool:
         """Claims and sends one due webhook; False when none is due."""
         stale_before = utcnow() - timedelta(seconds=delivery_deadline_seconds(self.settings))
-        job = self.store.claim_webhook(stale_before)
+        job = self.store.claim_webhook(stale_before, per_owner=SENDER_THREADS_PER_OWNER)
         if job is None:
             return False
         delivered = deliver(job.webhook_url or "", JobOut.from_job(job).model_dump_json(), self.settings)

@@ -13,10 +13,16 @@ PACKAGES = ("estimation", "neural", "service")
 SERVICE_FLOORS = [
     (
         "ground",
-        ["kinds", "errors", "settings", "layout", "params", "pipeline", "auth", "openapi", "celery_config"],
+        [
+            "kinds", "errors", "settings", "layout", "params", "pipeline", "auth", "openapi", "celery_config",
+            "strict_json", "http_limits", "security_headers", "child_processes", "fair_queue",
+        ],
     ),
     ("store", ["store", "schemas"]),
-    ("checks and housekeeping", ["uploads", "video_uploads", "validation", "webhooks", "housekeeping"]),
+    (
+        "checks and housekeeping",
+        ["uploads", "video_uploads", "validation", "webhooks", "housekeeping", "quotas"],
+    ),
     ("how a job ends", ["job_end"]),
     ("running jobs", ["runner", "executor", "worker", "celery_app", "renders"]),
     ("actions", ["actions", "deps"]),

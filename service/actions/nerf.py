@@ -3,7 +3,6 @@ training options (device included), render sizes and the video budget, checkpoin
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -11,7 +10,7 @@ from typing import Any, Literal
 from pydantic import ValidationError
 
 from neural.config import ModelName
-from service import webhooks
+from service import strict_json, webhooks
 from service.actions.jobs import find_job
 from service.actions.reconstructions import InputFile
 from service.auth import Client
@@ -56,9 +55,9 @@ class TrainOptions:
         from neural import TrainConfig
 
         try:
-            extra = json.loads(self.options) if self.options else {}
-        except json.JSONDecodeError as error:
-            raise invalid(f"options: not valid JSON ({error})") from None
+            extra = strict_json.loads(self.options, "options") if self.options else {}
+        except strict_json.JsonRefused as refused:
+            raise invalid(str(refused)) from None
         if not isinstance(extra, dict):
             raise invalid("options: expected a JSON object of training settings")
         named = {"model": self.model, "steps": self.steps, "minutes": self.minutes,

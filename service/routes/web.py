@@ -14,6 +14,7 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 WEB_DIR = Path(__file__).resolve().parents[1] / "web"
+INDEX_PAGE = WEB_DIR / "index.html"
 
 
 def mount(app: FastAPI) -> None:
@@ -26,4 +27,4 @@ def mount(app: FastAPI) -> None:
 
     @app.get("/", include_in_schema=False)
     def index() -> FileResponse:
-        return FileResponse(WEB_DIR / "index.html", media_type="text/html")
+        return FileResponse(INDEX_PAGE, media_type="text/html")

@@ -10,6 +10,7 @@ from typing import Any
 
 from sqlalchemy import delete, func, select, union, update
 
+from service.fair_queue import fair_order
 from service.kinds import TERMINAL_STATES, JobKind, JobState
 from service.params import parse_params
 from service.store.database import Database
@@ -103,18 +104,21 @@ class JobRows(Database):
             return self._claim(session, job_id, worker, pid, supervisor_id)
 
     def claim_next(self, limit: int, worker: str, supervisor_id: str) -> list[tuple[str, int]]:
-        """Claims up to `limit` queued jobs, oldest first: [(job id, attempt)]. PostgreSQL skips rows
-        another supervisor is claiming (FOR UPDATE SKIP LOCKED); on SQLite the conditional UPDATE decides."""
+        """Claims up to `limit` queued jobs in turns across their owners (service.fair_queue), each
+        owner's oldest first: [(job id, attempt)]. PostgreSQL skips rows another supervisor is claiming
+        (FOR UPDATE SKIP LOCKED); on SQLite the conditional UPDATE decides."""
         with self._sessions.begin() as session:
             query = (
-                select(Job.id)
+                select(Job.id, Job.owner)
                 .where(Job.state == JobState.queued, Job.cancel_requested.is_(False))
                 .order_by(Job.created_at)
-                .limit(limit)
                 .with_for_update(skip_locked=True)
             )
+            queued = [(job_id, owner) for job_id, owner in session.execute(query).all()]
+            running_jobs = select(Job.owner, func.count()).where(Job.state == JobState.running)
+            running = {o: int(n) for o, n in session.execute(running_jobs.group_by(Job.owner)).all()}
             claimed = []
-            for job_id in session.scalars(query).all():
+            for job_id in fair_order(queued, running)[:limit]:
                 attempt = self._claim(session, job_id, worker, None, supervisor_id)
                 if attempt is not None:
                     claimed.append((job_id, attempt))

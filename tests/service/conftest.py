@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.kinds import TERMINAL_STATES
-from service.settings import ServiceSettings
+from service.settings import LOCAL_HOST_NAMES, ServiceSettings
 from service.store import JobStore
 
 JOB_TIMEOUT_SECONDS = 180.0
@@ -126,6 +126,7 @@ def make_settings(data_dir: Path, **overrides: object) -> ServiceSettings:
         "webhook_attempts": 3,
         "webhook_poll_seconds": 0.1,
         "cancel_grace_seconds": 1.0,
+        "trusted_hosts": ["testserver", *LOCAL_HOST_NAMES],  # TestClient's Host is "testserver"
     }
     values.update(overrides)
     return ServiceSettings(**values)

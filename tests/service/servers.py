@@ -61,3 +61,21 @@ def start_server(
         time.sleep(0.2)
     process.kill()
     raise RuntimeError("the server did not become ready")
+
+
+def descendants(pid: int) -> list[int]:
+    """The pids of a process's children, their children and so on (Linux: from /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(parent, []).append(int(entry.name))
+    found, pending = [], list(children.get(pid, []))
+    while pending:
+        current = pending.pop()
+        found.append(current)
+        pending.extend(children.get(current, []))
+    return found

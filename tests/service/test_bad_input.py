@@ -51,6 +51,19 @@ def test_a_non_image_file_is_rejected_naming_the_file(client, unity):
     assert_rejected(client.post("/v1/reconstructions", files=files), 422, "images", "3.png")
 
 
+@pytest.mark.parametrize(
+    "content", [b"x", b"\x89PNG\r\n\x1a\n", png_bytes()[:60]], ids=["1-byte", "magic", "cut"]
+)
+@pytest.mark.parametrize("route", ["/v1/reconstructions", "/v1/scenes"])
+def test_a_broken_image_is_named_as_uploaded_and_no_server_path_is_shown(client, settings, route, content):
+    """The decoder quotes the file it opened (the job's input folder): the message names the upload."""
+    files = [("images", ("1.png", png_bytes(), "image/png")), ("images", ("my photo.png", content, "x/y"))]
+    response = client.post(route, files=files, data={"K": "1 0 4 0 1 3 0 0 1"})
+    assert_rejected(response, 422, "images", "my_photo.png")
+    detail = response.json()["detail"]
+    assert str(settings.data_dir) not in detail and "/jobs/" not in detail and "/input" not in detail
+
+
 def test_a_truncated_image_is_rejected_naming_the_file(client, unity, shared_data):
     whole = (shared_data / "unity_hall" / "2.png").read_bytes()
     files = replace_file(unity, "2.png", whole[: len(whole) // 2])

@@ -85,3 +85,79 @@ def test_no_sequence_of_linked_calls_gets_a_server_error():
     JobWorkflow.run(
         settings=settings(max_examples=STATEFUL_SEQUENCES, stateful_step_count=6, **FUZZ)
     )
+
+
+# ---- hostile values in every field ----------------------------------------------------------------------
+
+NON_FINITE = ["NaN", "Infinity", "-Infinity", "1e999"]
+DEEP_ARRAY = "[" * 9000 + "]" * 9000
+HOSTILE_JSON = [*NON_FINITE, DEEP_ARRAY, '{"a": NaN}', '{"a":' * 3000 + "1" + "}" * 3000]
+SEEDED_KIND = {
+    "/v1/nerf/": JobKind.nerf,
+    "/v1/reconstructions/": JobKind.reconstruction,
+    "/v1/jobs/": JobKind.nerf,
+}
+JSON_HEADERS = {"content-type": "application/json"}
+
+
+def _resolve(spec: dict, schema: dict) -> dict:
+    while "$ref" in schema:
+        schema = spec["components"]["schemas"][schema["$ref"].rsplit("/", 1)[-1]]
+    return schema
+
+
+def _is_file(schema: dict) -> bool:
+    items = schema.get("items", {})
+    options = schema.get("anyOf", [])
+    variants = [schema, items, *options, *[v.get("items", {}) for v in options]]
+    return any(v.get("format") == "binary" or v.get("contentMediaType") for v in variants)
+
+
+def _seeded_path(path: str) -> str:
+    """The path with its ids filled by a seeded job (so a handler's 404 does not hide a body check)."""
+    kind = next((k for prefix, k in SEEDED_KIND.items() if path.startswith(prefix)), JobKind.nerf)
+    return path.replace("{job_id}", f"seed{kind}{JobState.succeeded}").replace("{scene_id}", "0" * 32)
+
+
+def hostile_requests() -> list[tuple[str, str, dict]]:
+    """(method, path, httpx arguments): NaN, Infinity, 1e999 and 9000-deep nesting in every field of
+    every JSON body and every form field of every operation, the other fields left out."""
+    spec = app.openapi()
+    requests = []
+    for path, operations in spec["paths"].items():
+        for method, operation in operations.items():
+            content = operation.get("requestBody", {}).get("content", {})
+            url = _seeded_path(path)
+            if "application/json" in content:
+                body = _resolve(spec, content["application/json"]["schema"])
+                requests.append((method, url, {"content": DEEP_ARRAY, "headers": JSON_HEADERS}))
+                requests += [
+                    (method, url, {"content": f'{{"{field}": {value}}}', "headers": JSON_HEADERS})
+                    for field in body.get("properties", {})
+                    for value in HOSTILE_JSON
+                ]
+            if "multipart/form-data" in content:
+                form = _resolve(spec, content["multipart/form-data"]["schema"])["properties"]
+                files = [(name, ("1.png", b"x", "image/png")) for name, f in form.items() if _is_file(f)]
+                requests += [
+                    (method, url, {"data": {name: value}, "files": files})
+                    for name, field in form.items()
+                    if not _is_file(field)
+                    for value in HOSTILE_JSON
+                ]
+    return requests
+
+
+@pytest.mark.slow
+def test_nan_infinity_and_deep_nesting_in_every_field_answer_4xx():
+    from fastapi.testclient import TestClient
+
+    seed(_store)
+    requests = hostile_requests()
+    assert len(requests) > 100
+    with TestClient(app) as client:
+        for method, url, arguments in requests:
+            response = client.request(method.upper(), url, **arguments)
+            shown = {k: str(v)[:80] for k, v in arguments.items()}
+            answer = f"{response.status_code} {response.text[:300]}"
+            assert 400 <= response.status_code < 500, f"{method} {url} {shown}: {answer}"

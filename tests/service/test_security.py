@@ -145,6 +145,73 @@ def test_a_dataset_that_needs_more_memory_than_the_validation_limit_answers_413(
         assert list(settings.jobs_dir.iterdir()) == []
 
 
+def test_an_npz_needing_more_memory_than_a_validation_process_has_is_refused_from_its_headers(
+    client, settings, monkeypatch
+):
+    """40x2000x2000x3 zeros (the issue's 467 KB upload): 480 MB of bytes, within the zip limit, but ~6 GB
+    once loaded; refused from the .npy header without starting a validation process."""
+    import service.validation as validation
+
+    started = []
+    monkeypatch.setattr(validation, "_run_check", lambda *args: started.append(args))
+    response = post_dataset(client, "zeros.npz", npz_of_headers({"images": ((40, 2000, 2000, 3), "|u1")}))
+    assert_refused(response, 413, "dataset: zeros.npz", "MiB", "SFMNERF_VALIDATION_MEMORY_BYTES")
+    assert started == [] and list(settings.jobs_dir.iterdir()) == []
+
+
+def test_a_dataset_whose_image_headers_need_more_memory_is_refused_before_decoding(tmp_path, monkeypatch):
+    """A 3000x3000 PNG (a few KB) takes ~290 MB while it is decoded: over a 256 MB validation process."""
+    import service.validation as validation
+
+    started = []
+    monkeypatch.setattr(validation, "_run_check", lambda *args: started.append(args))
+    names = ["train/r_0", "train/r_1"]
+    archive = blender_zip(names, {"train/r_0.png": png_bytes(), "train/r_1.png": png_bytes(3000, 3000)})
+    with TestClient(create_app(make_settings(tmp_path / "data", validation_memory_bytes=2**28))) as client:
+        response = post_dataset(client, "big.zip", archive)
+        assert_refused(response, 413, "dataset", "SFMNERF_VALIDATION_MEMORY_BYTES=268435456")
+        assert started == [] and list((tmp_path / "data" / "jobs").iterdir()) == []
+
+
+def test_the_default_validation_memory_is_a_few_hundred_mb_that_the_real_datasets_fit(shared_data, tmp_path):
+    """lego_200 (100 views) and the 3072x2048 photos of Strecha's fountain as a dataset of 11 views."""
+    from service.settings import ServiceSettings
+    from service.validation import check_isolated
+
+    settings = make_settings(tmp_path / "data")
+    assert ServiceSettings.model_fields["validation_memory_bytes"].default <= 512 * 2**20
+    lego = shared_data / "lego_200"
+    check_isolated("dataset", {"path": str(lego), "field": "dataset", "within": str(lego)}, settings)
+    fountain = tmp_path / "fountain"
+    fountain.mkdir()
+    photos = sorted((shared_data / "strecha" / "fountain-P11").glob("*.jpg"))
+    frames = [{"file_path": f"./{p.stem}", "transform_matrix": np.eye(4).tolist()} for p in photos]
+    for photo in photos:
+        (fountain / f"{photo.stem}.png").write_bytes(photo.read_bytes())  # Pillow reads the JPEG inside
+    (fountain / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    check_isolated("dataset", {"path": str(fountain), "field": "dataset", "within": str(tmp_path)}, settings)
+
+
+def test_an_upload_finding_every_validation_slot_busy_answers_429_with_retry_after(tmp_path, monkeypatch):
+    from service.validation import validation_slots
+
+    settings = make_settings(tmp_path / "data", validation_workers=1)
+    files = [("images", (f"{i}.png", png_bytes(), "image/png")) for i in (1, 2)]
+    slots = validation_slots(1)
+    with TestClient(create_app(settings)) as client:
+        assert slots.acquire(blocking=False)  # another upload being checked
+        try:
+            response = client.post("/v1/reconstructions", files=files, data={"K": "1 0 4 0 1 4 0 0 1"})
+        finally:
+            slots.release()
+        assert_refused(response, 429, "images", "SFMNERF_VALIDATION_WORKERS")
+        assert int(response.headers["Retry-After"]) > 0
+        assert list(settings.jobs_dir.iterdir()) == []
+        # The slot free again, the same upload is checked and accepted.
+        response = client.post("/v1/reconstructions", files=files, data={"K": "1 0 4 0 1 4 0 0 1"})
+        assert response.status_code == 202
+
+
 def test_a_decompression_bomb_in_a_reconstruction_upload_answers_413_and_leaves_no_folder(client, settings):
     """A PNG header claiming 15000^2 pixels (Pillow's DecompressionBombError) is a 413, not a 500."""
     small = png_bytes(8, 8)
@@ -224,7 +291,11 @@ def test_a_request_without_a_token_is_refused_before_its_body_is_read(clients_se
         "raw_path": b"/v1/reconstructions",
         "query_string": b"",
         "root_path": "",
-        "headers": [(b"content-type", b"multipart/form-data; boundary=x"), (b"content-length", b"314572800")],
+        "headers": [
+            (b"host", b"localhost"),
+            (b"content-type", b"multipart/form-data; boundary=x"),
+            (b"content-length", b"314572800"),
+        ],
         "client": ("127.0.0.1", 1),
         "server": ("127.0.0.1", 80),
     }
