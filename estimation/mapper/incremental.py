@@ -8,7 +8,8 @@ filtered. Whenever the model grew by `global_ba_growth`, and at the end, global 
 (BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change
 (while the model grows, `growth_refinement_rounds`); the last step is a converged global BA. When
 registration stalls the thresholds are relaxed once; when a model cannot grow, another is started from
-the images no model holds. Orchestration only: the state and its operations live in
+the images no model holds, and moved into the largest model when a verified similarity links them
+(`merge`), after which the largest grows on. Orchestration only: the state and its operations live in
 `reconstruction.Reconstruction` (the reconstruction being built), the geometry in `geometry/` and `two_view/`.
 """
 
