@@ -472,6 +472,9 @@ class _ModelBuilder:
         found = (f"{len(added)} images merged by a similarity that reprojects {merge.inliers} of "
                  f"{merge.correspondences} cross-model 2D-3D correspondences (from {merge.shared_points} "
                  f"shared points; {overlap:.0%} of the moved points on this model's surface)")
+        # The cross-model links at the merge's own threshold, for the BA to close the seam (filtered after).
+        first.complete_tracks(self.pnp_threshold)
+        first.merge_tracks(self.pnp_threshold)
         self.global_refinement(self.mapper.refinement_max_rounds)
         self.verify_registered()
         return added, found
