@@ -106,7 +106,7 @@ def refined_similarity(similarity: Similarity, K: np.ndarray, into_first: CrossC
         errors = both_ways_errors([moved(p)], K, into_first, into_second)[0, inliers]
         return np.where(np.isfinite(errors), errors, 1e3)
 
-    return moved(least_squares(residuals, np.zeros(7), method="lm").x)
+    return moved(least_squares(residuals, np.zeros(SIMILARITY_DOF), method="lm").x)
 
 
 def merge_similarity(points_second: np.ndarray, points_first: np.ndarray, K: np.ndarray,

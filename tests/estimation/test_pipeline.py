@@ -276,6 +276,7 @@ def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shar
                                   for m in registered])
     assert errors.rotation_deg.max() < 5.0
     assert len(registered) >= 48
+    assert errors.rotation_deg.mean() < 0.32    # 0.25 measured; COLMAP: 0.37 over the 35 it registers
     report = json.loads((tmp_path / "report.json").read_text())
     assert "images merged" in report["models"][0]["merged_models"][0]
     assert {"registration_checks", "unregistered"} <= report.keys()
