@@ -311,6 +311,7 @@ def model_summary(images: ImageSet, model: SparseModel) -> dict:
         "final_ba_relative_cost_decrease": float(stats.final_cost_decrease),
         "noise_sigma_px": float(stats.noise_sigma_px),
         "reprojection_limit_px": float(stats.reprojection_limit_px),
+        "merged_models": list(stats.merged_models),
     }
 
 

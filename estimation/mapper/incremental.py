@@ -8,7 +8,8 @@ filtered. Whenever the model grew by `global_ba_growth`, and at the end, global 
 (BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change
 (while the model grows, `growth_refinement_rounds`); the last step is a converged global BA. When
 registration stalls the thresholds are relaxed once; when a model cannot grow, another is started from
-the images no model holds. Orchestration only: the state and its operations live in
+the images no model holds, and moved into the largest model when a verified similarity links them
+(`merge`), after which the largest grows on. Orchestration only: the state and its operations live in
 `reconstruction.Reconstruction` (the reconstruction being built), the geometry in `geometry/` and `two_view/`.
 """
 
@@ -33,6 +34,12 @@ from estimation.mapper.initial_pair import (
     choose_initial_pair,
     co_visible_pairs,
     pair_name,
+)
+from estimation.mapper.merge import (
+    CrossCorrespondences,
+    merge_problem,
+    merge_similarity,
+    surface_overlap,
 )
 from estimation.mapper.next_image import PyramidCells, pyramid_cells, visibility_pyramid_scores
 from estimation.mapper.reconstruction import Reconstruction
@@ -86,6 +93,8 @@ class ReconstructionStats:
     intrinsics_sigma: dict[str, float] = field(default_factory=dict)
     # the refined principal point's shift from where it started, against its covariance (None: held)
     principal_point_test: PrincipalPointTest | None = None
+    # other models moved into this one's frame (`_ModelBuilder.merge`): what supported each
+    merged_models: list[str] = field(default_factory=list)
 
 
 class PrincipalPointTest(NamedTuple):
@@ -238,6 +247,7 @@ class _ModelBuilder:
         self.registered_inliers = np.zeros(len(tracks.image_names), np.int64)
         self.deregistrations = np.zeros(len(tracks.image_names), np.int64)
         self.checks: list[RegistrationCheck] = []
+        self.merges: list[str] = []    # other models merged into this one, and their support
         self.thresholds = _Thresholds(self.mapper.min_pnp_inliers, self.mapper.min_pnp_inlier_ratio)
         self.refinement_rounds = 0
         self.error_limit = config.filter.max_reprojection_px
@@ -411,6 +421,63 @@ class _ModelBuilder:
                  if reconstruction.registered[pair.other] and pair.other != image]
         return rotation_agreement(R, pairs, {pair.other: reconstruction.R[pair.other] for pair in pairs},
                                   self.mapper.verify_max_rotation_deviation_deg)
+
+    def cross_correspondences(self, other: Reconstruction) -> CrossCorrespondences:
+        """This model's keypoints (in its registered images) whose tracks have a point in `other`."""
+        reconstruction = self.reconstruction
+        obs_ids, point_ids = [], []
+        for image in reconstruction.order:
+            image_obs, image_points = other.correspondences_2d3d(image)
+            obs_ids.append(image_obs)
+            point_ids.append(image_points)
+        obs, points = np.concatenate(obs_ids), np.concatenate(point_ids)
+        images = self.tracks.image_index[obs]
+        return CrossCorrespondences(reconstruction.R[images], reconstruction.t[images], self.tracks.uv[obs],
+                                    other.point_xyz[points])
+
+    def merge(self, other: _ModelBuilder) -> tuple[list[int], str]:
+        """Move the other model into this one's frame when a similarity puts enough of the points of each
+        onto the keypoints of the other's images (`merge.merge_similarity`) and every moved image's rotation
+        agrees with its verified pairs; then refine globally. Returns (the images added, what was found)."""
+        first, second = self.reconstruction, other.reconstruction
+        point_first, point_second = first.main_point_of_track(), second.main_point_of_track()
+        shared = np.flatnonzero((point_first >= 0) & (point_second >= 0))
+        ransac = self.config.ransac
+        merge = merge_similarity(second.point_xyz[point_second[shared]],
+                                 first.point_xyz[point_first[shared]], first.K,
+                                 self.cross_correspondences(second), other.cross_correspondences(first),
+                                 self.pnp_threshold, ransac.max_iterations, ransac.seed, ransac.local_refits)
+        overlap = 0.0 if merge is None else surface_overlap(
+            merge.similarity.apply_points(second.point_xyz[second.point_alive]),
+            first.point_xyz[first.point_alive], self.mapper.merge_overlap_spacings)
+        problem = merge_problem(merge, overlap, self.mapper.merge_min_inliers, self.mapper.merge_min_overlap)
+        if problem is not None:
+            return [], problem
+        moved = {image: merge.similarity.apply_pose(second.pose(image)).R for image in second.order}
+        R_of = {**{image: first.R[image] for image in first.order}, **moved}
+        for image, R in moved.items():
+            pairs = [pair for pair in self.votes[image] if pair.other in R_of and pair.other != image]
+            agreement = rotation_agreement(R, pairs, {pair.other: R_of[pair.other] for pair in pairs},
+                                           self.mapper.verify_max_rotation_deviation_deg)
+            problem = agreement_problem(agreement, self.mapper.verify_min_rotation_agreement,
+                                        self.tracks.image_names)
+            if problem is not None:
+                return [], f"{self.tracks.image_names[image]} would be moved, but {problem}"
+        added = first.absorb(second, merge.similarity)
+        self.available[added] = True
+        # Deregistered after the refinement below when it filters away most of what the other model saw.
+        used = second.used_observations()
+        self.registered_inliers[added] = np.bincount(self.tracks.image_index[used],
+                                                     minlength=len(first.registered))[added]
+        found = (f"{len(added)} images merged by a similarity that reprojects {merge.inliers} of "
+                 f"{merge.correspondences} cross-model 2D-3D correspondences (from {merge.shared_points} "
+                 f"shared points; {overlap:.0%} of the moved points on this model's surface)")
+        # The cross-model links at the merge's own threshold, for the BA to close the seam (filtered after).
+        first.complete_tracks(self.pnp_threshold)
+        first.merge_tracks(self.pnp_threshold)
+        self.global_refinement(self.mapper.refinement_max_rounds)
+        self.verify_registered()
+        return added, found
 
     def verify_registered(self) -> list[int]:
         """After a global refinement: remove the images (not the initial pair) whose observations were mostly
@@ -691,6 +758,55 @@ def _why_no_model(
     return "no model could be started:\n" + "\n".join(lines)
 
 
+def _finished_model(builder: _ModelBuilder, candidate: InitialPairCandidate,
+                    initial_pair_failures: dict[str, str], pair_shared: dict[str, int], num_images: int,
+                    available: np.ndarray,
+                    progress: ProgressCallback | None) -> SparseModel:
+    """The final global refinement of a grown model (images removed by it are tried again once), its
+    converged BA with the principal point test, and the model with its statistics."""
+    mapper, timer, reconstruction = builder.mapper, builder.timer, builder.reconstruction
+    if progress:
+        done = num_images - available.sum() + len(reconstruction.order)
+        progress("bundle adjustment", min(0.9, 0.05 + 0.85 * done / num_images))
+    before = summarize(reconstruction.errors(reconstruction.used_observations()))
+    with timer.stage("bundle adjustment"):
+        builder.release_principal_point()
+        builder.global_refinement(mapper.refinement_max_rounds)
+        if builder.verify_registered():
+            builder.grow(num_images, num_images - int(available.sum()))
+            builder.global_refinement(mapper.refinement_max_rounds)
+        decrease, iterations, covariance = builder.final_bundle_adjustment()
+        principal_point_test = builder.test_principal_point(covariance)
+        if principal_point_test is not None and not principal_point_test.kept:
+            # Not determined beyond its noise: the image centre is the better guess (model selection).
+            builder.hold_principal_point()
+            decrease, iterations, covariance = builder.final_bundle_adjustment()
+    after = summarize(reconstruction.errors(reconstruction.used_observations()))
+    tracks, config = builder.tracks, builder.config
+    pair = (candidate.geometry.i, candidate.geometry.j)
+    stats = ReconstructionStats(
+        reprojection_before_ba=before,
+        reprojection_after_ba=after,
+        pair_shared_tracks=pair_shared,
+        initial_pair=(tracks.image_names[pair[0]], tracks.image_names[pair[1]]),
+        stage_seconds=timer.seconds,
+        initial_pair_median_angle_deg=candidate.median_angle_deg,
+        bundle_adjustment_iterations=iterations,
+        initial_pair_failures=initial_pair_failures,
+        refinement_rounds=builder.refinement_rounds,
+        relaxed_thresholds=builder.thresholds.relaxed,
+        final_cost_decrease=decrease,
+        noise_sigma_px=reconstruction.noise_sigma(config.filter.max_reprojection_px),
+        reprojection_limit_px=builder.error_limit,
+        intrinsics_sigma=covariance.sigma() if covariance is not None else {},
+        principal_point_test=principal_point_test,
+        merged_models=list(builder.merges),
+    )
+    model = _sparse_model(builder, candidate, stats)
+    model.checks, model.warnings = list(builder.checks), builder.mirror_warnings()
+    return model
+
+
 def reconstruct_models(
     tracks: Tracks,
     camera: CameraInput,
@@ -725,6 +841,7 @@ def reconstruct_models(
     small_models: dict[tuple[int, int], str] = {}
     min_images = min(mapper.min_model_images, num_images)
     built: list[tuple[_ModelBuilder, SparseModel]] = []
+    starts: list[tuple[InitialPairCandidate, dict[str, str]]] = []   # of each built model
     votes = voting_pairs(pair_geometries or {}, K, num_images, mapper.verify_pair_min_inliers)
     while len(built) < mapper.max_models and available.sum() >= 2:
         if progress:
@@ -752,50 +869,29 @@ def reconstruct_models(
                 f"images (need {min_images}, min_model_images)"
             )
             continue
-        if progress:
-            progress(
-                "bundle adjustment",
-                min(
-                    0.9,
-                    0.05 + 0.85 * (num_images - available.sum() + len(builder.reconstruction.order))
-                    / num_images,
-                ),
-            )
-        before = summarize(builder.reconstruction.errors(builder.reconstruction.used_observations()))
-        with timer.stage("bundle adjustment"):
-            builder.release_principal_point()
-            builder.global_refinement(mapper.refinement_max_rounds)
-            if builder.verify_registered():
-                builder.grow(num_images, num_images - int(available.sum()))
-                builder.global_refinement(mapper.refinement_max_rounds)
-            decrease, iterations, covariance = builder.final_bundle_adjustment()
-            principal_point_test = builder.test_principal_point(covariance)
-            if principal_point_test is not None and not principal_point_test.kept:
-                # Not determined beyond its noise: the image centre is the better guess (model selection).
-                builder.hold_principal_point()
-                decrease, iterations, covariance = builder.final_bundle_adjustment()
-        after = summarize(builder.reconstruction.errors(builder.reconstruction.used_observations()))
+        merge_refusal = None
+        if built and mapper.merge_models:
+            index = max(range(len(built)), key=lambda k: len(built[k][0].reconstruction.order))
+            largest, (first_candidate, first_failures) = built[index][0], starts[index]
+            with timer.stage("model merge"):
+                added, found = largest.merge(builder)
+            if added:
+                largest.merges.append(found)
+                largest.available = available | largest.reconstruction.registered
+                largest.trials[:] = 0
+                largest.grow(num_images, num_images - int(available.sum()))
+                built[index] = (largest, _finished_model(largest, first_candidate, first_failures,
+                                                         pair_shared, num_images, available, progress))
+                available[largest.reconstruction.order] = False
+                continue
+            merge_refusal = f"not merged into the largest model: {found}"
+        model = _finished_model(builder, candidate, new_failures, pair_shared, num_images, available,
+                                progress)
+        if merge_refusal is not None:
+            model.warnings.append(merge_refusal)
         available[builder.reconstruction.order] = False
-        stats = ReconstructionStats(
-            reprojection_before_ba=before,
-            reprojection_after_ba=after,
-            pair_shared_tracks=pair_shared,
-            initial_pair=(tracks.image_names[pair[0]], tracks.image_names[pair[1]]),
-            stage_seconds=timer.seconds,
-            initial_pair_median_angle_deg=candidate.median_angle_deg,
-            bundle_adjustment_iterations=iterations,
-            initial_pair_failures=new_failures,
-            refinement_rounds=builder.refinement_rounds,
-            relaxed_thresholds=builder.thresholds.relaxed,
-            final_cost_decrease=decrease,
-            noise_sigma_px=builder.reconstruction.noise_sigma(config.filter.max_reprojection_px),
-            reprojection_limit_px=builder.error_limit,
-            intrinsics_sigma=covariance.sigma() if covariance is not None else {},
-            principal_point_test=principal_point_test,
-        )
-        model = _sparse_model(builder, candidate, stats)
-        model.checks, model.warnings = list(builder.checks), builder.mirror_warnings()
         built.append((builder, model))
+        starts.append((candidate, new_failures))
     if not built:
         raise DegenerateConfigurationError(_why_no_model(tracks, pairs, failures, small_models))
     if progress:

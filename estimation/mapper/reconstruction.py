@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from estimation.config import BundleAdjustmentConfig
+from estimation.geometry.alignment import Similarity
 from estimation.geometry.projection import (
     Camera,
     CameraInput,
@@ -125,6 +126,27 @@ class Reconstruction:
         self.registered[image] = False
         self.R[image], self.t[image] = np.nan, np.nan
         self.order.remove(image)
+
+    def absorb(self, other: Reconstruction, similarity: Similarity) -> list[int]:
+        """Register the images of `other` (a model of the same tracks over other images) with their poses
+        moved by X' = s R X + t, and add its points on the tracks this one has no point of, moved alike
+        (the shared tracks keep this model's point; completion adds the other's observations to it).
+        Returns the images added, in the other's registration order."""
+        added = [image for image in other.order if not self.registered[image]]
+        for image in added:
+            self.register_image(image, similarity.apply_pose(other.pose(image)))
+        used = other.used_observations()
+        used = used[self.registered[self.tracks.image_index[used]] & np.isin(
+            self.tracks.image_index[used], added)]
+        fresh = ~self._track_has_point()[self.tracks.track_index[used]]
+        used = used[fresh]
+        points, new_point_of_obs = np.unique(other.obs_point[used], return_inverse=True)
+        keep = np.bincount(new_point_of_obs, minlength=len(points)) >= 2
+        position = np.cumsum(keep) - 1
+        in_kept = keep[new_point_of_obs]
+        self.add_points(similarity.apply_points(other.point_xyz[points[keep]]), used[in_kept],
+                        position[new_point_of_obs[in_kept]])
+        return added
 
     # ------------------------------------------------------------------------------------------ points
 
@@ -261,7 +283,7 @@ class Reconstruction:
         """(observation ids, point ids) of the image's observations whose track has a live point (for a
         split track, its point with most observations)."""
         in_image = np.flatnonzero(self.tracks.image_index == image)
-        point_of_track = self._main_point_of_track()
+        point_of_track = self.main_point_of_track()
         points = point_of_track[self.tracks.track_index[in_image]]
         return in_image[points >= 0], points[points >= 0]
 
@@ -287,7 +309,7 @@ class Reconstruction:
         most = int(counts.max(initial=0))
         return alive[np.argsort(self.point_track[alive] * (most + 1) + (most - counts), kind="stable")]
 
-    def _main_point_of_track(self) -> np.ndarray:
+    def main_point_of_track(self) -> np.ndarray:
         """Track -> its live point with most observations, -1 for none."""
         ranked = self._ranked_points()
         point_of_track = np.full(self.tracks.num_tracks, -1, np.int64)
