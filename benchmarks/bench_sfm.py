@@ -22,13 +22,13 @@ Sets (../shared/data):
   (registered on the far side of the ring) is the failure to watch for (rot max).
 - unity: Unity Hall with the course's match files (ours only; no ground truth: RMS and Ceres left).
 
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py                 # every set
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --no-pycolmap
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets fountain --max-reprojection-sigmas 0
+    python benchmarks/bench_sfm.py                 # every set
+    python benchmarks/bench_sfm.py --sets lego --no-pycolmap
+    python benchmarks/bench_sfm.py --sets fountain --max-reprojection-sigmas 0
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap --seeds 0,1,2,3,4,5,6,7,8,9   # RANSAC seeds
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap --mapper '{"relaxed_registration_factor": 0.9}'
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --repeats 5   # median seconds
-    flock /tmp/sfmnerf-bench.lock python benchmarks/bench_sfm.py --sets lego --uncalibrated  # from the prior
+    python benchmarks/bench_sfm.py --sets lego --repeats 5   # median seconds
+    python benchmarks/bench_sfm.py --sets lego --uncalibrated  # from the prior
 
 One run's seconds move by ~10 % from run to run on a 2-core machine (pycolmap's too); with --repeats N,
 ours and pycolmap run N times each, one after the other, and the first seed's row gives the median seconds
