@@ -81,10 +81,10 @@ class Capture:
 def check_poses(c2w: np.ndarray) -> np.ndarray:
     """(N,4,4) float64 camera-to-world matrices with N >= 1, else CameraPathError."""
     poses = np.asarray(c2w, dtype=np.float64)
+    if poses.size == 0:
+        raise CameraPathError("no registered cameras: a camera path needs at least one")
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.isfinite(poses).all():
         raise CameraPathError(f"camera poses must be finite (N,4,4) matrices, got shape {poses.shape}")
-    if len(poses) == 0:
-        raise CameraPathError("no registered cameras: a camera path needs at least one")
     return poses
 
 
@@ -191,7 +191,8 @@ def path_poses(c2w: np.ndarray, capture: Capture, num_frames: int) -> np.ndarray
 
     Centres follow a cubic spline (periodic for a ring) and rotations a rotation spline, both through the
     cameras in path order, parametrised by distance along the path. A ring goes round once; an arc or a
-    walk goes from its first camera to its last and back, so a looping video never jumps.
+    walk goes from its first camera to its last and back (slowing at the ends), so a looping video never
+    jumps.
     """
     if num_frames < 1:
         raise CameraPathError(f"a camera path needs at least one frame, got {num_frames}")
@@ -206,10 +207,11 @@ def path_poses(c2w: np.ndarray, capture: Capture, num_frames: int) -> np.ndarray
         centres = np.concatenate([centres, centres[:1]])
         rotations = np.concatenate([rotations, rotations[:1]])
         samples = np.linspace(0.0, knots[-1], num_frames, endpoint=False)
-    else:
-        outward = np.linspace(0.0, 1.0, num_frames // 2 + 1)
-        there_and_back = np.concatenate([outward, outward[-2:0:-1]])[:num_frames] if num_frames > 1 else [0.5]
-        samples = np.asarray(there_and_back) * knots[-1]
+    elif num_frames == 1:
+        samples = np.array([0.5 * knots[-1]])
+    else:  # there and back, easing at the end cameras; the quarter-frame phase keeps every frame distinct
+        phases = 2 * math.pi * (np.arange(num_frames) + 0.25) / num_frames
+        samples = 0.5 * (1.0 - np.cos(phases)) * knots[-1]
     boundary = "periodic" if closed else ("natural" if len(poses) > 2 else "not-a-knot")
     centre_spline = CubicSpline(knots, centres, bc_type=boundary)
     rotation_spline = RotationSpline(knots, Rotation.from_matrix(rotations))

@@ -60,7 +60,10 @@ class RenderSpec:
     """The checkpoint asked for: "latest", "best" or a step."""
     step: int
     """The step `which` named when the request came in (the trainer may have saved a newer one since)."""
-    c2w: tuple[tuple[float, ...], ...]
+    c2w: tuple[tuple[float, ...], ...] | None
+    """None: the run's default view."""
+    frame: str
+    """How c2w is read: "auto", "capture" or "data" (neural.inference.PoseFrame)."""
     width: int
     height: int
     fx: float | None
@@ -110,15 +113,20 @@ def render_png(spec: RenderSpec, cache_dir: str | None = None) -> bytes:
     import numpy as np
     from PIL import Image
 
+    from neural.camera_path import CameraPathError
     from neural.errors import CheckpointError
-    from neural.inference import render_frame, to_uint8, view_camera
+    from neural.inference import EmptyViewError, check_sees_scene, render_frame, to_uint8, view_camera
 
     try:
         run = _loaded_run(spec.run_dir, spec.which)
     except CheckpointError as error:
         raise RenderFailed(f"checkpoint: {str(error).replace(spec.run_dir, 'the run')}") from None
     camera = view_camera(run, spec.width, spec.height, spec.fx, spec.fov_x)
-    pixels = to_uint8(render_frame(run, np.asarray(spec.c2w, dtype=float), camera).rgb)
+    c2w = None if spec.c2w is None else np.asarray(spec.c2w, dtype=float)
+    try:
+        pixels = to_uint8(check_sees_scene(render_frame(run, c2w, camera, spec.frame)).rgb)
+    except (CameraPathError, EmptyViewError) as error:
+        raise RenderFailed(str(error)) from None
     buffer = io.BytesIO()
     Image.fromarray(pixels).save(buffer, format="PNG")
     png = buffer.getvalue()
@@ -137,7 +145,8 @@ def _write_atomically(path: Path, data: bytes) -> None:
 def run_render_task(spec: dict, out_path: str, error_path: str, cache_dir: str | None) -> None:
     """The Celery render task: the PNG (or the error message) lands in the shared data folder."""
     try:
-        png = render_png(RenderSpec(**{**spec, "c2w": tuple(map(tuple, spec["c2w"]))}), cache_dir)
+        c2w = None if spec["c2w"] is None else tuple(map(tuple, spec["c2w"]))
+        png = render_png(RenderSpec(**{**spec, "c2w": c2w}), cache_dir)
         _write_atomically(Path(out_path), png)
     except RenderFailed as error:
         _write_render_error(Path(error_path), error)
@@ -277,7 +286,8 @@ def spec_from_request(job_id: str, run_dir: Path, step: int, request: Any) -> Re
         run_dir=os.fspath(run_dir),
         which=str(request.checkpoint),
         step=step,
-        c2w=tuple(tuple(float(v) for v in row) for row in c2w),
+        c2w=None if c2w is None else tuple(tuple(float(v) for v in row) for row in c2w),
+        frame=request.frame,
         width=request.width,
         height=request.height,
         fx=request.fx,

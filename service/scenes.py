@@ -20,6 +20,8 @@ from typing import Any
 from fastapi import HTTPException, Response
 from pydantic import BaseModel, Field
 
+from neural.budget import VIEWS_SHARE, ViewsPlan, plan_views
+from neural.budget import scaled_size as orbit_size
 from service.auth import ANONYMOUS, Client
 from service.db import TERMINAL_STATES, Job, JobKind, JobState, JobStore, Scene, utcnow
 from service.executor import Executor
@@ -51,6 +53,15 @@ class SceneOptions(BaseModel):
     held_out_max_side: int = Field(
         200, ge=8, le=4096, description="Held-out views are rendered downscaled to at most this side."
     )
+    views_share: float = Field(
+        VIEWS_SHARE, ge=0, le=100,
+        description="The views (video and held-out renders) take at most this share of the training time: "
+        "fewer frames or smaller renders when they would take longer (0: as asked).",
+    )  # fmt: skip
+    expected_seconds: dict[str, float] | None = Field(
+        None,
+        description="Expected seconds per stage and in total on a CPU, estimated when the scene started.",
+    )
 
 
 def scene_owner(store: JobStore, scene: Scene) -> str | None:
@@ -77,10 +88,20 @@ def registration_problem(report: dict[str, Any], minimum: int) -> str | None:
     )
 
 
-def orbit_size(width: int, height: int, max_side: int) -> tuple[int, int]:
-    """The training images' aspect ratio with the long side at most max_side, both sides even."""
-    scale = min(1.0, max_side / max(width, height))
-    return max(8, 2 * round(width * scale / 2)), max(8, 2 * round(height * scale / 2))
+def views_plan(
+    options: SceneOptions, run_config: dict[str, Any], train_seconds: float
+) -> tuple[ViewsPlan, tuple[int, int]]:
+    """The video frames and render sizes of the views stage: those asked for, cut to take at most
+    views_share of the training time at the render rate the training probe measured (neural.budget);
+    and the video's (width, height)."""
+    camera, rates = run_config["camera"], run_config.get("train_size") or {}
+    held_out = len(run_config.get("cameras", {}).get("held_out", []))
+    plan = plan_views(
+        train_seconds, rates.get("render_seconds_per_ray"), camera["width"], camera["height"],
+        options.orbit_frames, options.orbit_max_side, held_out, options.held_out_max_side,
+        options.views_share,
+    )  # fmt: skip
+    return plan, orbit_size(camera["width"], camera["height"], plan.video_max_side)
 
 
 def downscaled(dataset: Any, max_side: int) -> Any:
@@ -179,12 +200,12 @@ class SceneRunner:
 
         options = SceneOptions.model_validate(scene.params)
         values: dict[str, Any] = {}
+        nerf = self.store.get(scene.nerf_job_id)
+        train_seconds = float((nerf.result or {}).get("seconds") or 0.0) if nerf else 0.0
+        run_config = json.loads((output_dir(self.settings, scene.nerf_job_id) / "config.json").read_text())
+        plan, (width, height) = views_plan(options, run_config, train_seconds)
         if scene.video_job_id is None:
-            camera = json.loads((output_dir(self.settings, scene.nerf_job_id) / "config.json").read_text())[
-                "camera"
-            ]
-            width, height = orbit_size(camera["width"], camera["height"], options.orbit_max_side)
-            request = VideoRequest(num_frames=options.orbit_frames, width=width, height=height)
+            request = VideoRequest(num_frames=plan.frames, width=width, height=height)
             try:
                 values["video_job_id"] = queue_video(
                     scene.nerf_job_id, request, Response(), self.store, self.executor, self.settings
@@ -195,7 +216,7 @@ class SceneRunner:
         if scene.evaluation_job_id is None:
             job = self.store.create(
                 JobKind.evaluation,
-                EvaluationParams(split="val", max_side=options.held_out_max_side),
+                EvaluationParams(split="val", max_side=plan.held_out_max_side),
                 source_job_id=scene.nerf_job_id,
                 owner=scene_owner(self.store, scene),
             )

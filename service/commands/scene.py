@@ -36,9 +36,20 @@ STAGE_BAR_FORMAT = "{desc:<15} {bar} {n:5.1f}% [{elapsed}]"
 @click.option("--features", type=click.Choice(["auto", "matches", "sift"]), default="auto", show_default=True)
 @click.option("--options", default=None, help="More NeRF TrainConfig fields as a JSON object.")
 @click.option("--min-registered-images", type=int, default=None, help="Fewest registered images (default 3).")
-@click.option("--orbit-frames", type=int, default=None, help="Frames of the orbit video (default 36).")
-@click.option("--max-side", type=int, default=None,
-              help="Long side of the orbit and held-out renders (default 200).")  # fmt: skip
+@click.option("--orbit-frames", type=int, default=None,
+              help="Most frames of the video (default 36; fewer when the views would take more than "
+              "--views-share of the training time).")  # fmt: skip
+@click.option("--train-max-side", type=int, default=None,
+              help="Long side of the training photos (default: what the budget can train, from a timed "
+              "probe; recorded in nerf/config.json as train_size).")  # fmt: skip
+@click.option("--render-max-side", type=int, default=None,
+              help="Largest long side of the video and held-out renders (default 200; smaller when the "
+              "views would take more than --views-share of the training time).")  # fmt: skip
+@click.option("--max-side", "deprecated_max_side", type=int, default=None, hidden=True,
+              help="Deprecated: --render-max-side.")  # fmt: skip
+@click.option("--views-share", type=float, default=None,
+              help="The views stage takes at most this share of the training time (default 0.2; 0: no "
+              "limit).")  # fmt: skip
 def scene(
     photos_dir: Path,
     out_dir: Path,
@@ -50,23 +61,36 @@ def scene(
     options: str | None,
     min_registered_images: int | None,
     orbit_frames: int | None,
-    max_side: int | None,
+    train_max_side: int | None,
+    render_max_side: int | None,
+    deprecated_max_side: int | None,
+    views_share: float | None,
 ) -> None:
-    """Reconstruct the photos in PHOTOS_DIR, train a NeRF on the poses, render an orbit and held-out views."""
+    """Reconstruct the photos in PHOTOS_DIR, train a NeRF on the poses, render a video along the cameras and
+    the held-out views."""
     from pydantic import ValidationError
     from tqdm import tqdm
 
     from estimation import InputError, ReconstructionConfig, reconstruct
+    from estimation.io.images import IMAGE_SUFFIXES
     from neural import TrainConfig, evaluate, load_dataset, render_orbit, train
+    from neural.budget import expected_seconds
     from neural.errors import CheckpointError, DatasetError
     from service.runner import EVALUATION_FILE
-    from service.scenes import SceneOptions, downscaled, orbit_size, registration_problem
+    from service.scenes import SceneOptions, downscaled, registration_problem, views_plan
 
+    if deprecated_max_side is not None:
+        click.echo("warning: --max-side is deprecated; it is --render-max-side", err=True)
+        render_max_side = render_max_side if render_max_side is not None else deprecated_max_side
     try:
         extra = json.loads(options) if options else {}
-        config = TrainConfig.model_validate({**extra, "model": model, "steps": steps, "minutes": minutes})
+        sizes = {"max_side": train_max_side} if train_max_side is not None else {}
+        config = TrainConfig.model_validate(
+            {**extra, **sizes, "model": model, "steps": steps, "minutes": minutes}
+        )
         given = {"min_registered_images": min_registered_images, "orbit_frames": orbit_frames,
-                 "orbit_max_side": max_side, "held_out_max_side": max_side}  # fmt: skip
+                 "orbit_max_side": render_max_side, "held_out_max_side": render_max_side,
+                 "views_share": views_share}  # fmt: skip
         scene_options = SceneOptions(
             train_config=config.model_dump(mode="json"), **{k: v for k, v in given.items() if v is not None}
         )
@@ -74,6 +98,12 @@ def scene(
         raise click.ClickException(f"options: {error}") from None
 
     seconds: dict[str, float] = {}
+    photos = [path for path in photos_dir.iterdir() if path.suffix.lower() in IMAGE_SUFFIXES]
+    expected = expected_seconds(config.minutes, len(photos), scene_options.views_share)
+    if expected is not None:
+        click.echo(
+            "expected: " + ", ".join(f"{name} {value:.0f} s" for name, value in expected.items()) + " (CPU)"
+        )
 
     def stage_bar(name: str) -> tuple[tqdm, object]:
         bar = tqdm(total=100, desc=name, bar_format=STAGE_BAR_FORMAT)
@@ -100,13 +130,14 @@ def scene(
         stage_done("nerf")
         bar, progress = stage_bar("views")
         with bar:
-            camera = json.loads((out_dir / "nerf" / "config.json").read_text())["camera"]
-            width, height = orbit_size(camera["width"], camera["height"], scene_options.orbit_max_side)
+            run_config = json.loads((out_dir / "nerf" / "config.json").read_text())
+            dataset = load_dataset(out_dir / "reconstruction")
+            plan, (width, height) = views_plan(scene_options, run_config, trained.seconds)
             video = render_orbit(
-                out_dir / "nerf", scene_options.orbit_frames, out_dir / "orbit", width, height,
+                out_dir / "nerf", plan.frames, out_dir / "orbit", width, height,
                 progress=lambda _text, fraction: progress("orbit", fraction / 2),
             )  # fmt: skip
-            dataset = downscaled(load_dataset(out_dir / "reconstruction"), scene_options.held_out_max_side)
+            dataset = downscaled(dataset, plan.held_out_max_side)
             held_out = evaluate(out_dir / "nerf", dataset, "val", out_dir=out_dir / "held_out")
             (out_dir / "held_out" / EVALUATION_FILE).write_text(json.dumps(held_out.to_dict(), indent=2))
             progress("held-out views", 1.0)

@@ -6,7 +6,18 @@ import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, status
+from fastapi import (
+    APIRouter,
+    Depends,
+    File,
+    Form,
+    HTTPException,
+    Query,
+    Request,
+    Response,
+    UploadFile,
+    status,
+)
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
@@ -14,7 +25,16 @@ from neural.config import ModelName
 from service import webhooks
 from service.db import JobKind, JobState, new_job_id
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, find_job
-from service.models import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
+from service.models import (
+    CameraPathOut,
+    CheckpointOut,
+    ErrorOut,
+    JobOut,
+    MetricPoint,
+    NerfOut,
+    RenderRequest,
+    VideoRequest,
+)
 from service.openapi import file_response
 from service.params import NerfParams
 from service.renders import RenderBusy, RenderFailed, RenderSpec, spec_from_request
@@ -231,7 +251,12 @@ def get_nerf(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> NerfO
         config=config,
         metrics=_read_metrics(run_dir / "metrics.jsonl"),
         latest_step=checkpoints[-1].step if checkpoints else None,
-        links={"checkpoints": f"{base}/checkpoints", "render": f"{base}/render", "video": f"{base}/video"},
+        links={
+            "checkpoints": f"{base}/checkpoints",
+            "render": f"{base}/render",
+            "video": f"{base}/video",
+            "camera_path": f"{base}/camera-path",
+        },
     )
 
 
@@ -306,6 +331,31 @@ def _render_spec(store: Any, settings: ServiceSettings, job_id: str, request: Re
     raise HTTPException(
         422, f"checkpoint: no checkpoint {which!r} (have steps {[c.step for c in checkpoints]})"
     )
+
+
+@router.get(
+    "/{job_id}/camera-path",
+    response_model=CameraPathOut,
+    responses={**NOT_FOUND, 409: {"model": ErrorOut, "description": "Training has not started yet."}},
+    summary="How the photos were taken: the default view and a camera path through the cameras",
+)
+def get_camera_path(
+    job_id: JobIdPath,
+    store: StoreDep,
+    settings: SettingsDep,
+    num_frames: Annotated[int, Query(ge=1, le=720)] = 36,
+) -> CameraPathOut:
+    from neural.camera_path import CameraPathError
+    from neural.errors import CheckpointError
+    from neural.inference import camera_path
+
+    find_job(store, job_id, JobKind.nerf)
+    try:
+        return CameraPathOut(**camera_path(output_dir(settings, job_id), num_frames))
+    except CheckpointError:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"NeRF job {job_id} has not started training") from None
+    except CameraPathError as error:
+        raise HTTPException(422, f"NeRF job {job_id}: {error}") from None
 
 
 @router.post(

@@ -147,3 +147,10 @@ def test_a_strecha_facade_is_an_open_arc_whose_path_stays_among_the_photos(
     nearest_index = np.argmin(np.linalg.norm(frames[:, None, :3, 3] - centres[None], axis=2), axis=1)
     cosines = np.einsum("ni,ni->n", -frames[:, :3, 2], -poses[nearest_index, :3, 2])
     assert cosines.min() > math.cos(math.radians(30.0))
+
+
+@pytest.mark.parametrize("num_frames", [2, 3, 8, 37])
+def test_every_frame_of_an_open_path_is_a_distinct_pose(num_frames: int) -> None:
+    poses = ring(60.0, 5)
+    frames = path_poses(poses, detect_capture(poses), num_frames)
+    assert len({tuple(np.round(frame[:3, 3], 9)) for frame in frames}) == num_frames
