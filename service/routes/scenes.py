@@ -25,6 +25,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
+from neural.budget import expected_seconds
 from service.db import JobState, Scene, new_job_id
 from service.deps import ClientDep, ExecutorDep, SettingsDep, StoreDep
 from service.models import ErrorOut, JobOut
@@ -82,6 +83,12 @@ class SceneOut(BaseModel):
     links: dict[str, str] = Field(..., description="Every artifact of both stages (child jobs' routes).")
     held_out: list[HeldOutView] = Field(default_factory=list, description="Renders of the held-out views.")
     held_out_mean_psnr: float | None = None
+    expected_seconds: dict[str, float] | None = Field(
+        None,
+        description="Expected seconds of reconstruction, training, views and in total on a CPU, estimated "
+        "when the scene started (a time budget only: minutes).",
+        examples=[{"reconstruction": 20.0, "training": 600.0, "views": 120.0, "total": 740.0}],
+    )
 
 
 class SceneList(BaseModel):
@@ -154,6 +161,7 @@ def _describe(scene: Scene, request: Request) -> SceneOut:
         links=links,
         held_out=held_out,
         held_out_mean_psnr=mean_psnr,
+        expected_seconds=scene.params.get("expected_seconds"),
     )
 
 
@@ -246,11 +254,27 @@ def create_scene(
     orbit_frames: Annotated[int, Form(ge=1, le=720)] = 36,
     orbit_max_side: Annotated[int, Form(ge=8, le=4096)] = 200,
     held_out_max_side: Annotated[int, Form(ge=8, le=4096)] = 200,
+    train_max_side: Annotated[
+        int | None,
+        Form(
+            ge=8,
+            le=16_384,
+            description="Long side of the training photos (default: what the budget "
+            "can train, chosen from a timed probe and recorded in the NeRF's config.json).",
+        ),
+    ] = None,  # fmt: skip
 ) -> SceneOut:
     try:
         train_config = _train_config(
             options,
-            {"model": model, "steps": steps, "minutes": minutes, "batch_rays": batch_rays, "device": device},
+            {
+                "model": model,
+                "steps": steps,
+                "minutes": minutes,
+                "batch_rays": batch_rays,
+                "device": device,
+                "max_side": train_max_side,
+            },  # fmt: skip
         )
     except UploadRejected as rejected:
         raise HTTPException(rejected.status_code, rejected.detail) from None
@@ -281,6 +305,8 @@ def create_scene(
                 calibration = upload(found["calibration"][0])
         if not images:
             raise HTTPException(422, "images: upload the photos as `images` or as a `photos_zip`")
+        expected = expected_seconds(train_config.get("minutes"), len(images), scene_options.views_share)
+        scene_options = scene_options.model_copy(update={"expected_seconds": expected})
         reconstruction = create_reconstruction(
             Response(), store, client, executor, settings, images=images, matches=matches,
             calibration=calibration, K=K, features=features, ransac_threshold_px=ransac_threshold_px,

@@ -173,8 +173,9 @@ function uploadPage(main) {
   const minutes = h("input", { name: "minutes", type: "number", step: "any", min: 0, placeholder: "default" });
   const steps = h("input", { name: "steps", type: "number", min: 1, placeholder: "or steps" });
   const frames = h("input", { name: "orbit_frames", type: "number", min: 1, placeholder: "36" });
+  const trainSide = h("input", { name: "train_max_side", type: "number", min: 8, placeholder: "for the budget" });
   const nerfRow = h("div", { class: "row" }, field("NeRF model", model), field("Training minutes", minutes),
-    field("or steps", steps), field("Orbit video frames", frames));
+    field("or steps", steps), field("Orbit video frames", frames), field("Training photo size (px)", trainSide));
   what.addEventListener("change", () => { nerfRow.hidden = what.value !== "scene"; });
   const submit = h("button", { type: "submit", id: "submit" }, "Start");
 
@@ -191,6 +192,7 @@ function uploadPage(main) {
     const scene = what.value === "scene";
     if (scene) {
       set("model", model.value); set("minutes", minutes.value); set("steps", steps.value); set("orbit_frames", frames.value);
+      set("train_max_side", trainSide.value);
     }
     if (!scene && chosen.zip) { showError("a zip of photos starts a scene; for a reconstruction drop the photos themselves"); return; }
     submit.disabled = true;
@@ -435,6 +437,8 @@ function scenePage(main, page, sceneId) {
     head.replaceChildren(h("div", { class: "panel", id: "scene", dataset: { state: scene.state, stage: scene.stage } },
       h("p", {}, stateText(scene.state), ` — stage ${scene.stage} `, progressBar(scene.progress), ` ${Math.round(100 * scene.progress)}%`),
       scene.error ? h("p", { class: "error" }, scene.error) : null,
+      scene.expected_seconds ? h("p", { class: "muted", id: "expected" },
+        `expected about ${Math.ceil(scene.expected_seconds.total / 60)} min in all on a CPU`) : null,
       h("table", {}, h("tbody", {}, scene.stages.map((s) => h("tr", {},
         h("td", {}, s.name), h("td", {}, stateText(s.state)), h("td", {}, progressBar(s.progress)),
         h("td", {}, s.job_ids.map((id) => h("a", { href: `#/jobs/${id}` }, `job ${id.slice(0, 8)} `))))))),

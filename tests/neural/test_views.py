@@ -110,3 +110,33 @@ def test_a_run_without_registered_cameras_has_no_camera_path(tmp_path):
     (tmp_path / "config.json").write_text(json.dumps({"cameras": {"c2w": []}, "normalization": {}}))
     with pytest.raises(CameraPathError, match="no registered cameras"):
         camera_path(tmp_path, 10)
+
+
+def test_the_render_command_writes_the_default_view_and_a_video_along_the_cameras(photo_run, tmp_path):
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from service.cli import main
+
+    runner = CliRunner()
+    result = runner.invoke(main, ["nerf", "render", str(photo_run / "run"), "--view", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert Image.open(tmp_path / "view.png").size == (80, 60)
+    command = ["nerf", "render", str(photo_run / "run"), "--orbit", "4", "--width", "16", "--height", "12"]
+    result = runner.invoke(main, [*command, "--out", str(tmp_path / "video")])
+    assert result.exit_code == 0, result.output
+    assert Image.open(tmp_path / "video" / "orbit.gif").n_frames == 4
+
+
+def test_the_scene_command_takes_render_max_side_and_warns_that_max_side_is_deprecated(tmp_path):
+    from click.testing import CliRunner
+
+    from service.cli import main
+
+    (tmp_path / "photos").mkdir()
+    command = ["scene", str(tmp_path / "photos"), "--out", str(tmp_path / "out"), "--minutes", "1"]
+    result = CliRunner().invoke(main, [*command, "--max-side", "64"])
+    assert "--max-side is deprecated; it is --render-max-side" in result.output
+    assert "expected: reconstruction 0 s, training 60 s, views 12 s, total 72 s" in result.output
+    result = CliRunner().invoke(main, [*command, "--render-max-side", "64", "--train-max-side", "4"])
+    assert result.exit_code == 1 and "max_side" in result.output and "deprecated" not in result.output
