@@ -111,7 +111,8 @@ def plan_views(
     video_side: int, held_out: int, held_out_side: int, share: float = VIEWS_SHARE,
 ) -> ViewsPlan:  # fmt: skip
     """The asked-for views when they fit share x train_seconds; else smaller (both sides by one factor, to
-    MIN_VIEW_SIDE), then fewer video frames (to MIN_VIDEO_FRAMES). Unknown rate: as asked."""
+    MIN_VIEW_SIDE), then fewer video frames (to MIN_VIDEO_FRAMES); never more or larger than asked.
+    Unknown rate or share 0: as asked."""
     if not render_seconds_per_ray or share <= 0:
         return ViewsPlan(frames, video_side, held_out_side, math.nan)
 
@@ -123,12 +124,12 @@ def plan_views(
     needed = cost(frames, video_side, held_out_side)
     if needed > allowed:
         shrink = math.sqrt(allowed / needed)
-        video_side = max(MIN_VIEW_SIDE, min(video_side, round(video_side * shrink)))
-        held_out_side = max(MIN_VIEW_SIDE, min(held_out_side, round(held_out_side * shrink)))
+        video_side = min(video_side, max(MIN_VIEW_SIDE, round(video_side * shrink)))
+        held_out_side = min(held_out_side, max(MIN_VIEW_SIDE, round(held_out_side * shrink)))
         per_frame = cost(1, video_side, held_out_side) - cost(0, video_side, held_out_side)
         fixed = cost(0, video_side, held_out_side)
         if fixed + frames * per_frame > allowed:
-            frames = max(MIN_VIDEO_FRAMES, min(frames, int((allowed - fixed) / per_frame)))
+            frames = min(frames, max(MIN_VIDEO_FRAMES, int((allowed - fixed) / per_frame)))
     return ViewsPlan(frames, video_side, held_out_side, cost(frames, video_side, held_out_side))
 
 

@@ -65,6 +65,8 @@ def test_views_are_never_cut_below_their_floors_nor_without_a_rate():
     assert (plan.frames, plan.video_max_side, plan.held_out_max_side) == (
         MIN_VIDEO_FRAMES, MIN_VIEW_SIDE, MIN_VIEW_SIDE,
     )  # fmt: skip
+    small = plan_views(1.0, 1e-2, 800, 600, 2, 40, 2, 32, share=0.2)
+    assert (small.frames, small.video_max_side, small.held_out_max_side) == (2, 40, 32)  # never raised
     unknown = plan_views(1.0, None, 800, 600, 36, 200, 2, 200)
     assert (unknown.frames, unknown.video_max_side) == (36, 200) and math.isnan(unknown.seconds)
 
