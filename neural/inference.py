@@ -356,8 +356,9 @@ def render_orbit(
     path: VideoPath = "captured",
 ) -> Path:
     """Render a video: out_dir/orbit_000.png ... and out_dir/orbit.<gif|mp4>; its path. path "captured":
-    through the registered cameras (an orbit round them for runs that do not record them); "orbit": a
-    circle round the scene at elevation_deg."""
+    through the registered cameras of a photo scene (an orbit for Blender and .npz data, whose cameras
+    are spread over a sphere, and for runs that do not record them); "orbit": a circle round the scene at
+    elevation_deg."""
     if num_frames < 1:
         raise ValueError(f"an orbit needs at least one frame, got {num_frames}")
     run = load_run(run_dir, checkpoint, device=device)
@@ -368,7 +369,7 @@ def render_orbit(
     out_dir.mkdir(parents=True, exist_ok=True)
     from PIL import Image
 
-    if path == "captured" and run.cameras is not None:
+    if path == "captured" and run.photos and run.cameras is not None:
         poses = path_poses(run.cameras, run.capture(), num_frames)
     else:
         poses = orbit_poses(run.orbit, num_frames, elevation_deg)

@@ -40,8 +40,8 @@ class VideoParams(BaseModel):
     height: int = Field(200, ge=8, le=4096, examples=[200])
     path: Literal["captured", "orbit"] = Field(
         "captured",
-        description="captured: a smooth path through the registered cameras (round them only when they "
-        "close a ring); orbit: a circle round the scene (free mode).",
+        description="captured: a smooth path through a photo scene's registered cameras (round them only "
+        "when they close a ring; Blender and .npz data orbit); orbit: a circle round the scene (free mode).",
     )
 
     @property
