@@ -37,9 +37,9 @@ RING_GAP_TO_MEDIAN = 2.5
 PLANE_UP_MAX_DEG = 30.0
 #: Centres along a line (second singular value below this fraction of the first) give no plane.
 COLLINEAR_RATIO = 0.1
-#: In the capture frame the default camera stands this far from the target (the Blender scenes' radius),
-#: so that a Blender-style request (eye [0, -4, 1] looking at the origin, z up) sees what the photos saw.
-CAPTURE_FRAME_RADIUS = 4.0
+#: In the capture frame the default camera stands here looking at the origin (the Blender scenes' example
+#: view, z up), so that a Blender-style request (eye [0, -4, 1], look_at [0, 0, 0]) is the default photo's.
+CAPTURE_FRAME_EYE = (0.0, -4.0, 1.0)
 
 
 class CameraPathError(ValueError):
@@ -222,21 +222,27 @@ def path_poses(c2w: np.ndarray, capture: Capture, num_frames: int) -> np.ndarray
 
 
 def capture_frame(c2w: np.ndarray, capture: Capture) -> np.ndarray:
-    """(4,4) capture frame -> poses' frame: origin at the target, z up, the default camera on -y at
-    CAPTURE_FRAME_RADIUS, x = y x z; a similarity (rotation times a uniform scale, then a shift)."""
+    """(4,4) capture frame -> poses' frame, a similarity x' = s B x + o: the default camera at
+    CAPTURE_FRAME_EYE looking at the origin o, which lies on its optical axis as far as the target; x
+    horizontal to its right; z the capture's up tilted about x (by the eye's elevation less the camera's
+    own pitch) so that the eye's direction is the camera's."""
     poses = check_poses(c2w)
-    towards = capture.target - poses[capture.default_index, :3, 3]
-    horizontal = towards - (towards @ capture.up) * capture.up
-    if np.linalg.norm(horizontal) < 1e-9 * max(np.linalg.norm(towards), 1e-12):  # looking straight down
-        horizontal = -poses[capture.default_index, :3, 1]
-    y_axis = horizontal / np.linalg.norm(horizontal)
-    z_axis = capture.up - (capture.up @ y_axis) * y_axis
-    z_axis /= np.linalg.norm(z_axis)
-    x_axis = np.cross(y_axis, z_axis)
-    scale = max(float(np.linalg.norm(towards)), 1e-9) / CAPTURE_FRAME_RADIUS
+    centre, forward = poses[capture.default_index, :3, 3], -poses[capture.default_index, :3, 2]
+    depth = float((capture.target - centre) @ forward)
+    if depth <= 0:  # the target is behind the camera (a walk seen from its end): one unit ahead
+        depth = max(float(np.linalg.norm(capture.target - centre)), 1e-9)
+    right = np.cross(forward, capture.up)
+    if np.linalg.norm(right) < 1e-9:  # looking straight along up: the camera's own right
+        right = poses[capture.default_index, :3, 0]
+    right /= np.linalg.norm(right)
+    level_up = np.cross(right, forward)  # up, in the plane of the optical axis and the capture's up
+    eye = np.asarray(CAPTURE_FRAME_EYE)
+    elevation = math.atan2(eye[2], -eye[1])
+    z_axis = -math.sin(elevation) * forward + math.cos(elevation) * level_up
+    y_axis = math.cos(elevation) * forward + math.sin(elevation) * level_up
     frame = np.eye(4)
-    frame[:3, :3] = scale * np.stack([x_axis, y_axis, z_axis], axis=1)
-    frame[:3, 3] = capture.target
+    frame[:3, :3] = depth / np.linalg.norm(eye) * np.stack([np.cross(y_axis, z_axis), y_axis, z_axis], axis=1)
+    frame[:3, 3] = centre + depth * forward
     return frame
 
 

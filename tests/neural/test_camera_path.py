@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from neural.camera_path import (
-    CAPTURE_FRAME_RADIUS,
+    CAPTURE_FRAME_EYE,
     CameraPathError,
     capture_frame,
     detect_capture,
@@ -105,17 +105,18 @@ def test_a_single_camera_path_is_that_camera() -> None:
     np.testing.assert_allclose(frames, np.repeat(poses, 3, axis=0))
 
 
-def test_the_capture_frame_puts_the_default_camera_on_minus_y_at_radius_4_looking_at_the_origin() -> None:
-    poses = ring(90.0, 5, radius=0.5, height=0.1, start=30.0)
+@pytest.mark.parametrize("poses", [ring(90.0, 5, radius=0.5, height=0.1, start=30.0), walk(4)],
+                         ids=["arc", "walk"])  # fmt: skip
+def test_a_blender_style_request_in_the_capture_frame_is_the_default_camera(poses: np.ndarray) -> None:
     capture = detect_capture(poses)
     frame = capture_frame(poses, capture)
-    elevation = math.atan2(0.1, 0.5)  # the cameras' own, seen from the target
-    eye = CAPTURE_FRAME_RADIUS * np.array([0.0, -math.cos(elevation), math.sin(elevation)])
-    request = look_at(eye, np.zeros(3), UP)  # z up, as in Blender scenes
+    request = look_at(np.array(CAPTURE_FRAME_EYE), np.zeros(3), UP)  # z up, as in Blender scenes
     pose = pose_from_capture_frame(request, frame)
     default = poses[capture.default_index]
     np.testing.assert_allclose(pose[:3, 3], default[:3, 3], atol=1e-9)
-    np.testing.assert_allclose(pose[:3, :3], default[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(pose[:3, :3], default[:3, :3], atol=1e-9)  # level cameras: roll too
+    # x stays horizontal; z is up tilted about x only
+    np.testing.assert_allclose(frame[:3, 0] @ capture.up, 0.0, atol=1e-9)
 
 
 def strecha_cameras(folder: Path) -> np.ndarray:

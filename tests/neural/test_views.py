@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from neural.camera_path import CAPTURE_FRAME_RADIUS, CameraPathError
+from neural.camera_path import CAPTURE_FRAME_EYE, CameraPathError
 from neural.config import TrainConfig
 from neural.inference import (
     Camera,
@@ -63,19 +63,13 @@ def test_the_camera_path_is_in_the_datasets_frame_and_its_default_view_is_a_phot
 
 
 def test_a_blender_style_request_on_a_photo_scene_is_read_relative_to_the_capture(photo_run):
-    """eye (0, -4, h) looking at the origin with z up is the default photo's camera (h: its elevation)."""
+    """eye (0, -4, 1) looking at the origin with z up is the default photo's camera."""
     run = load_run(photo_run / "run")
-    capture = run.capture()
-    default = run.cameras[capture.default_index]
-    offset = default[:3, 3] - capture.target
-    height = float(offset @ capture.up)
-    elevation = np.arcsin(height / np.linalg.norm(offset))
-    eye = CAPTURE_FRAME_RADIUS * np.array([0.0, -np.cos(elevation), np.sin(elevation)])
-    request = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    default = run.cameras[run.capture().default_index]
+    request = look_at(np.array(CAPTURE_FRAME_EYE), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     pose = run.pose_to_scene(request, "auto")
     np.testing.assert_allclose(pose[:3, 3], default[:3, 3], atol=1e-6)
-    # the optical axis is the photo's up to how far its own axis misses the target
-    assert float(-pose[:3, 2] @ -default[:3, 2]) > 0.9
+    np.testing.assert_allclose(pose[:3, 2], default[:3, 2], atol=1e-6)  # the same optical axis
     # the data frame (free mode) is the dataset's own
     np.testing.assert_allclose(run.pose_to_scene(request, "data"), run.normalization.pose_to_scene(request))
 
@@ -99,11 +93,15 @@ def test_a_view_of_an_empty_field_is_refused_saying_it_sees_nothing(tiny_npz, tm
         render_view(tmp_path / "run", None, 16, 12)
 
 
-def test_a_view_with_opacity_is_kept_and_a_transparent_one_is_not():
-    opaque = RenderedImage(torch.zeros(4, 4, 3), torch.ones(4, 4), torch.full((4, 4), 0.5))
-    assert check_sees_scene(opaque) is opaque
-    with pytest.raises(EmptyViewError):
-        check_sees_scene(RenderedImage(torch.zeros(4, 4, 3), torch.ones(4, 4), torch.zeros(4, 4)))
+def test_a_view_that_partly_sees_the_scene_is_kept_and_a_transparent_or_hazy_one_is_not():
+    sliver = torch.zeros(20, 20)
+    sliver[:, :1] = 0.9  # 5 % of the pixels see the scene
+    assert (
+        check_sees_scene(RenderedImage(torch.zeros(20, 20, 3), torch.ones(20, 20), sliver)).opacity is sliver
+    )
+    for opacity in (torch.zeros(20, 20), torch.full((20, 20), 0.06)):  # nothing; a haze (Herz-Jesus-P8)
+        with pytest.raises(EmptyViewError, match="sees nothing"):
+            check_sees_scene(RenderedImage(torch.zeros(20, 20, 3), torch.ones(20, 20), opacity))
 
 
 def test_a_run_without_registered_cameras_has_no_camera_path(tmp_path):
