@@ -301,12 +301,26 @@ class Trainer:
     def measure_rates(self) -> MeasuredRates:
         """Seconds per training step and per rendered ray, timed here (the steps train this model)."""
         seconds_per_step = time_calls(self._train_step, PROBE_WARMUP_STEPS, PROBE_STEPS)
-        origins, directions, _ = self.sampler.sample(PROBE_RENDER_RAYS, self.generator)
+        return MeasuredRates(seconds_per_step, self.seconds_per_ray())
+
+    def seconds_per_ray(self) -> float:
+        """Seconds per rendered ray (no gradients) of the model as it is now, timed on training rays."""
+        generator = torch.Generator(device=self.device).manual_seed(self.config.seed)
+        origins, directions, _ = self.sampler.sample(PROBE_RENDER_RAYS, generator)
         scene, background, chunk = self.dataset.scene, self.background, self.config.chunk_rays
         seconds = time_calls(
             lambda: render_rays_chunked(self.model, origins, directions, scene, background, chunk), 0, 1
         )
-        return MeasuredRates(seconds_per_step, seconds / PROBE_RENDER_RAYS)
+        return seconds / PROBE_RENDER_RAYS
+
+    def record_render_rate(self) -> None:
+        """config.json's train_size takes the trained model's render rate (a filled field renders slower
+        than the probe's empty one), which the views stage plans with."""
+        path = self.run_dir / RUN_CONFIG_FILE
+        info = json.loads(path.read_text())
+        if "train_size" in info:
+            info["train_size"]["render_seconds_per_ray"] = self.seconds_per_ray()
+            path.write_text(json.dumps(info, indent=2))
 
     # ------------------------------------------------------------------------------------------------
     def run(self) -> TrainResult:
@@ -496,6 +510,9 @@ def train(
     train_size = None
     if not resume:
         config, train_size = size_for_budget(Path(data), config)
-    return Trainer(
+    trainer = Trainer(
         Path(data), run_dir, config, resume, progress, metrics_callback, should_stop, train_size
-    ).run()
+    )
+    result = trainer.run()
+    trainer.record_render_rate()
+    return result
