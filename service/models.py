@@ -235,6 +235,12 @@ class RenderRequest(BaseModel):
         "scenes, data for Blender and .npz datasets.",
     )
 
+    allow_empty_view: bool = Field(
+        False,
+        description="Return the image even when it sees nothing of the scene (under 1 % of its pixels "
+        "opaque), e.g. live views of a field still training; otherwise such a view is a 422 saying so.",
+    )
+
     @model_validator(mode="after")
     def _one_camera(self) -> RenderRequest:
         look_at_given = [v is not None for v in (self.eye, self.look_at)]

@@ -68,6 +68,8 @@ class RenderSpec:
     height: int
     fx: float | None
     fov_x: float | None
+    allow_empty_view: bool = False
+    """Return a view that sees nothing of the scene instead of refusing it (RenderFailed, 422)."""
 
     def cache_key(self) -> str:
         fields = {k: v for k, v in asdict(self).items() if k not in ("run_dir", "which")}
@@ -124,7 +126,8 @@ def render_png(spec: RenderSpec, cache_dir: str | None = None) -> bytes:
     camera = view_camera(run, spec.width, spec.height, spec.fx, spec.fov_x)
     c2w = None if spec.c2w is None else np.asarray(spec.c2w, dtype=float)
     try:
-        pixels = to_uint8(check_sees_scene(render_frame(run, c2w, camera, spec.frame)).rgb)
+        rendered = render_frame(run, c2w, camera, spec.frame)
+        pixels = to_uint8((rendered if spec.allow_empty_view else check_sees_scene(rendered)).rgb)
     except (CameraPathError, EmptyViewError) as error:
         raise RenderFailed(str(error)) from None
     buffer = io.BytesIO()
@@ -292,4 +295,5 @@ def spec_from_request(job_id: str, run_dir: Path, step: int, request: Any) -> Re
         height=request.height,
         fx=request.fx,
         fov_x=math.radians(request.fov_x_deg) if request.fov_x_deg is not None else None,
+        allow_empty_view=request.allow_empty_view,
     )

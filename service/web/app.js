@@ -304,7 +304,7 @@ function novelView(jobId, config) {
     const dir = [0, 1, 2].map((i) => Math.cos(elevation) * (Math.cos(azimuth) * a[i] + Math.sin(azimuth) * b[i]) + Math.sin(elevation) * up[i]);
     try {
       const url = await blobUrl(`/v1/nerf/${jobId}/render`, { method: "POST", headers: { "Content-Type": "application/json" },
-        body: JSON.stringify({ eye: target.map((t, i) => t + radius * dir[i]), look_at: target, up, frame: "data", width, height }) });
+        body: JSON.stringify({ eye: target.map((t, i) => t + radius * dir[i]), look_at: target, up, frame: "data", allow_empty_view: true, width, height }) });
       if (img.src) URL.revokeObjectURL(img.src);
       img.src = url;
       img.dataset.renders = String(++renders);

@@ -163,6 +163,15 @@ def test_a_render_without_a_camera_is_the_default_view_a_registered_camera(train
     )
 
 
+def test_a_view_that_sees_nothing_is_a_422_saying_so_unless_allowed(trained):
+    client, job, _, _ = trained
+    away = {"eye": [0.0, -4.0, 1.0], "look_at": [0.0, -8.0, 1.0], "width": 24, "height": 16}  # from the scene
+    response = client.post(f"/v1/nerf/{job['id']}/render", json=away)
+    assert response.status_code == 422 and "sees nothing of the scene" in response.json()["detail"]
+    allowed = client.post(f"/v1/nerf/{job['id']}/render", json={**away, "allow_empty_view": True})
+    assert allowed.status_code == 200 and Image.open(io.BytesIO(allowed.content)).size == (24, 16)
+
+
 def test_a_camera_path_of_a_run_without_registered_cameras_is_a_422(trained):
     client, job, _, settings = trained
     config_path = settings.jobs_dir / job["id"] / "output" / "config.json"
