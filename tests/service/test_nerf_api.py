@@ -163,12 +163,22 @@ def test_a_render_without_a_camera_is_the_default_view_a_registered_camera(train
     )
 
 
-def test_a_view_that_sees_nothing_is_a_422_saying_so_unless_allowed(trained):
-    client, job, _, _ = trained
-    away = {"eye": [0.0, -4.0, 1.0], "look_at": [0.0, -8.0, 1.0], "width": 24, "height": 16}  # from the scene
-    response = client.post(f"/v1/nerf/{job['id']}/render", json=away)
-    assert response.status_code == 422 and "sees nothing of the scene" in response.json()["detail"]
-    allowed = client.post(f"/v1/nerf/{job['id']}/render", json={**away, "allow_empty_view": True})
+def test_a_view_that_sees_nothing_is_a_422_saying_so_unless_allowed(trained, tiny_npz):
+    client, _, _, _ = trained
+    empty_field = {"initial_voxels": 16**3, "final_voxels": 16**3, "initial_alpha": 1e-9}  # fast, bounded
+    response = client.post(
+        "/v1/nerf",
+        files={"dataset": ("tiny.npz", tiny_npz, "application/octet-stream")},
+        data={"model": "fast", "steps": "1", "batch_rays": "16", "device": "cpu",
+              "options": json.dumps({"lr": 1e-12, "model_options": empty_field})},
+    )  # fmt: skip
+    job = wait_for_job(client, response.json()["id"])
+    assert job["state"] == "succeeded", job
+    refused = client.post(f"/v1/nerf/{job['id']}/render", json={"width": 24, "height": 16})
+    assert refused.status_code == 422 and "sees nothing of the scene" in refused.json()["detail"]
+    allowed = client.post(
+        f"/v1/nerf/{job['id']}/render", json={"width": 24, "height": 16, "allow_empty_view": True}
+    )
     assert allowed.status_code == 200 and Image.open(io.BytesIO(allowed.content)).size == (24, 16)
 
 
