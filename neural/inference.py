@@ -2,7 +2,8 @@
 
 A run's poses live in its scene frame; callers pass poses in the dataset's original frame (for Blender and
 tiny-NeRF data the two coincide; a reconstruction's frame is re-centred and scaled, see
-neural.scene.SceneNormalization) and this module converts them, once.
+neural.scene.SceneNormalization) or in the capture frame of its photos (neural.camera_path.capture_frame),
+or no pose for the default view (a registered camera), and this module converts them, once.
 """
 
 from __future__ import annotations
