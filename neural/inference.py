@@ -2,7 +2,8 @@
 
 A run's poses live in its scene frame; callers pass poses in the dataset's original frame (for Blender and
 tiny-NeRF data the two coincide; a reconstruction's frame is re-centred and scaled, see
-neural.scene.SceneNormalization) and this module converts them, once.
+neural.scene.SceneNormalization) or in the capture frame of its photos (neural.camera_path.capture_frame),
+or no pose for the default view (a registered camera), and this module converts them, once.
 """
 
 from __future__ import annotations
@@ -12,12 +13,20 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from neural.camera_path import (
+    CameraPathError,
+    Capture,
+    capture_frame,
+    detect_capture,
+    path_poses,
+    pose_from_capture_frame,
+)
 from neural.checkpoints import load_model_state, load_named_checkpoint
 from neural.config import TrainConfig
 from neural.errors import CheckpointError
@@ -31,6 +40,21 @@ RUN_CONFIG_FILE = "config.json"
 IMAGE_CACHE_DIR = "image_cache"
 #: Orbit cameras sit this many degrees above the plane normal to the mean training "up".
 DEFAULT_ORBIT_ELEVATION_DEG = 30.0
+#: A pixel sees the scene when its accumulated opacity reaches EMPTY_VIEW_OPACITY; a view where fewer than
+#: EMPTY_VIEW_FRACTION of the pixels do sees nothing (Herz-Jesus-P8 seen from the data frame's eye
+#: [0,-4,1]: a black haze of opacity <= 0.06 everywhere; a photo's view: >= 0.99 everywhere).
+EMPTY_VIEW_OPACITY = 0.5
+EMPTY_VIEW_FRACTION = 0.01
+#: How a requested pose is read: "capture" (photo scenes: the frame of neural.camera_path.capture_frame,
+#: origin at what the photos look at, z up, the default camera at (0, -4, *)), "data" (the dataset's own
+#: frame) or "auto" (capture for photo scenes, data otherwise).
+PoseFrame = Literal["auto", "capture", "data"]
+#: The video's camera path: "captured" (through the registered cameras) or "orbit" (a circle round them).
+VideoPath = Literal["captured", "orbit"]
+
+
+class EmptyViewError(ValueError):
+    """The view sees nothing of the scene: the camera looks away from it."""
 
 
 class RenderedImage(NamedTuple):
@@ -73,6 +97,31 @@ class LoadedRun:
     step: int
     device: torch.device
     background: Tensor
+    cameras: np.ndarray | None = None
+    """(N,4,4) the registered cameras' camera-to-world poses in the scene frame (None: an older run)."""
+    photos: bool = False
+    """Trained on photographs (a reconstruction): requests are read in the capture frame by default."""
+
+    def capture(self) -> Capture:
+        """How the photos were taken (neural.camera_path); CameraPathError without registered cameras."""
+        if self.cameras is None:
+            raise CameraPathError(
+                "the run records no registered cameras (it was trained by an older version)"
+            )
+        return detect_capture(self.cameras)
+
+    def default_pose(self) -> np.ndarray:
+        """The default novel view (scene frame): the registered camera nearest the middle of the path."""
+        return self.cameras[self.capture().default_index]
+
+    def pose_to_scene(self, c2w: np.ndarray | None, frame: PoseFrame = "auto") -> np.ndarray:
+        """A requested camera-to-world pose (None: the default view) in the scene frame."""
+        if c2w is None:
+            return self.default_pose()
+        c2w = np.asarray(c2w, dtype=np.float64)
+        if frame == "capture" or (frame == "auto" and self.photos and self.cameras is not None):
+            return pose_from_capture_frame(c2w, capture_frame(self.cameras, self.capture()))
+        return self.normalization.pose_to_scene(c2w)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -184,6 +233,8 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
         step=int(payload["step"]),
         device=target,
         background=background_colour(config.background, target),
+        cameras=np.asarray(info["cameras"]["c2w"], dtype=np.float64) if "cameras" in info else None,
+        photos=bool(info.get("cameras", {}).get("photos", False)),
     )
 
 
@@ -197,26 +248,62 @@ def view_camera(run: LoadedRun, width: int, height: int, fx: float | None, fov_x
     return Camera(width, height, fx, fx, width / 2.0, height / 2.0)
 
 
-def render_frame(run: LoadedRun, c2w_original: np.ndarray, camera: Camera) -> RenderedImage:
-    """Render a view whose camera-to-world pose (OpenGL) is given in the dataset's original frame."""
-    c2w_scene = run.normalization.pose_to_scene(np.asarray(c2w_original, dtype=np.float64))
-    pose = torch.as_tensor(c2w_scene, dtype=torch.float32, device=run.device)
+def render_frame(
+    run: LoadedRun, c2w: np.ndarray | None, camera: Camera, frame: PoseFrame = "data"
+) -> RenderedImage:
+    """Render a view whose camera-to-world pose (OpenGL) is given in `frame` (None: the default view)."""
+    pose = torch.as_tensor(run.pose_to_scene(c2w, frame), dtype=torch.float32, device=run.device)
     return render_image(run.model, pose, camera, run.scene, run.background, run.config.chunk_rays)
+
+
+def check_sees_scene(rendered: RenderedImage) -> RenderedImage:
+    """The render, or EmptyViewError when almost no pixel sees the scene (the image is background or haze)."""
+    seeing = float((rendered.opacity >= EMPTY_VIEW_OPACITY).float().mean())
+    if seeing < EMPTY_VIEW_FRACTION:
+        raise EmptyViewError(
+            f"the view sees nothing of the scene ({100 * seeing:.1f} % of its pixels reach opacity "
+            f"{EMPTY_VIEW_OPACITY}): the camera looks away from "
+            "what the photos saw, or training has not filled the field yet; leave the camera out for a "
+            "photo's view, or move it towards the cameras (GET .../camera-path lists them)"
+        )
+    return rendered
 
 
 def render_view(
     run_dir: Path | str,
-    c2w: np.ndarray,
+    c2w: np.ndarray | None,
     width: int,
     height: int,
     fx: float | None = None,
     fov_x: float | None = None,
     checkpoint: str = "latest",
     device: str = "auto",
+    frame: PoseFrame = "data",
 ) -> np.ndarray:
-    """(H,W,3) uint8 render of the camera c2w (4,4, OpenGL camera-to-world, the data's original frame)."""
+    """(H,W,3) uint8 render of the camera c2w (4,4, OpenGL camera-to-world in `frame`; None: the default
+    view); EmptyViewError when it sees nothing of the scene."""
     run = load_run(run_dir, checkpoint, device=device)
-    return to_uint8(render_frame(run, c2w, view_camera(run, width, height, fx, fov_x)).rgb)
+    return to_uint8(
+        check_sees_scene(render_frame(run, c2w, view_camera(run, width, height, fx, fov_x), frame)).rgb
+    )
+
+
+def camera_path(run_dir: Path | str, num_frames: int) -> dict[str, Any]:
+    """The run's capture (kind, span_deg, closed) with its default view, cameras in path order and a video
+    path of num_frames poses, all camera-to-world in the dataset's original frame; reads config.json only.
+    CameraPathError when the run records no registered cameras."""
+    info = read_run_config(Path(run_dir))
+    cameras = np.asarray(info.get("cameras", {}).get("c2w", []), dtype=np.float64)
+    capture = detect_capture(cameras)
+    to_data = SceneNormalization.from_dict(info["normalization"]).pose_to_original
+    return {
+        "kind": capture.kind,
+        "span_deg": capture.span_deg,
+        "closed": capture.closed,
+        "default_view": to_data(cameras[capture.default_index]).tolist(),
+        "cameras": to_data(cameras[capture.order]).tolist(),
+        "path": to_data(path_poses(cameras, capture, num_frames)).tolist(),
+    }
 
 
 def orbit_parameters(poses_scene: np.ndarray) -> dict[str, Any]:
@@ -271,8 +358,12 @@ def render_orbit(
     checkpoint: str = "latest",
     progress: Any = None,
     device: str = "auto",
+    path: VideoPath = "captured",
 ) -> Path:
-    """Render an orbit around the scene: out_dir/orbit_000.png ... and out_dir/orbit.<gif|mp4>; its path."""
+    """Render a video: out_dir/orbit_000.png ... and out_dir/orbit.<gif|mp4>; its path. path "captured":
+    through the registered cameras of a photo scene (an orbit for Blender and .npz data, whose cameras
+    are spread over a sphere, and for runs that do not record them); "orbit": a circle round the scene at
+    elevation_deg."""
     if num_frames < 1:
         raise ValueError(f"an orbit needs at least one frame, got {num_frames}")
     run = load_run(run_dir, checkpoint, device=device)
@@ -283,7 +374,10 @@ def render_orbit(
     out_dir.mkdir(parents=True, exist_ok=True)
     from PIL import Image
 
-    poses = orbit_poses(run.orbit, num_frames, elevation_deg)
+    if path == "captured" and run.photos and run.cameras is not None:
+        poses = path_poses(run.cameras, run.capture(), num_frames)
+    else:
+        poses = orbit_poses(run.orbit, num_frames, elevation_deg)
 
     def frames() -> Iterator[np.ndarray]:  # rendered one at a time as the encoder asks for them
         for index, c2w_scene in enumerate(poses):

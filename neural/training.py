@@ -9,6 +9,7 @@ import json
 import logging
 import math
 import random
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,6 +22,17 @@ from PIL import Image
 from torch import Tensor
 
 from neural.appearance import PhotoAppearance
+from neural.budget import (
+    PROBE_MAX_SIDE,
+    PROBE_RENDER_RAYS,
+    PROBE_STEPS,
+    PROBE_WARMUP_STEPS,
+    MeasuredRates,
+    TrainSize,
+    budget_steps,
+    time_calls,
+    train_max_side,
+)
 from neural.checkpoints import (
     list_checkpoints,
     load_checkpoint,
@@ -40,6 +52,7 @@ from neural.inference import (
     orbit_parameters,
     read_run_config,
     render_image,
+    render_rays_chunked,
     resolve_device,
     to_uint8,
 )
@@ -235,6 +248,12 @@ def run_config_for(config: TrainConfig, dataset: Dataset, data: Path) -> dict[st
             "cy": dataset.cy,
         },
         "orbit": orbit_parameters(train_poses),
+        # every registered camera (held-out ones too), scene frame: the default view and video path
+        "cameras": {
+            "c2w": dataset.poses.astype(np.float64).tolist(),
+            "photos": dataset_format(data) == "reconstruction",
+            "held_out": [int(index) for index in dataset.split("val")],
+        },
     }
 
 
@@ -278,6 +297,7 @@ class Trainer:
         progress: ProgressCallback | None,
         metrics_callback: MetricsCallback | None,
         should_stop: Callable[[], bool] | None,
+        train_size: TrainSize | None = None,
     ) -> None:
         self.run_dir = run_dir
         self.progress = progress
@@ -318,7 +338,11 @@ class Trainer:
         run_config = run_config_for(self.config, self.dataset, Path(data).resolve())
         run_config["depth_supervision"] = depth_record
         if resume:
-            check_same_data(read_run_config(run_dir), run_config, run_dir)
+            stored = read_run_config(run_dir)
+            check_same_data(stored, run_config, run_dir)
+            train_size = train_size or stored.get("train_size")
+        if train_size is not None:
+            run_config["train_size"] = train_size if isinstance(train_size, dict) else train_size.to_dict()
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / RUN_CONFIG_FILE).write_text(json.dumps(run_config, indent=2))
 
@@ -352,6 +376,30 @@ class Trainer:
         self.step = int(payload["step"])
         self.elapsed_before = float(payload["elapsed_seconds"])
         self.best_val_psnr = payload.get("best_val_psnr")
+
+    def measure_rates(self) -> MeasuredRates:
+        """Seconds per training step and per rendered ray, timed here (the steps train this model)."""
+        seconds_per_step = time_calls(self._train_step, PROBE_WARMUP_STEPS, PROBE_STEPS)
+        return MeasuredRates(seconds_per_step, self.seconds_per_ray())
+
+    def seconds_per_ray(self) -> float:
+        """Seconds per rendered ray (no gradients) of the model as it is now, timed on training rays."""
+        generator = torch.Generator(device=self.device).manual_seed(self.config.seed)
+        origins, directions, _, _ = self.sampler.sample(PROBE_RENDER_RAYS, generator)
+        scene, background, chunk = self.dataset.scene, self.background, self.config.chunk_rays
+        seconds = time_calls(
+            lambda: render_rays_chunked(self.model, origins, directions, scene, background, chunk), 0, 1
+        )
+        return seconds / PROBE_RENDER_RAYS
+
+    def record_render_rate(self) -> None:
+        """config.json's train_size takes the trained model's render rate (a filled field renders slower
+        than the probe's empty one), which the views stage plans with."""
+        path = self.run_dir / RUN_CONFIG_FILE
+        info = json.loads(path.read_text())
+        if "train_size" in info:
+            info["train_size"]["render_seconds_per_ray"] = self.seconds_per_ray()
+            path.write_text(json.dumps(info, indent=2))
 
     # ------------------------------------------------------------------------------------------------
     def run(self) -> TrainResult:
@@ -502,6 +550,35 @@ class Trainer:
         return save_checkpoint(self.run_dir, payload, self.step, self.last_val_psnr)
 
 
+def size_for_budget(data: Path, config: TrainConfig) -> tuple[TrainConfig, TrainSize | None]:
+    """Photos given no size (max_side, downscale) train at the long side that their budget can train
+    (neural.budget.train_max_side), from the step time a short probe measures; other data as it is."""
+    if (
+        config.max_side is not None
+        or config.downscale is not None
+        or dataset_format(data) != "reconstruction"
+    ):
+        return config, None
+    with tempfile.TemporaryDirectory() as folder:
+        probe = Trainer(
+            data,
+            Path(folder),
+            config.model_copy(update={"max_side": PROBE_MAX_SIDE}),
+            False,
+            None,
+            None,
+            None,
+        )
+        rates = probe.measure_rates()
+    meta = json.loads((data / "transforms.json").read_text())
+    width, height = int(meta["w"]), int(meta["h"])
+    steps = budget_steps(probe.config.steps, probe.config.minutes, rates.seconds_per_step)
+    train_images = len(probe.dataset.split("train"))
+    side = train_max_side(steps, probe.config.batch_rays, train_images, width, height)
+    size = TrainSize(side, max(width, height), steps, rates.seconds_per_step, rates.render_seconds_per_ray)
+    return config.model_copy(update={"max_side": side}), size
+
+
 def train(
     data: Path | str,
     run_dir: Path | str,
@@ -525,4 +602,12 @@ def train(
                 f"{run_dir}: already holds a training run; resume it or choose another folder"
             )
         config = config or TrainConfig()
-    return Trainer(Path(data), run_dir, config, resume, progress, metrics_callback, should_stop).run()
+    train_size = None
+    if not resume:
+        config, train_size = size_for_budget(Path(data), config)
+    trainer = Trainer(
+        Path(data), run_dir, config, resume, progress, metrics_callback, should_stop, train_size
+    )
+    result = trainer.run()
+    trainer.record_render_rate()
+    return result

@@ -31,13 +31,18 @@ class NerfParams(BaseModel):
 
 
 class VideoParams(BaseModel):
-    """An orbit video of a NeRF job's latest checkpoint; frames x width x height is capped by a budget."""
+    """A video of a NeRF job's latest checkpoint; frames x width x height is capped by a budget."""
 
     model_config = ConfigDict(extra="forbid")
 
     num_frames: int = Field(36, ge=1, le=720, examples=[36])
     width: int = Field(200, ge=8, le=4096, examples=[200])
     height: int = Field(200, ge=8, le=4096, examples=[200])
+    path: Literal["captured", "orbit"] = Field(
+        "captured",
+        description="captured: a smooth path through a photo scene's registered cameras (round them only "
+        "when they close a ring; Blender and .npz data orbit); orbit: a circle round the scene (free mode).",
+    )
 
     @property
     def pixels(self) -> int:

@@ -3,7 +3,7 @@
 `sfmnerf scene` runs it in one process (`run_scene`); the service runs each step as a child job of a scene
 (`service.scene_supervisor` moves a scene from step to step, `service.runner` holds the job functions) with
 the same options, checks and artefact names, all defined here: `SceneOptions`, `registration_problem`,
-`orbit_size_of_run`, `render_held_out`.
+`views_plan`, `render_held_out`.
 """
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
+from neural.budget import VIEWS_SHARE, ViewsPlan, plan_views
+from neural.budget import scaled_size as orbit_size
 from service.layout import RUN_CONFIG
 
 STAGES = ("reconstruction", "nerf", "views")
@@ -41,10 +43,22 @@ class SceneOptions(BaseModel):
     min_registered_images: int = Field(
         3, ge=2, le=10_000, description="Fewest registered images to train on."
     )
-    orbit_frames: int = Field(36, ge=1, le=720, description="Frames of the orbit video.")
-    orbit_max_side: int = Field(200, ge=8, le=4096, description="Long side of the orbit video, pixels.")
+    orbit_frames: int = Field(
+        36, ge=1, le=720, description="Most frames of the video (fewer when the views would take longer "
+        "than views_share of the training time).",
+    )  # fmt: skip
+    orbit_max_side: int = Field(200, ge=8, le=4096, description="Largest long side of the video, pixels.")
     held_out_max_side: int = Field(
         200, ge=8, le=4096, description="Held-out views are rendered downscaled to at most this side."
+    )
+    views_share: float = Field(
+        VIEWS_SHARE, ge=0, le=100,
+        description="The views (video and held-out renders) take at most this share of the training time: "
+        "fewer frames or smaller renders when they would take longer (0: as asked).",
+    )  # fmt: skip
+    expected_seconds: dict[str, float] | None = Field(
+        None,
+        description="Expected seconds per stage and in total on a CPU, estimated when the scene started.",
     )
 
 
@@ -68,16 +82,21 @@ def registration_problem(report: dict[str, Any], minimum: int) -> str | None:
     )
 
 
-def orbit_size(width: int, height: int, max_side: int) -> tuple[int, int]:
-    """The training images' aspect ratio with the long side at most max_side, both sides even."""
-    scale = min(1.0, max_side / max(width, height))
-    return max(8, 2 * round(width * scale / 2)), max(8, 2 * round(height * scale / 2))
-
-
-def orbit_size_of_run(run_dir: Path, max_side: int) -> tuple[int, int]:
-    """The orbit video's size for a trained NeRF run: its camera's aspect, long side at most max_side."""
-    camera = json.loads((run_dir / RUN_CONFIG).read_text())["camera"]
-    return orbit_size(camera["width"], camera["height"], max_side)
+def views_plan(
+    options: SceneOptions, run_dir: Path, train_seconds: float
+) -> tuple[ViewsPlan, tuple[int, int]]:
+    """The video frames and render sizes of a trained NeRF run's views stage: those asked for, cut to take
+    at most views_share of the training time at the render rate recorded in its config.json
+    (neural.budget); and the video's (width, height)."""
+    run_config = json.loads((run_dir / RUN_CONFIG).read_text())
+    camera, rates = run_config["camera"], run_config.get("train_size") or {}
+    held_out = len(run_config.get("cameras", {}).get("held_out", []))
+    plan = plan_views(
+        train_seconds, rates.get("render_seconds_per_ray"), camera["width"], camera["height"],
+        options.orbit_frames, options.orbit_max_side, held_out, options.held_out_max_side,
+        options.views_share,
+    )  # fmt: skip
+    return plan, orbit_size(camera["width"], camera["height"], plan.video_max_side)
 
 
 def downscaled(dataset: Any, max_side: int) -> Any:
@@ -149,13 +168,13 @@ def run_scene(
     with timed("nerf") as progress:
         trained = train(out_dir / RECONSTRUCTION_DIR, out_dir / NERF_DIR, config, progress=progress)
     with timed("views") as progress:
-        width, height = orbit_size_of_run(out_dir / NERF_DIR, options.orbit_max_side)
+        plan, (width, height) = views_plan(options, out_dir / NERF_DIR, trained.seconds)
         video = render_orbit(
-            out_dir / NERF_DIR, options.orbit_frames, out_dir / ORBIT_DIR, width, height,
+            out_dir / NERF_DIR, plan.frames, out_dir / ORBIT_DIR, width, height,
             progress=lambda _text, fraction: progress("orbit", fraction / 2),
         )  # fmt: skip
         held_out = render_held_out(
-            out_dir / NERF_DIR, load_dataset(out_dir / RECONSTRUCTION_DIR), options.held_out_max_side,
+            out_dir / NERF_DIR, load_dataset(out_dir / RECONSTRUCTION_DIR), plan.held_out_max_side,
             HELD_OUT_SPLIT, out_dir / HELD_OUT_DIR,
         )  # fmt: skip
         progress("held-out views", 1.0)

@@ -60,11 +60,16 @@ class RenderSpec:
     """The checkpoint asked for: "latest", "best" or a step."""
     step: int
     """The step `which` named when the request came in (the trainer may have saved a newer one since)."""
-    c2w: tuple[tuple[float, ...], ...]
+    c2w: tuple[tuple[float, ...], ...] | None
+    """None: the run's default view."""
+    frame: str
+    """How c2w is read: "auto", "capture" or "data" (neural.inference.PoseFrame)."""
     width: int
     height: int
     fx: float | None
     fov_x: float | None
+    allow_empty_view: bool = False
+    """Return a view that sees nothing of the scene instead of refusing it (RenderFailed, 422)."""
 
     def cache_key(self) -> str:
         fields = {k: v for k, v in asdict(self).items() if k not in ("run_dir", "which")}
@@ -114,15 +119,21 @@ def render_png(spec: RenderSpec, cache_dir: str | None = None) -> bytes:
     import numpy as np
     from PIL import Image
 
+    from neural.camera_path import CameraPathError
     from neural.errors import CheckpointError
-    from neural.inference import render_frame, to_uint8, view_camera
+    from neural.inference import EmptyViewError, check_sees_scene, render_frame, to_uint8, view_camera
 
     try:
         run = _loaded_run(spec.run_dir, spec.which)
     except CheckpointError as error:
         raise RenderFailed(f"checkpoint: {str(error).replace(spec.run_dir, 'the run')}") from None
     camera = view_camera(run, spec.width, spec.height, spec.fx, spec.fov_x)
-    pixels = to_uint8(render_frame(run, np.asarray(spec.c2w, dtype=float), camera).rgb)
+    c2w = None if spec.c2w is None else np.asarray(spec.c2w, dtype=float)
+    try:
+        rendered = render_frame(run, c2w, camera, spec.frame)
+        pixels = to_uint8((rendered if spec.allow_empty_view else check_sees_scene(rendered)).rgb)
+    except (CameraPathError, EmptyViewError) as error:
+        raise RenderFailed(str(error)) from None
     buffer = io.BytesIO()
     Image.fromarray(pixels).save(buffer, format="PNG")
     png = buffer.getvalue()
@@ -141,7 +152,8 @@ def _write_atomically(path: Path, data: bytes) -> None:
 def run_render_task(spec: dict, out_path: str, error_path: str, cache_dir: str | None) -> None:
     """The Celery render task: the PNG (or the error message) lands in the shared data folder."""
     try:
-        png = render_png(RenderSpec(**{**spec, "c2w": tuple(map(tuple, spec["c2w"]))}), cache_dir)
+        c2w = None if spec["c2w"] is None else tuple(map(tuple, spec["c2w"]))
+        png = render_png(RenderSpec(**{**spec, "c2w": c2w}), cache_dir)
         _write_atomically(Path(out_path), png)
     except RenderFailed as error:
         _write_render_error(Path(error_path), error)
@@ -279,9 +291,11 @@ def spec_from_request(job_id: str, run_dir: Path, step: int, request: Any) -> Re
         run_dir=os.fspath(run_dir),
         which=str(request.checkpoint),
         step=step,
-        c2w=tuple(tuple(float(v) for v in row) for row in c2w),
+        c2w=None if c2w is None else tuple(tuple(float(v) for v in row) for row in c2w),
+        frame=request.frame,
         width=request.width,
         height=request.height,
         fx=request.fx,
         fov_x=math.radians(request.fov_x_deg) if request.fov_x_deg is not None else None,
+        allow_empty_view=request.allow_empty_view,
     )

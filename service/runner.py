@@ -124,7 +124,7 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
 
     params: ReconstructionParams = context.params
     config = ReconstructionConfig.model_validate(params.config)
-    if config.sift.workers == 0:      # "all cores": this job's share of them, beside the other jobs
+    if config.sift.workers == 0:  # "all cores": this job's share of them, beside the other jobs
         config.sift.workers = context.settings.threads_per_job()
     shutil.rmtree(context.output_dir, ignore_errors=True)  # a re-run starts from scratch
     images = input_video(context.input_dir) or context.input_dir
@@ -177,7 +177,7 @@ def run_nerf(context: JobContext) -> dict[str, Any]:
 
 
 def run_video(context: JobContext) -> dict[str, Any]:
-    """neural.render_orbit of the source NeRF job's latest checkpoint into output/."""
+    """neural.render_orbit (along params.path) of the source NeRF job's latest checkpoint into output/."""
     from neural import render_orbit
 
     params: VideoParams = context.params
@@ -190,6 +190,7 @@ def run_video(context: JobContext) -> dict[str, Any]:
         params.width,
         params.height,
         progress=context.progress,
+        path=params.path,
     )
     return {
         "file": str(Path(path).resolve().relative_to(job_dir(context.settings, context.job.id).resolve()))

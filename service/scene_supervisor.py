@@ -24,7 +24,7 @@ from service.executor import Executor
 from service.kinds import JobState
 from service.layout import RECONSTRUCTION_REPORT, output_dir
 from service.params import EvaluationParams, VideoParams
-from service.pipeline import DONE, HELD_OUT_SPLIT, SceneOptions, orbit_size_of_run, registration_problem
+from service.pipeline import DONE, HELD_OUT_SPLIT, SceneOptions, registration_problem, views_plan
 from service.settings import ServiceSettings
 from service.store.job_store import JobStore
 from service.store.tables import Job, Scene, utcnow
@@ -105,15 +105,17 @@ class SceneSteps:
     def _start_views(self, scene: Scene) -> None:
         options = SceneOptions.model_validate(scene.params)
         values: dict[str, Any] = {}
+        nerf = self.store.get(scene.nerf_job_id)
+        train_seconds = float((nerf.result or {}).get("seconds") or 0.0) if nerf else 0.0
+        run_dir = output_dir(self.settings, scene.nerf_job_id)
+        plan, (width, height) = views_plan(options, run_dir, train_seconds)
         if scene.video_job_id is None:
-            run_dir = output_dir(self.settings, scene.nerf_job_id)
-            width, height = orbit_size_of_run(run_dir, options.orbit_max_side)
-            video = VideoParams(num_frames=options.orbit_frames, width=width, height=height)
+            video = VideoParams(num_frames=plan.frames, width=width, height=height)
             values["video_job_id"] = queue_video(
                 self.store, self.executor, self.settings, scene.nerf_job_id, video
             ).id
         if scene.evaluation_job_id is None:
-            held_out = EvaluationParams(split=HELD_OUT_SPLIT, max_side=options.held_out_max_side)
+            held_out = EvaluationParams(split=HELD_OUT_SPLIT, max_side=plan.held_out_max_side)
             values["evaluation_job_id"] = queue_evaluation(
                 self.store, self.executor, scene.nerf_job_id, held_out
             ).id

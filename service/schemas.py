@@ -194,7 +194,8 @@ Vector3 = list[Coordinate]
 
 
 class RenderRequest(BaseModel):
-    """A camera to render from: a 4x4 camera-to-world matrix (OpenGL axes), or eye + look-at + up."""
+    """A camera to render from: a 4x4 camera-to-world matrix (OpenGL axes), or eye + look-at + up, or none
+    for the default view (the registered photo nearest the middle of the camera path)."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -213,6 +214,7 @@ class RenderRequest(BaseModel):
                     "height": 100,
                     "fx": 138.9,
                 },
+                {"width": 200, "height": 150},
             ]
         }
     )
@@ -226,14 +228,27 @@ class RenderRequest(BaseModel):
     fx: float | None = Field(None, gt=0, description="Focal length in pixels (default: the dataset's).")
     fov_x_deg: float | None = Field(None, gt=0, lt=180, description="Horizontal field of view instead of fx.")
     checkpoint: Literal["latest", "best"] | int = Field("latest", description="latest, best or a step.")
+    frame: Literal["auto", "capture", "data"] = Field(
+        "auto",
+        description="How c2w / eye / look_at / up are read. capture: relative to the photos (origin at "
+        "what they look at, z up, the default photo's camera at (0, -4, h)), so eye [0,-4,1] looking at "
+        "the origin sees the scene; data: the dataset's own frame (free mode); auto: capture for photo "
+        "scenes, data for Blender and .npz datasets.",
+    )
+
+    allow_empty_view: bool = Field(
+        False,
+        description="Return the image even when it sees nothing of the scene (under 1 % of its pixels "
+        "opaque), e.g. live views of a field still training; otherwise such a view is a 422 saying so.",
+    )
 
     @model_validator(mode="after")
     def _one_camera(self) -> RenderRequest:
         look_at_given = [v is not None for v in (self.eye, self.look_at)]
         if self.c2w is not None and any(look_at_given):
             raise ValueError("give either c2w or eye + look_at (+ up), not both")
-        if self.c2w is None and not all(look_at_given):
-            raise ValueError("a camera is needed: c2w (4x4) or eye and look_at")
+        if any(look_at_given) and not all(look_at_given):
+            raise ValueError("eye and look_at go together (or leave the camera out for the default view)")
         if self.fx is not None and self.fov_x_deg is not None:
             raise ValueError("give either fx or fov_x_deg, not both")
         if self.c2w is not None:
@@ -244,10 +259,12 @@ class RenderRequest(BaseModel):
             self.camera_to_world()  # raises ValueError on a degenerate eye/look_at/up
         return self
 
-    def camera_to_world(self) -> np.ndarray:
-        """The 4x4 camera-to-world matrix (OpenGL axes: x right, y up, looking down -z)."""
+    def camera_to_world(self) -> np.ndarray | None:
+        """The 4x4 camera-to-world matrix (OpenGL: x right, y up, looking down -z); None: the default view."""
         if self.c2w is not None:
             return np.asarray(self.c2w, dtype=float)
+        if self.eye is None:
+            return None
         return look_at_c2w(
             np.asarray(self.eye, float),
             np.asarray(self.look_at, float),
@@ -278,7 +295,20 @@ def look_at_c2w(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarr
 
 
 class VideoRequest(VideoParams):
-    """An orbit video of the latest checkpoint (the video job's parameters)."""
+    """A video of the latest checkpoint (the video job's parameters)."""
+
+
+class CameraPathOut(BaseModel):
+    """How the photos were taken and the camera path through them; poses are 4x4 camera-to-world (OpenGL
+    axes) in the dataset's own frame (send them back as c2w with frame "data")."""
+
+    kind: Literal["ring", "arc", "walk"] = Field(..., description="ring: closed 360 degrees; arc: part of a "
+        "circle round what the cameras look at; walk: cameras that do not look at one point.")  # fmt: skip
+    span_deg: float = Field(..., examples=[75.0], description="Angle the cameras cover round their target.")
+    closed: bool = Field(..., description="The path goes round (a ring) or there and back (arc, walk).")
+    default_view: list[list[float]] = Field(..., description="The default novel view: a photo's camera.")
+    cameras: list[list[list[float]]] = Field(..., description="The registered cameras, in path order.")
+    path: list[list[list[float]]] = Field(..., description="num_frames poses of the default video path.")
 
 
 class HealthOut(BaseModel):

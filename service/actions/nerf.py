@@ -46,6 +46,8 @@ class TrainOptions:
     minutes: float | None = None
     batch_rays: int | None = None
     device: Literal["auto", "cpu", "cuda"] | None = None
+    max_side: int | None = None
+    """Long side of the training photos (None: what the budget can train, for photos)."""
     options: str | None = None
     """More neural.TrainConfig fields as a JSON object."""
 
@@ -61,7 +63,7 @@ class TrainOptions:
         if not isinstance(extra, dict):
             raise invalid("options: expected a JSON object of training settings")
         named = {"model": self.model, "steps": self.steps, "minutes": self.minutes,
-                 "batch_rays": self.batch_rays, "device": self.device}  # fmt: skip
+                 "batch_rays": self.batch_rays, "device": self.device, "max_side": self.max_side}  # fmt: skip
         try:
             given = {k: v for k, v in named.items() if v is not None}
             config = TrainConfig.model_validate({**extra, **given})
@@ -174,6 +176,25 @@ def require_checkpoint(job_id: str, settings: ServiceSettings) -> Path:
     if not run_checkpoints(run_dir):
         raise conflict(f"NeRF job {job_id} has no checkpoint yet")
     return run_dir
+
+
+def camera_path_of(
+    store: JobStore, settings: ServiceSettings, job_id: str, num_frames: int
+) -> dict[str, Any]:
+    """neural.inference.camera_path of the NeRF job's run: how the photos were taken, the default view and a
+    path of num_frames poses through the cameras; 409 before training started, 422 without registered
+    cameras."""
+    from neural.camera_path import CameraPathError
+    from neural.errors import CheckpointError
+    from neural.inference import camera_path
+
+    find_job(store, job_id, JobKind.nerf)
+    try:
+        return camera_path(output_dir(settings, job_id), num_frames)
+    except CheckpointError:
+        raise conflict(f"NeRF job {job_id} has not started training") from None
+    except CameraPathError as error:
+        raise invalid(f"NeRF job {job_id}: {error}") from None
 
 
 def check_render_size(pixels: int, settings: ServiceSettings) -> None:

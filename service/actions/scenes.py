@@ -11,6 +11,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from neural.budget import expected_seconds
 from service.actions.jobs import cancel_job, delete_job, retry_job
 from service.actions.nerf import TrainOptions, check_render_size, check_video
 from service.actions.reconstructions import InputFile, ReconstructionInputs, create_reconstruction
@@ -60,8 +61,9 @@ class SceneInputs:
     photos: ReconstructionInputs
     train: TrainOptions
     photos_zip: InputFile | None = None
-    options: dict[str, int] = field(default_factory=dict)
-    """SceneOptions fields besides train_config (min_registered_images, orbit_frames, ...)."""
+    options: dict[str, float] = field(default_factory=dict)
+    """SceneOptions fields besides train_config and expected_seconds (min_registered_images, orbit_frames,
+    views_share, ...)."""
 
 
 def _zip_photos(archive: InputFile, folder: Path, settings: ServiceSettings) -> dict[str, list[Path]]:
@@ -112,6 +114,9 @@ def create_scene(
                 photos.calibration = opened(found["calibration"][0])
         if not photos.images:
             raise invalid("images: upload the photos as `images` or as a `photos_zip`")
+        minutes = options.train_config.get("minutes")
+        expected = expected_seconds(minutes, len(photos.images), options.views_share)
+        options = options.model_copy(update={"expected_seconds": expected})
         reconstruction = create_reconstruction(
             store, executor, settings, client, photos,
             check_image_size=lambda width, height: check_views_fit(options, width, height, settings),

@@ -139,7 +139,14 @@ def camera_for_transforms(default: Camera, meta: dict[str, Any], path: Path | st
 @click.option(
     "--poses", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="transforms JSON."
 )
-@click.option("--orbit", type=int, default=None, help="Render an orbit of this many frames instead.")
+@click.option(
+    "--orbit", type=int, default=None, help="Render a video of this many frames instead (see --path)."
+)
+@click.option("--view", is_flag=True, help="Render the default view instead: the photo nearest the middle of "
+              "the camera path (OUT/view.png).")  # fmt: skip
+@click.option("--path", "video_path", type=click.Choice(["captured", "orbit"]), default="captured",
+              show_default=True, help="The video's path: through the registered cameras, or a circle round "
+              "the scene.")  # fmt: skip
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--width", type=int, default=None, help="Default: the training images' width.")
 @click.option("--height", type=int, default=None, help="Default: the poses file's aspect.")
@@ -151,6 +158,8 @@ def render_command(
     run_dir: Path,
     poses: Path | None,
     orbit: int | None,
+    view: bool,
+    video_path: str,
     out_dir: Path,
     width: int | None,
     height: int | None,
@@ -159,13 +168,22 @@ def render_command(
     video_format: str,
     device: str,
 ) -> None:
-    """Render the views of a transforms JSON (one PNG per frame, named after file_path), or an orbit."""
-    if (poses is None) == (orbit is None):
-        raise click.UsageError("give exactly one of --poses TRANSFORMS_JSON or --orbit N")
+    """Render the views of a transforms JSON (one PNG per frame, named after file_path), a video along the
+    cameras, or the default view."""
+    if [poses is not None, orbit is not None, view].count(True) != 1:
+        raise click.UsageError("give exactly one of --poses TRANSFORMS_JSON, --orbit N or --view")
     from PIL import Image
     from tqdm import tqdm
 
-    from neural.inference import depth_to_uint8, load_run, render_frame, render_orbit, to_uint8, view_camera
+    from neural.inference import (
+        check_sees_scene,
+        depth_to_uint8,
+        load_run,
+        render_frame,
+        render_orbit,
+        to_uint8,
+        view_camera,
+    )
 
     try:
         if orbit is not None:
@@ -173,11 +191,20 @@ def render_command(
             video = render_orbit(
                 run_dir, orbit, out_dir, width, height, video_format=video_format, checkpoint=checkpoint,
                 progress=lambda stage, fraction: bar.update(round(fraction * orbit) - bar.n), device=device,
+                path=video_path,
             )  # fmt: skip
             bar.close()
             click.echo(f"wrote {orbit} frames and {video}")
             return
         run = load_run(run_dir, checkpoint, device=device)
+        if view:
+            width = width or run.camera.width
+            height = height or round(width * run.camera.height / run.camera.width)
+            rendered = check_sees_scene(render_frame(run, None, view_camera(run, width, height, None, None)))
+            out_dir.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(to_uint8(rendered.rgb)).save(out_dir / "view.png")
+            click.echo(f"wrote the default view ({width}x{height}) to {out_dir / 'view.png'}")
+            return
         meta, frames = frames_from_transforms(poses)
         width = width or run.camera.width  # the training size: a photo's transforms.json has its full size
         aspect = float(meta["h"]) / float(meta["w"]) if "w" in meta and "h" in meta else None

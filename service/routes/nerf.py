@@ -6,7 +6,18 @@ import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, status
+from fastapi import (
+    APIRouter,
+    Depends,
+    File,
+    Form,
+    HTTPException,
+    Query,
+    Request,
+    Response,
+    UploadFile,
+    status,
+)
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
@@ -15,6 +26,7 @@ from service.actions.jobs import find_job
 from service.actions.nerf import (
     NerfInputs,
     TrainOptions,
+    camera_path_of,
     check_render_size,
     require_checkpoint,
     run_checkpoints,
@@ -28,7 +40,16 @@ from service.openapi import file_response
 from service.renders import RenderBusy, RenderFailed, RenderSpec, spec_from_request
 from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file
 from service.runner import finite_or_none
-from service.schemas import CheckpointOut, ErrorOut, JobOut, MetricPoint, NerfOut, RenderRequest, VideoRequest
+from service.schemas import (
+    CameraPathOut,
+    CheckpointOut,
+    ErrorOut,
+    JobOut,
+    MetricPoint,
+    NerfOut,
+    RenderRequest,
+    VideoRequest,
+)
 from service.settings import ServiceSettings
 
 router = APIRouter(prefix="/v1/nerf", tags=["nerf"])
@@ -122,7 +143,12 @@ def get_nerf(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> NerfO
         config=config,
         metrics=_read_metrics(run_dir / RUN_METRICS),
         latest_step=checkpoints[-1].step if checkpoints else None,
-        links={"checkpoints": f"{base}/checkpoints", "render": f"{base}/render", "video": f"{base}/video"},
+        links={
+            "checkpoints": f"{base}/checkpoints",
+            "render": f"{base}/render",
+            "video": f"{base}/video",
+            "camera_path": f"{base}/camera-path",
+        },
     )
 
 
@@ -181,6 +207,25 @@ def _render_spec(store: Any, settings: ServiceSettings, job_id: str, request: Re
     raise HTTPException(
         422, f"checkpoint: no checkpoint {which!r} (have steps {[c.step for c in checkpoints]})"
     )
+
+
+@router.get(
+    "/{job_id}/camera-path",
+    response_model=CameraPathOut,
+    responses={
+        **NOT_FOUND,
+        409: {"model": ErrorOut, "description": "Training has not started yet."},
+        422: {"model": ErrorOut, "description": "The run records no registered cameras."},
+    },
+    summary="How the photos were taken: the default view and a camera path through the cameras",
+)
+def get_camera_path(
+    job_id: JobIdPath,
+    store: StoreDep,
+    settings: SettingsDep,
+    num_frames: Annotated[int, Query(ge=1, le=720)] = 36,
+) -> CameraPathOut:
+    return CameraPathOut(**camera_path_of(store, settings, job_id, num_frames))
 
 
 @router.post(

@@ -23,6 +23,7 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
+from neural.budget import VIEWS_SHARE
 from service.actions.nerf import TrainOptions
 from service.actions.reconstructions import ReconstructionInputs
 from service.actions.scenes import SceneInputs, scene_lock, scene_owner, stage_jobs
@@ -75,6 +76,12 @@ class SceneOut(BaseModel):
     links: dict[str, str] = Field(..., description="Every artifact of both stages (child jobs' routes).")
     held_out: list[HeldOutView] = Field(default_factory=list, description="Renders of the held-out views.")
     held_out_mean_psnr: float | None = None
+    expected_seconds: dict[str, float] | None = Field(
+        None,
+        description="Expected seconds of reconstruction, training, views and in total on a CPU, estimated "
+        "when the scene started (a time budget only: minutes).",
+        examples=[{"reconstruction": 20.0, "training": 600.0, "views": 120.0, "total": 740.0}],
+    )
 
 
 class SceneList(BaseModel):
@@ -147,6 +154,7 @@ def _describe(scene: Scene, request: Request) -> SceneOut:
         links=links,
         held_out=held_out,
         held_out_mean_psnr=mean_psnr,
+        expected_seconds=scene.params.get("expected_seconds"),
     )
 
 
@@ -219,6 +227,20 @@ def create_scene(
     orbit_frames: Annotated[int, Form(ge=1, le=720)] = 36,
     orbit_max_side: Annotated[int, Form(ge=8, le=4096)] = 200,
     held_out_max_side: Annotated[int, Form(ge=8, le=4096)] = 200,
+    train_max_side: Annotated[
+        int | None,
+        Form(
+            ge=8,
+            le=16_384,
+            description="Long side of the training photos (default: what the budget "
+            "can train, chosen from a timed probe and recorded in the NeRF's config.json).",
+        ),
+    ] = None,  # fmt: skip
+    views_share: Annotated[
+        float,
+        Form(ge=0, le=100, description="The views (video and held-out renders) take at most this share of "
+             "the training time: fewer frames or smaller renders when they would take longer (0: as asked)."),
+    ] = VIEWS_SHARE,  # fmt: skip
 ) -> SceneOut:
     inputs = SceneInputs(
         photos=ReconstructionInputs(
@@ -227,11 +249,13 @@ def create_scene(
             ba_max_iterations=ba_max_iterations,
         ),
         train=TrainOptions(
-            model=model, steps=steps, minutes=minutes, batch_rays=batch_rays, device=device, options=options
+            model=model, steps=steps, minutes=minutes, batch_rays=batch_rays, device=device,
+            max_side=train_max_side, options=options,
         ),
         photos_zip=input_file(photos_zip),
         options={"min_registered_images": min_registered_images, "orbit_frames": orbit_frames,
-                 "orbit_max_side": orbit_max_side, "held_out_max_side": held_out_max_side},
+                 "orbit_max_side": orbit_max_side, "held_out_max_side": held_out_max_side,
+                 "views_share": views_share},
     )  # fmt: skip
     scene = create(store, executor, settings, client, inputs)
     out = _describe(scene, request)

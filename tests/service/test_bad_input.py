@@ -243,7 +243,7 @@ def test_bad_log_offset_answers_422(client):
 @pytest.mark.parametrize(
     "body",
     [
-        {"width": 10, "height": 10},
+        {"eye": [0, 0, 1], "width": 10, "height": 10},
         {"eye": [0, 0, 1], "look_at": [0, 0, 1], "width": 10, "height": 10},
         {"eye": [0, 0, 1], "look_at": [0, 0, 0], "up": [0, 0, 1], "width": 10, "height": 10},
         {"c2w": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "width": 10, "height": 10},
@@ -252,8 +252,8 @@ def test_bad_log_offset_answers_422(client):
         {"c2w": np.eye(4).tolist(), "width": 10, "height": 10, "fx": 5, "fov_x_deg": 40},
         {"c2w": (np.eye(4) * 1e300).tolist(), "width": 10, "height": 10},
     ],
-    ids=["no-camera", "eye-is-target", "up-along-view", "c2w-3x3", "two-cameras", "zero-width", "fx-and-fov",
-         "c2w-beyond-the-scene"],
+    ids=["eye-without-look-at", "eye-is-target", "up-along-view", "c2w-3x3", "two-cameras", "zero-width",
+         "fx-and-fov", "c2w-beyond-the-scene"],
 )
 def test_a_bad_render_request_answers_422(client, body):
     assert client.post(f"/v1/nerf/{UNKNOWN_ID}/render", json=body).status_code == 422

@@ -146,6 +146,54 @@ def test_a_render_of_a_given_pose_is_a_png_of_the_requested_size(trained, camera
     assert np.asarray(image).std() > 0  # an image, not a blank
 
 
+def test_a_render_without_a_camera_is_the_default_view_a_registered_camera(trained):
+    client, job, _, _ = trained
+    path = client.get(f"/v1/nerf/{job['id']}/camera-path", params={"num_frames": 5})
+    assert path.status_code == 200, path.text
+    cameras, default_view = np.asarray(path.json()["cameras"]), np.asarray(path.json()["default_view"])
+    assert np.abs(cameras - default_view).max(axis=(1, 2)).min() < 1e-6 and len(path.json()["path"]) == 5
+    default = client.post(f"/v1/nerf/{job['id']}/render", json={"width": 24, "height": 16})
+    given = client.post(
+        f"/v1/nerf/{job['id']}/render",
+        json={"c2w": path.json()["default_view"], "frame": "data", "width": 24, "height": 16},
+    )
+    assert default.status_code == 200 and given.status_code == 200, default.text
+    assert np.array_equal(
+        np.asarray(Image.open(io.BytesIO(default.content))), np.asarray(Image.open(io.BytesIO(given.content)))
+    )
+
+
+def test_a_view_that_sees_nothing_is_a_422_saying_so_unless_allowed(trained, tiny_npz):
+    client, _, _, _ = trained
+    empty_field = {"initial_voxels": 16**3, "final_voxels": 16**3, "initial_alpha": 1e-9}  # fast, bounded
+    response = client.post(
+        "/v1/nerf",
+        files={"dataset": ("tiny.npz", tiny_npz, "application/octet-stream")},
+        data={"model": "fast", "steps": "1", "batch_rays": "16", "device": "cpu",
+              "options": json.dumps({"lr": 1e-12, "model_options": empty_field})},
+    )  # fmt: skip
+    job = wait_for_job(client, response.json()["id"])
+    assert job["state"] == "succeeded", job
+    refused = client.post(f"/v1/nerf/{job['id']}/render", json={"width": 24, "height": 16})
+    assert refused.status_code == 422 and "sees nothing of the scene" in refused.json()["detail"]
+    allowed = client.post(
+        f"/v1/nerf/{job['id']}/render", json={"width": 24, "height": 16, "allow_empty_view": True}
+    )
+    assert allowed.status_code == 200 and Image.open(io.BytesIO(allowed.content)).size == (24, 16)
+
+
+def test_a_camera_path_of_a_run_without_registered_cameras_is_a_422(trained):
+    client, job, _, settings = trained
+    config_path = settings.jobs_dir / job["id"] / "output" / "config.json"
+    stored = config_path.read_text()
+    try:
+        config_path.write_text(json.dumps({**json.loads(stored), "cameras": {"c2w": [], "photos": False}}))
+        response = client.get(f"/v1/nerf/{job['id']}/camera-path")
+        assert response.status_code == 422 and "no registered cameras" in response.json()["detail"]
+    finally:
+        config_path.write_text(stored)
+
+
 def test_render_limits_and_unknown_checkpoints_are_4xx(trained):
     client, job, _, settings = trained
     side = int(settings.max_render_pixels**0.5) + 1

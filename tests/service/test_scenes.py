@@ -197,8 +197,12 @@ def test_registration_problem_names_the_counts_and_the_unregistered_images():
         ({"options": "{not json"}, None, "options: not valid JSON"),
         ({"options": json.dumps({"steps": 5, "minutes": 1})}, None, "give steps or minutes"),
         ({}, [("images", ("1.png", b"not a png", "image/png"))], "1.png is not a complete PNG/JPEG"),
+        ({"train_max_side": "4"}, None, "train_max_side"),
+        ({"views_share": "-1"}, None, "views_share"),
     ],
-    ids=["no-photos", "bad-json", "conflicting-options", "bad-image"],
+    ids=[
+        "no-photos", "bad-json", "conflicting-options", "bad-image", "tiny-train-side", "negative-views-share"
+    ],  # fmt: skip
 )
 def test_bad_input_is_refused_before_any_job_starts(client, shared_data, data, files, expected):
     files = unity_hall_files(shared_data / "unity_hall") if files is None else files
@@ -231,12 +235,17 @@ def test_cancel_retry_from_the_stage_and_delete_act_on_the_whole_scene(client, s
     response = client.post(
         "/v1/scenes",
         files={"photos_zip": ("hall.zip", unity_hall_zip(shared_data / "unity_hall"), "application/zip")},
-        data={"minutes": "30", "batch_rays": "64"},
+        data={"minutes": "30", "batch_rays": "64", "train_max_side": "64", "views_share": "0.1"},
     )
     assert response.status_code == 202, response.text
     scene_id = response.json()["id"]
+    # 5 photos at 2.5 s each, 30 minutes of training, views within 10 % of it
+    assert response.json()["expected_seconds"] == {
+        "reconstruction": 12.5, "training": 1800.0, "views": 180.0, "total": 1992.5
+    }  # fmt: skip
     training = wait_for_scene(client, scene_id, until=lambda s: s["stages"][1]["state"] == "running")
     reconstruction_id, nerf_id = training["stages"][0]["job_ids"][0], training["stages"][1]["job_ids"][0]
+    assert client.app.state.store.get(nerf_id).params["train_config"]["max_side"] == 64
 
     cancelled = client.post(f"/v1/scenes/{scene_id}/cancel").json()
     assert cancelled["state"] == "cancelled" and cancelled["stage"] == "nerf"
@@ -274,9 +283,12 @@ def test_the_scene_command_writes_every_stage_with_a_bar_each(tmp_path, shared_d
     result = CliRunner().invoke(
         cli,
         ["scene", str(shared_data / "unity_hall"), "--out", str(out), "--steps", "5", "--options", options,
-         "--orbit-frames", "2", "--max-side", "40"],
+         "--orbit-frames", "2", "--render-max-side", "40", "--train-max-side", "100"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
+    camera = json.loads((out / "nerf" / "config.json").read_text())["camera"]
+    assert max(camera["width"], camera["height"]) == 100
+    assert Image.open(out / "held_out" / "1.png").size == (40, 30)
     for stage in ("reconstruction", "nerf", "views"):
         assert f"{stage} " in result.output
     assert (out / "reconstruction" / "points.ply").is_file() and (out / "nerf" / "config.json").is_file()
@@ -286,20 +298,38 @@ def test_the_scene_command_writes_every_stage_with_a_bar_each(tmp_path, shared_d
     assert "held-out views 1" in result.output
 
 
+def test_the_scene_commands_max_side_is_the_render_max_side_with_a_warning(
+    tmp_path, shared_data, monkeypatch
+):
+    import service.pipeline
+
+    seen = []
+
+    def stop(photos_dir, out_dir, reconstruction_config, options, stage):
+        seen.append(options)
+        raise service.pipeline.StageFailed("reconstruction", "stopped after reading the options")
+
+    monkeypatch.setattr(service.pipeline, "run_scene", stop)
+    result = CliRunner().invoke(
+        cli, ["scene", str(shared_data / "unity_hall"), "--out", str(tmp_path / "o"), "--max-side", "40"]
+    )
+    assert result.exit_code != 0 and "stopped after reading the options" in result.output
+    assert "warning: --max-side is deprecated; it is --render-max-side" in result.output
+    sides = [(o.orbit_max_side, o.held_out_max_side, o.train_config["max_side"]) for o in seen]
+    assert sides == [(40, 40, None)]
+
+
 @pytest.mark.slow
-def test_the_scene_command_stops_at_too_few_registered_images(tmp_path, shared_data):
+def test_the_scene_command_prints_the_expected_time_and_stops_at_too_few_registered_images(
+    tmp_path, shared_data
+):
     result = CliRunner().invoke(
         cli,
-        [
-            "scene",
-            str(shared_data / "unity_hall"),
-            "--out",
-            str(tmp_path / "o"),
-            "--min-registered-images",
-            "6",
-        ],
-    )
+        ["scene", str(shared_data / "unity_hall"), "--out", str(tmp_path / "o"), "--minutes", "1",
+         "--views-share", "0.5", "--min-registered-images", "6"],
+    )  # fmt: skip
     assert result.exit_code != 0
+    assert "expected: reconstruction 12 s, training 60 s, views 30 s, total 102 s (CPU)" in result.output
     assert "registered 5 of 5 images; a NeRF needs at least 6" in result.output
     assert (tmp_path / "o" / "reconstruction" / "report.json").is_file()
 

@@ -113,6 +113,7 @@ def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_vie
     page.select_option("#what", "scene")
     page.fill("input[name=steps]", "10")
     page.fill("input[name=orbit_frames]", "2")
+    page.fill("input[name=train_max_side]", "200")
     page.click("#submit")
 
     renders = []  # the novel view's render requests
@@ -126,7 +127,9 @@ def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_vie
     novel = page.wait_for_selector(f"#novel-{nerf_id}[data-renders='1']", timeout=60_000)
     # It opens at a registered camera's pose (OpenGL camera-to-world [R^T diag(1,-1,-1) | C]), on the path.
     assert novel.get_attribute("data-mode") == "path"
-    first_pose = np.array(json.loads(renders[0].post_data)["c2w"])
+    first_request = json.loads(renders[0].post_data)
+    assert first_request["frame"] == "data"  # the registered cameras' own frame, not the capture frame
+    first_pose = np.array(first_request["c2w"])
     cameras = httpx.get(f"{server}/v1/reconstructions/{reconstruction_id}").json()["cameras"]
     distances = [
         np.abs(first_pose[:3] - np.c_[np.array(c["R"]).T @ np.diag([1.0, -1.0, -1.0]), c["C"]]).max()
@@ -147,6 +150,8 @@ def test_a_scene_uploaded_through_the_page_shows_cameras_points_training_and_vie
     page.uncheck(f"#free-{nerf_id}")  # back among the photos, as the screenshot shows the page by default
     page.wait_for_selector(f"#novel-label-{nerf_id}:text-matches('^near photo ')", timeout=60_000)
     page.wait_for_selector(f"#video-{nerf_id}", timeout=60_000)
+    train_size = httpx.get(f"{server}/v1/nerf/{nerf_id}").json()["config"]["camera"]
+    assert max(train_size["width"], train_size["height"]) == 200  # the form's training photo size
     assert len(page.query_selector_all("#held-out img")) == 1  # LLFF hold-out of 5 photos: frame 0
     assert page.query_selector(f"#psnr-{nerf_id}") is not None
     page.wait_for_selector(f"#nerf-{nerf_id} tbody tr")  # the checkpoint list

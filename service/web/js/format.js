@@ -51,5 +51,10 @@ export function reconstructionSummary(model) {
 export const checkpointTags = (checkpoint) =>
   [checkpoint.is_latest && "latest", checkpoint.is_best && "best"].filter(Boolean).join(", ");
 
+// A scene's expected duration (expected_seconds of GET /v1/scenes/{id}, null for a step count), whole minutes
+// rounded up.
+export const expectedTime = (expected) =>
+  (expected ? `expected about ${Math.ceil(expected.total / 60)} min in all on a CPU` : "");
+
 export const heldOutCaption = (view) =>
   `${view.image}: PSNR ${decibels(view.psnr)}, SSIM ${view.ssim.toFixed(3)}`;

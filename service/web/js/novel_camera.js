@@ -57,11 +57,13 @@ export function createNovelCamera(config, cameras) {
       return moved;
     },
 
-    // The camera of a render request: {c2w} (OpenGL camera-to-world) on the path, {eye, look_at, up} free.
+    // The camera of a render request, in the dataset's own frame ("data": the registered cameras' frame, not
+    // the capture frame a photo scene's request is read in by default): {c2w} (OpenGL camera-to-world) on
+    // the path; {eye, look_at, up} free, where a view that sees nothing of the scene is shown, not refused.
     renderCamera() {
-      if (!free) return { c2w: poseAt(path, position).c2w };
+      if (!free) return { c2w: poseAt(path, position).c2w, frame: "data" };
       return { eye: orbitEye({ ...frame, radius: angles.radius }, angles.azimuth, angles.elevation),
-               look_at: frame.target, up: frame.up };
+               look_at: frame.target, up: frame.up, frame: "data", allow_empty_view: true };
     },
 
     describe() {

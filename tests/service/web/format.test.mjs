@@ -3,7 +3,7 @@ import assert from "node:assert/strict";
 import { test } from "node:test";
 
 import {
-  barWidth, checkpointTags, decibels, degrees, failureMessage, heldOutCaption, isActive, latestMetrics, megabytes,
+  barWidth, checkpointTags, decibels, degrees, expectedTime, failureMessage, heldOutCaption, isActive, latestMetrics, megabytes,
   percent, reconstructionSummary, trainingSummary,
 } from "../../../service/web/js/format.js";
 
@@ -57,4 +57,10 @@ test("checkpoints and held-out views are labelled", () => {
   assert.equal(checkpointTags({ is_latest: true, is_best: true }), "latest, best");
   assert.equal(checkpointTags({ is_latest: false, is_best: false }), "");
   assert.equal(heldOutCaption({ image: "0000.png", psnr: 18.123, ssim: 0.5 }), "0000.png: PSNR 18.12 dB, SSIM 0.500");
+});
+
+test("a scene's expected time reads in whole minutes, rounded up; none for a step count", () => {
+  assert.equal(expectedTime({ reconstruction: 20, training: 600, views: 120, total: 740 }),
+    "expected about 13 min in all on a CPU");
+  assert.equal(expectedTime(null), "");
 });

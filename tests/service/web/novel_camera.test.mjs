@@ -19,7 +19,8 @@ const WIDTH_PX = 400;
 test("the view opens at a registered camera's pose: the middle photo of the arc", () => {
   const camera = createNovelCamera(config, [cameras[4], cameras[1], cameras[2], cameras[0], cameras[3]]);
   assert.equal(camera.free, false);
-  assert.deepEqual(Object.keys(camera.renderCamera()), ["c2w"]);
+  assert.deepEqual(Object.keys(camera.renderCamera()), ["c2w", "frame"]);
+  assert.equal(camera.renderCamera().frame, "data", "the registered cameras' poses are in the data frame");
   assertClose(assert, camera.renderCamera().c2w, cameraToWorld(cameras[2]), 1e-12);
   assert.equal(camera.describe(), "near photo 0002.png (3 of 5 along the path of registered cameras)");
 });
@@ -47,7 +48,9 @@ test("free mode orbits the scene's centre from where the camera was, and back on
   camera.drag(-WIDTH_PX / 4, 0, WIDTH_PX);
   assert.equal(camera.setFree(true), true);
   assert.equal(camera.setFree(true), false);
-  const { eye, look_at: lookAt, up } = camera.renderCamera();
+  const { eye, look_at: lookAt, up, frame, allow_empty_view: allowEmpty } = camera.renderCamera();
+  assert.equal(frame, "data");
+  assert.equal(allowEmpty, true, "the free orbit may look away from the scene");
   assertClose(assert, eye, cameras[3].C, 1e-9, "the eye stays where the camera was");
   assertClose(assert, lookAt, [10, 20, 30], 1e-12, "looking at the orbit's target in the original frame");
   assert.deepEqual(up, [0, 0, 1]);

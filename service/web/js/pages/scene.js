@@ -1,7 +1,7 @@
 // #/scenes/{id} : one scene's stages and log; each stage's panel once it has something to show.
 import { blobUrl, getJson } from "../api.js";
 import { h, poll, progressBar, section, stateText } from "../dom.js";
-import { heldOutCaption, isActive, percent } from "../format.js";
+import { expectedTime, heldOutCaption, isActive, percent } from "../format.js";
 import { actions } from "../panels/actions.js";
 import { nerfPanel } from "../panels/nerf.js";
 import { reconstructionPanel } from "../panels/reconstruction.js";
@@ -16,6 +16,7 @@ export function scenePage(main, page, sceneId) {
     head.replaceChildren(h("div", { class: "panel", id: "scene", dataset: { state: scene.state, stage: scene.stage } },
       h("p", {}, stateText(scene.state), ` — stage ${scene.stage} `, progressBar(scene.progress), ` ${percent(scene.progress)}`),
       scene.error ? h("p", { class: "error" }, scene.error) : null,
+      scene.expected_seconds ? h("p", { class: "muted", id: "expected" }, expectedTime(scene.expected_seconds)) : null,
       h("table", {}, h("tbody", {}, scene.stages.map((s) => h("tr", {},
         h("td", {}, s.name), h("td", {}, stateText(s.state)), h("td", {}, progressBar(s.progress)),
         h("td", {}, s.job_ids.map((id) => h("a", { href: routes.job(id) }, `job ${id.slice(0, 8)} `))))))),

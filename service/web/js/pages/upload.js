@@ -34,8 +34,9 @@ export function uploadPage(main) {
   const minutes = h("input", { name: "minutes", type: "number", step: "any", min: 0, placeholder: "default" });
   const steps = h("input", { name: "steps", type: "number", min: 1, placeholder: "or steps" });
   const frames = h("input", { name: "orbit_frames", type: "number", min: 1, placeholder: "36" });
+  const trainSide = h("input", { name: "train_max_side", type: "number", min: 8, placeholder: "for the budget" });
   const nerfRow = h("div", { class: "row" }, field("NeRF model", model), field("Training minutes", minutes),
-    field("or steps", steps), field("Orbit video frames", frames));
+    field("or steps", steps), field("Video frames", frames), field("Training photo size (px)", trainSide));
   what.addEventListener("change", () => { nerfRow.hidden = what.value !== "scene"; });
   const submit = h("button", { type: "submit", id: "submit" }, "Start");
 
@@ -52,6 +53,7 @@ export function uploadPage(main) {
     const scene = what.value === "scene";
     if (scene) {
       set("model", model.value); set("minutes", minutes.value); set("steps", steps.value); set("orbit_frames", frames.value);
+      set("train_max_side", trainSide.value);
     }
     if (!scene && chosen.zip) { showError("a zip of photos starts a scene; for a reconstruction drop the photos themselves"); return; }
     submit.disabled = true;
