@@ -18,7 +18,7 @@ SERVICE_FLOORS = [
     ("store", ["store", "schemas"]),
     ("checks and housekeeping", ["uploads", "validation", "webhooks", "housekeeping"]),
     ("how a job ends", ["job_end"]),
-    ("running jobs", ["runner", "executor", "worker", "celery_app", "renders"]),
+    ("running jobs", ["spread", "runner", "executor", "worker", "celery_app", "renders"]),
     ("actions", ["actions", "deps"]),
     ("scene supervisor", ["scene_supervisor"]),
     ("routes", ["routes"]),

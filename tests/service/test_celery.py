@@ -67,8 +67,10 @@ def broker_url(tmp_path_factory):
     server.wait(timeout=10)
 
 
-def start_worker(env: dict[str, str], concurrency: int = 1) -> subprocess.Popen:
-    """A Celery worker process (prefork) with these SFMNERF_* settings."""
+def start_worker(env: dict[str, str], concurrency: int = 1, queues: str = "celery,renders"
+                 ) -> subprocess.Popen:
+    """A Celery worker process (prefork) with these SFMNERF_* settings, serving these queues (by default
+    jobs and renders: one worker serves both here)."""
     return subprocess.Popen(
         [
             sys.executable,
@@ -78,7 +80,7 @@ def start_worker(env: dict[str, str], concurrency: int = 1) -> subprocess.Popen:
             "service.celery_app",
             "worker",
             "-Q",
-            "celery,renders",  # jobs and renders: one worker serves both here
+            queues,
             "--pool",
             "prefork",
             "--concurrency",
