@@ -4,14 +4,15 @@ over chunks of images and blocks of image pairs, its mapping on the job's own wo
 `CeleryStages` is the `estimation.features.sift.FeatureStages` of such a job. For each stage (extraction,
 then matching) it writes what every chunk needs (the SIFT settings; for matching, every image's keypoints
 and descriptors) and the list of chunks into the job's folder (`layout.SPREAD_DIR`/<attempt>/<stage>/),
-sends one task per chunk (`SPREAD_TASK`, the job queue), then works through the chunks itself from the last
-one while the other workers take them from the first, and gathers the results in order: a chord's fan-out
-and gather, with the job's worker one of the chord's workers (a worker only waiting for a chord would hold
-its slot idle; with a single worker nobody would run the chunks). Each chunk is claimed once (a file created
-exclusively, naming its worker process), and its result (<index>.pickle, renamed into place when complete)
-or its error (<index>.error) is written beside the claim: the data folder is shared by every worker. A chunk
-whose worker process died on the job's host is done again by the job. The folder is removed when the
-reconstruction ends; a task that arrives after finds no stage and does nothing.
+sends one task per chunk (`SPREAD_TASK`, on the job queue), then works through the chunks itself from
+the last one while the other workers take them from the first, and gathers the results in order: a chord's
+fan-out and gather, with the job's worker one of the chord's workers (a worker only waiting for a chord
+would hold its slot idle; with a single worker nobody would run the chunks). Each chunk is claimed once (a
+file created exclusively, naming its worker process), and its result (<index>.pickle, renamed into place
+when complete) or its exception (<index>.error, raised again by the job) is written beside the claim: the
+data folder is shared by every worker. A chunk whose worker process died on the job's host is done again
+by the job. The folder is removed when the reconstruction ends; a task that arrives after finds no stage
+and does nothing.
 """
 
 from __future__ import annotations
@@ -78,9 +79,15 @@ def _claimer(folder: Path, index: int) -> tuple[str, int] | None:
     return (host, int(pid)) if pid else None
 
 
-@functools.lru_cache(maxsize=1)
 def _load_stage(path: Path) -> Stage:
-    """The stage of `path`, read once per process (a matching stage holds every image's descriptors)."""
+    """The stage of `path`, read once per process while the file stays the same (a matching stage holds
+    every image's descriptors)."""
+    status = path.stat()
+    return _read_stage(path, status.st_ino, status.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=1)
+def _read_stage(path: Path, inode: int, modified_ns: int) -> Stage:
     return pickle.loads(path.read_bytes())
 
 
@@ -96,8 +103,12 @@ def _run_chunk(job_folder: Path, stage_name: str, index: int) -> None:
             result = extract_chunk([job_folder.parents[1] / path for path in item], stage.shared)
         else:
             result = match_block(stage.shared, item)
-    except Exception as error:  # the job raises it, naming the chunk
-        _write_atomically(folder / f"{index}.error", f"{type(error).__name__}: {error}".encode())
+    except Exception as error:  # the job raises it (an InputError naming a file stays one)
+        try:
+            raised = pickle.dumps(error)
+        except Exception:  # an exception that cannot be pickled
+            raised = pickle.dumps(SpreadError(f"{stage_name} chunk {index}: {type(error).__name__}: {error}"))
+        _write_atomically(folder / f"{index}.error", raised)
     else:
         _write_atomically(folder / f"{index}.pickle", pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
 
@@ -156,8 +167,7 @@ class CeleryStages:
             if (folder / f"{index}.pickle").exists():
                 return pickle.loads((folder / f"{index}.pickle").read_bytes())
             if (folder / f"{index}.error").exists():
-                raise SpreadError(f"{stage_name} chunk {index} failed: "
-                                  f"{(folder / f'{index}.error').read_text()}")
+                raise pickle.loads((folder / f"{index}.error").read_bytes())
             claimer = _claimer(folder, index)
             if claimer is not None and claimer[0] == socket.gethostname() and not process_exists(claimer[1]):
                 _run_chunk(self._folder, stage_name, index)  # its worker process died

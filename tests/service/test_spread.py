@@ -11,14 +11,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from estimation import ReconstructionConfig, reconstruct
 from estimation.config import SiftConfig
+from estimation.errors import InputError
+from estimation.features.sift import extract_chunk
 from service.app import create_app
 from service.celery_config import SPREAD_TASK, make_celery
 from service.layout import SPREAD_DIR, job_dir, output_dir
-from service.spread import EXTRACTION, STAGE_FILE, Stage, spread_folder
+from service.spread import EXTRACTION, STAGE_FILE, CeleryStages, Stage, spread_folder
 from service.store import JobStore
 from tests.service.conftest import make_settings, wait_for_job
 from tests.service.test_celery import broker_url, start_worker, stop_worker, worker_env  # noqa: F401
@@ -112,3 +115,26 @@ def test_a_reconstruction_spread_over_two_celery_workers_equals_one_process(
     assert spread_poses.keys() == single_poses.keys()
     for image, pose in single_poses.items():
         np.testing.assert_allclose(spread_poses[image], pose, atol=POSE_TOLERANCE, err_msg=image)
+
+
+def test_without_other_workers_the_job_does_every_chunk_and_a_chunks_error_is_its_own(
+        tmp_path, broker_url, shared_data):  # noqa: F811
+    # A broker database of its own: no worker takes these tasks.
+    settings = make_settings(tmp_path / "data", executor="celery",
+                             broker_url=broker_url.rsplit("/", 1)[0] + "/3")
+    inputs = job_dir(settings, "job") / "input"
+    inputs.mkdir(parents=True)
+    for name in ("r_0.png", "r_1.png"):
+        shutil.copy(shared_data / "lego_200/train" / name, inputs / name)
+    (inputs / "broken.png").write_bytes(b"not a png")
+    lines: list[str] = []
+    stages = CeleryStages(settings, "job", 1, lines.append)
+    detected = [image for chunk in stages.extract([[inputs / "r_0.png"], [inputs / "r_1.png"]], SiftConfig())
+                for image in chunk]
+    assert [len(features.uv) for features, _ in detected] == [
+        len(extract_chunk([inputs / name], SiftConfig())[0][0].uv) for name in ("r_0.png", "r_1.png")]
+    assert lines == ["extraction: 2 chunks done by 1 worker processes"]
+    with pytest.raises(InputError, match="broken.png: not a readable PNG/JPEG image"):
+        list(stages.extract([[inputs / "r_0.png"], [inputs / "broken.png"]], SiftConfig()))
+    stages.close()
+    assert not (job_dir(settings, "job") / SPREAD_DIR).exists()
