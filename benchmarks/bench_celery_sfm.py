@@ -12,8 +12,9 @@ verified matches. With --repeats, the worker counts take turns and the fastest r
     python benchmarks/bench_celery_sfm.py [--views 90] [--workers 1 2] [--images-per-chunk 8]
         [--pairs-per-block 300] [--repeats 1]
 
-Each worker is one process on one core: on a machine shared with other work the ratio says less than on
-idle cores.
+Each worker is one process on one core: on a machine shared with other work the ratio of wall times says
+less than on idle cores; each run also prints the CPU seconds the busiest worker process spent on chunks
+against those of all (the share of the work on the longest path, whatever the load).
 """
 
 from __future__ import annotations
@@ -85,6 +86,9 @@ def run(settings, workers: int, K: np.ndarray) -> tuple[float, dict, object]:
                                  defer_planarity=True, stages=stages)
         finally:
             stages.close()
+        busiest = sum(max(seconds) for seconds in stages.cpu_seconds.values())
+        print(f"    CPU seconds of the busiest process / of all: {busiest:.1f} / "
+              f"{sum(map(sum, stages.cpu_seconds.values())):.1f}")
         return time.perf_counter() - started, result.seconds_per_stage, result
     finally:
         for worker in celery_workers:

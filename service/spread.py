@@ -23,10 +23,11 @@ import pickle
 import shutil
 import socket
 import time
+from collections import defaultdict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from service.celery_config import SPREAD_TASK, make_celery
 from service.layout import SPREAD_DIR, job_dir
@@ -50,6 +51,13 @@ class Stage:
 
     shared: Any
     items: list
+
+
+class ChunkResult(NamedTuple):
+    """What a chunk's function returned, and the CPU seconds of its worker process computing it."""
+
+    result: list
+    cpu_seconds: float
 
 
 def spread_folder(settings: ServiceSettings, job_id: str, attempt: int) -> Path:
@@ -92,12 +100,14 @@ def _read_stage(path: Path, inode: int, modified_ns: int) -> Stage:
 
 
 def _run_chunk(job_folder: Path, stage_name: str, index: int) -> None:
-    """Computes chunk `index` of the stage and writes its result, or its error."""
+    """Computes chunk `index` of the stage and writes its result with the CPU seconds it took, or its
+    error."""
     from estimation.features.sift import extract_chunk, match_block
 
     folder = job_folder / stage_name
     stage = _load_stage(folder / STAGE_FILE)
     item = stage.items[index]
+    started = time.process_time()
     try:
         if stage_name == EXTRACTION:
             result = extract_chunk([job_folder.parents[1] / path for path in item], stage.shared)
@@ -110,7 +120,8 @@ def _run_chunk(job_folder: Path, stage_name: str, index: int) -> None:
             raised = pickle.dumps(SpreadError(f"{stage_name} chunk {index}: {type(error).__name__}: {error}"))
         _write_atomically(folder / f"{index}.error", raised)
     else:
-        _write_atomically(folder / f"{index}.pickle", pickle.dumps(result, protocol=pickle.HIGHEST_PROTOCOL))
+        done = ChunkResult(result, time.process_time() - started)
+        _write_atomically(folder / f"{index}.pickle", pickle.dumps(done, protocol=pickle.HIGHEST_PROTOCOL))
 
 
 def run_spread_task(job_id: str, attempt: int, stage_name: str, index: int) -> None:
@@ -133,6 +144,8 @@ class CeleryStages:
         self._job_id, self._attempt = job_id, attempt
         self._folder = spread_folder(settings, job_id, attempt)
         self._log = log
+        self.cpu_seconds: dict[str, list[float]] = {}
+        """Per stage run, the CPU seconds each worker process spent on its chunks."""
 
     def extract(self, chunks: list[list[Path]], config: Any) -> Iterator[list]:
         job = self._folder.parents[1]
@@ -156,12 +169,16 @@ class CeleryStages:
         for index in reversed(range(len(items))):  # the other workers take them from the first
             if _claim(folder, index):
                 _run_chunk(self._folder, stage_name, index)
+        per_process: dict[tuple[str, int] | None, float] = defaultdict(float)
         for index in range(len(items)):
-            yield self._result(folder, stage_name, index)
-        workers = {_claimer(folder, index) for index in range(len(items))}
-        self._log(f"{stage_name}: {len(items)} chunks done by {len(workers)} worker processes")
+            done = self._result(folder, stage_name, index)
+            per_process[_claimer(folder, index)] += done.cpu_seconds
+            yield done.result
+        self.cpu_seconds[stage_name] = list(per_process.values())
+        self._log(f"{stage_name}: {len(items)} chunks done by {len(per_process)} worker processes (CPU "
+                  f"seconds each: {', '.join(f'{seconds:.1f}' for seconds in per_process.values())})")
 
-    def _result(self, folder: Path, stage_name: str, index: int) -> list:
+    def _result(self, folder: Path, stage_name: str, index: int) -> ChunkResult:
         """Chunk `index`'s result, once its worker wrote it."""
         while True:
             if (folder / f"{index}.pickle").exists():
