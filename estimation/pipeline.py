@@ -45,6 +45,7 @@ from estimation.types import ProgressCallback, Tracks
 
 if TYPE_CHECKING:
     from estimation.features.planarity import PairTypes
+    from estimation.features.sift import FeatureStages
 
 SPARSE_DIR = "sparse"
 MODELS_DIR = "models"
@@ -148,12 +149,13 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 
 def extract_tracks(
     images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
-    K: np.ndarray | None = None, defer_planarity: bool = False,
+    K: np.ndarray | None = None, defer_planarity: bool = False, stages: FeatureStages | None = None,
 ) -> FeatureTracks:
     """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
     pairs are verified with E when K is given, else with F. `defer_planarity`: the pairs' planarity tests
     (`features.planarity`) run in the front end's worker process beside what the caller does next, until
-    the result is `finished` (or `close`d)."""
+    the result is `finished` (or `close`d). `stages`: where SIFT's extraction chunks and matching blocks
+    run (`features.sift.FeatureStages`; default: this machine's threads and worker processes)."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -169,7 +171,7 @@ def extract_tracks(
     pool = sift_pool(config.sift)
     try:
         result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
-                             progress=report, pool=pool, defer_planarity=defer_planarity)
+                             progress=report, pool=pool, defer_planarity=defer_planarity, stages=stages)
     except BaseException:
         pool.shutdown()
         raise
@@ -452,10 +454,13 @@ def reconstruct(
     out_dir: Path,
     config: ReconstructionConfig = ReconstructionConfig(),
     progress: ProgressCallback | None = None,
+    stages: FeatureStages | None = None,
 ) -> ReconstructionResult:
     """Structure from Motion of a folder of images, or of a video's keyframes (`video_keyframes`); writes
     sparse/, points.ply, depths.npz, transforms.json, report.json and figures/ into out_dir. InputError
-    (naming file, line or reason) on bad input."""
+    (naming file, line or reason) on bad input. `stages`: where SIFT's extraction chunks and matching
+    blocks run (`features.sift.FeatureStages`: other machines' workers; default: this machine's threads
+    and processes)."""
     images_dir, out_dir = Path(images_dir), Path(out_dir)
     seconds: dict[str, float] = {}
     report_input = _scaled(progress, 0.0, PROGRESS_INPUT_END)
@@ -474,7 +479,7 @@ def reconstruct(
         calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
         # The planarity tests run beside the mapper, which leaves the other cores idle.
         features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end),
-                                  K=calibration_K, defer_planarity=True)
+                                  K=calibration_K, defer_planarity=True, stages=stages)
 
     camera = initial.cameras if initial.refine.per_image else initial.cameras[0]
     try:

@@ -1,5 +1,5 @@
-"""The Celery worker: `celery -A service.celery_app worker` registers the job and render tasks on the
-configuration of `service.celery_config` and runs them.
+"""The Celery worker: `celery -A service.celery_app worker` registers the job, render and reconstruction-chunk
+tasks (`service.spread`) on the configuration of `service.celery_config` and runs them.
 
 Start a worker with `celery -A service.celery_app worker --concurrency 1` and the same SFMNERF_* settings
 as the API (database URL, data folder on a shared volume, broker URL, executor=celery), and a render
@@ -20,12 +20,13 @@ from celery import Celery
 from celery.exceptions import SoftTimeLimitExceeded, TimeLimitExceeded
 from celery.signals import task_failure, worker_process_init
 
-from service.celery_config import RENDER_TASK, RUN_JOB_TASK, make_celery
+from service.celery_config import RENDER_TASK, RUN_JOB_TASK, SPREAD_TASK, make_celery
 from service.job_end import complete_job, runtime_exceeded
 from service.kinds import JobState
 from service.renders import run_render_task
 from service.runner import TimeLimit, execute
 from service.settings import ServiceSettings
+from service.spread import run_spread_task
 from service.store.job_store import JobStore
 from service.store.leases import process_exists
 
@@ -118,6 +119,7 @@ def make_worker_app(settings: ServiceSettings) -> Celery:
     app = make_celery(settings)
     app.task(name=RUN_JOB_TASK, bind=True)(_run_job)
     app.task(name=RENDER_TASK, acks_late=False)(run_render_task)
+    app.task(name=SPREAD_TASK)(run_spread_task)
     return app
 
 

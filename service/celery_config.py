@@ -15,6 +15,8 @@ from service.settings import ServiceSettings
 
 RUN_JOB_TASK = "sfmnerf.run_job"
 RENDER_TASK = "sfmnerf.render"
+SPREAD_TASK = "sfmnerf.reconstruction_chunk"
+"""One chunk of a reconstruction's feature extraction or matching (`service.spread`)."""
 RENDER_QUEUE = "renders"
 PROCESS_START_SECONDS = 300.0
 """How long a fresh worker process may take to start (Celery's default of 4 s killed processes that were

@@ -17,6 +17,9 @@ OUTPUT_DIR = "output"
 """Reconstruction output folder, NeRF run folder, video or held-out renders of a job."""
 WORKER_LOG_NAME = "worker.log"
 """stdout and stderr of a local job process, in its job folder."""
+SPREAD_DIR = "spread"
+"""A spread reconstruction's stage specifications, task claims and chunk results (one folder per attempt),
+in its job folder: every Celery worker reads and writes them there (the data folder is shared)."""
 
 RECONSTRUCTION_REPORT = "report.json"
 """estimation.pipeline.REPORT_NAME: what a reconstruction registered (in its output folder)."""

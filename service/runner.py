@@ -24,6 +24,7 @@ from service.layout import input_dir, job_dir, output_dir
 from service.params import EvaluationParams, NerfParams, ReconstructionParams, VideoParams, parse_params
 from service.pipeline import render_held_out
 from service.settings import ServiceSettings
+from service.spread import CeleryStages
 from service.store.job_store import JobStore
 from service.store.tables import Job
 from service.uploads import without_server_paths
@@ -118,6 +119,17 @@ def _heartbeat_loop(context: JobContext, stop: threading.Event) -> None:
 # ---- the job functions --------------------------------------------------------------------------------
 
 
+def spread_stages(context: JobContext) -> CeleryStages | None:
+    """The Celery tasks that extract and match the features of a reconstruction of at least
+    `spread_min_images` images, with the Celery executor (`service.spread`); None: this worker does all."""
+    from estimation.io.images import list_images
+
+    settings = context.settings
+    if settings.executor != "celery" or len(list_images(context.input_dir)) < settings.spread_min_images:
+        return None
+    return CeleryStages(settings, context.job.id, context.attempt, context.log)
+
+
 def run_reconstruction(context: JobContext) -> dict[str, Any]:
     """estimation.reconstruct on the uploaded folder; the report stays in output/report.json."""
     from estimation import ReconstructionConfig, reconstruct
@@ -128,7 +140,12 @@ def run_reconstruction(context: JobContext) -> dict[str, Any]:
         config.sift.workers = context.settings.threads_per_job()
     shutil.rmtree(context.output_dir, ignore_errors=True)  # a re-run starts from scratch
     images = input_video(context.input_dir) or context.input_dir
-    result = reconstruct(images, context.output_dir, config, progress=context.progress)
+    stages = spread_stages(context)
+    try:
+        result = reconstruct(images, context.output_dir, config, progress=context.progress, stages=stages)
+    finally:
+        if stages is not None:
+            stages.close()
     model = result.model
     return {
         "registered_images": len(model.poses),

@@ -44,6 +44,19 @@ class ServiceSettings(BaseSettings):
         "of a job kind plus one hour, so a long job's message is never handed to a second worker.",
     )
     concurrency: int = Field(1, ge=1, description="Jobs run at the same time by the local executor.")
+    spread_min_images: int = Field(
+        100,
+        ge=2,
+        description="With executor=celery, a SIFT reconstruction of at least this many images spreads its "
+        "feature extraction and matching over the Celery workers (chunks of images, blocks of image pairs); "
+        "the mapping stays on the job's worker.",
+    )
+    spread_images_per_chunk: int = Field(
+        8, ge=1, description="Images per feature-extraction task of a spread reconstruction."
+    )
+    spread_pairs_per_block: int = Field(
+        300, ge=1, description="Image pairs (at least) per matching task of a spread reconstruction."
+    )
     job_threads: int | None = Field(
         None,
         ge=1,

@@ -24,7 +24,7 @@ SERVICE_FLOORS = [
         ["uploads", "video_uploads", "validation", "webhooks", "housekeeping", "quotas"],
     ),
     ("how a job ends", ["job_end"]),
-    ("running jobs", ["runner", "executor", "worker", "celery_app", "renders"]),
+    ("running jobs", ["spread", "runner", "executor", "worker", "celery_app", "renders"]),
     ("actions", ["actions", "deps"]),
     ("scene supervisor", ["scene_supervisor"]),
     ("routes", ["routes"]),

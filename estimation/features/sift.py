@@ -12,7 +12,9 @@ images are detected at once (threads: OpenCV releases the GIL), then as many que
 against their partners and their pairs verified at once, one query image per item (processes,
 `estimation.parallel`: the RANSAC loops hold the GIL; this process is one of them); the processes start
 (spawn, imports) while the threads detect, and receive every image's descriptors once after. The result does
-not depend on the count.
+not depend on the count. The two stages work in chunks of images and blocks of query images
+(`extract_chunk`, `match_block`: pure functions) that a `FeatureStages` runs: `PoolStages` on this machine,
+or other machines' workers; the chunks' results are gathered here, the same whoever ran them.
 The surviving matches are joined into tracks by the image-aware union-find of `track_building`, most
 distinctive matches (lowest ratio) first.
 """
@@ -21,14 +23,14 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from itertools import repeat
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -159,11 +161,20 @@ def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
     return ImageFeatures((uv_small + 0.5) * to_full - 0.5, descriptors.astype(np.uint8))
 
 
-def _detect_in_file(path: Path, config: SiftConfig) -> tuple[ImageFeatures, np.ndarray]:
+DetectedImage = tuple[ImageFeatures, np.ndarray]
+"""An image's features and the RGB colour (N, 3) uint8 at each keypoint."""
+
+
+def _detect_in_file(path: Path, config: SiftConfig) -> DetectedImage:
     """The image's features and the RGB colour at each keypoint."""
     rgb = load_rgb(path)
     features = detect_features(rgb, config)
     return features, sample_colors(rgb, features.uv)
+
+
+def extract_chunk(paths: Sequence[Path], config: SiftConfig) -> list[DetectedImage]:
+    """One chunk of the extraction stage: each image's features and keypoint colours, in order."""
+    return [_detect_in_file(path, config) for path in paths]
 
 
 def sample_colors(rgb: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -233,6 +244,69 @@ def match_and_verify(work: PairWork, i: int, partners: list[int]
 
 
 Pair = tuple[int, int]
+Query = tuple[int, list[int]]
+"""A query image i and its partners j: the pairs (i, j) matched together (i's descriptors searched once)."""
+PairOutcome = tuple[DescriptorMatches, TwoViewGeometry | None]
+"""A pair's matches and, when verified, its two-view geometry (`match_and_verify`)."""
+
+
+def match_block(work: PairWork, block: Sequence[Query]) -> list[list[PairOutcome]]:
+    """One block of the matching stage: each query image's outcomes with its partners (`match_and_verify`)."""
+    return [match_and_verify(work, i, partners) for i, partners in block]
+
+
+def image_chunks(paths: Sequence[Path], images_per_chunk: int) -> list[list[Path]]:
+    """The extraction stage's chunks: consecutive runs of at most `images_per_chunk` images."""
+    return [list(paths[k:k + images_per_chunk]) for k in range(0, len(paths), images_per_chunk)]
+
+
+def pair_blocks(queries: Sequence[Query], pairs_per_block: int) -> list[list[Query]]:
+    """The matching stage's blocks: consecutive queries, each block closed once it holds `pairs_per_block`
+    pairs (a query is never split: its descriptors are searched once)."""
+    blocks: list[list[Query]] = []
+    size = pairs_per_block
+    for query in queries:
+        if size >= pairs_per_block:
+            blocks.append([])
+            size = 0
+        blocks[-1].append(query)
+        size += len(query[1])
+    return blocks
+
+
+@runtime_checkable
+class FeatureStages(Protocol):
+    """Where the two chunked stages of `sift_tracks` run: `extract` maps `extract_chunk` over image chunks
+    and `match` maps `match_block` over pair blocks, each yielding the results in order as they are done.
+    The chunks, the blocks and the gathering of their results are `sift_tracks`' own, so the result does not
+    depend on where they ran."""
+
+    images_per_chunk: int
+    pairs_per_block: int
+
+    def extract(self, chunks: list[list[Path]], config: SiftConfig) -> Iterator[list[DetectedImage]]: ...
+
+    def match(self, work: PairWork, blocks: list[list[Query]]) -> Iterator[list[list[PairOutcome]]]: ...
+
+
+class PoolStages:
+    """The stages in this machine: one image per chunk on `workers` threads (OpenCV and the image decoders
+    release the GIL), one query image per block in the `pool`'s processes (`work` becomes its context)."""
+
+    images_per_chunk = 1
+    pairs_per_block = 1
+
+    def __init__(self, pool: WorkerPool, workers: int) -> None:
+        self.pool = pool
+        self.workers = workers
+
+    def extract(self, chunks: list[list[Path]], config: SiftConfig) -> Iterator[list[DetectedImage]]:
+        with ThreadPoolExecutor(self.workers) as threads:
+            yield from threads.map(extract_chunk, chunks, repeat(config))
+
+    def match(self, work: PairWork, blocks: list[list[Query]]) -> Iterator[list[list[PairOutcome]]]:
+        self.pool.share(work)
+        return self.pool.map(match_block, blocks)
 
 
 def sift_pool(config: SiftConfig) -> WorkerPool:
@@ -243,10 +317,12 @@ def sift_pool(config: SiftConfig) -> WorkerPool:
 
 def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
                            progress: Callable[[float], None] = lambda fraction: None,
+                           stages: FeatureStages | None = None,
                            ) -> tuple[dict[Pair, DescriptorMatches], dict[Pair, TwoViewGeometry]]:
-    """The matches of every pair (i, j) and the geometry of each pair verified (`match_and_verify`), one
-    query image i with all its partners j per item, in the `pool` (`WORKER_MODULES` imported; `work` becomes
-    its context); `progress` gets the fraction of the work done."""
+    """The matches of every pair (i, j) and the geometry of each pair verified (`match_and_verify`), in
+    blocks of query images with all their partners (`pair_blocks`), run by `stages` (default: `PoolStages`
+    in the `pool`, `WORKER_MODULES` imported); `progress` gets the fraction of the work done."""
+    stages = stages or PoolStages(pool, pool.workers)
     partners_of: dict[int, list[int]] = defaultdict(list)
     for i, j in pairs:
         partners_of[i].append(j)
@@ -263,14 +339,14 @@ def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
     matches: dict[Pair, DescriptorMatches] = {}
     geometries: dict[Pair, TwoViewGeometry] = {}
     done, total = 0, max(1, sum(cost.values()))
-    pool.share(work)
-    outcomes = pool.map(match_and_verify, queries, [partners_of[i] for i in queries])
-    for i, image_outcomes in zip(queries, outcomes, strict=True):
-        for j, (pair_matches, geometry) in zip(partners_of[i], image_outcomes, strict=True):
-            matches[(i, j)] = pair_matches
-            if geometry is not None:
-                geometries[(i, j)] = geometry
-        done += cost[i]
+    blocks = pair_blocks([(i, partners_of[i]) for i in queries], stages.pairs_per_block)
+    for block, block_outcomes in zip(blocks, stages.match(work, blocks), strict=True):
+        for (i, partners), image_outcomes in zip(block, block_outcomes, strict=True):
+            for j, (pair_matches, geometry) in zip(partners, image_outcomes, strict=True):
+                matches[(i, j)] = pair_matches
+                if geometry is not None:
+                    geometries[(i, j)] = geometry
+            done += cost[i]
         progress(done / total)
     return matches, geometries
 
@@ -284,12 +360,14 @@ def sift_tracks(
     progress: ProgressCallback | None = None,
     pool: WorkerPool | None = None,
     defer_planarity: bool = False,
+    stages: FeatureStages | None = None,
 ) -> SiftResult:
     """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
     merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1.
     `pool`: the worker processes to use (a `sift_pool`, left running; default: one of this call's own).
     `defer_planarity`: H is left out (the tracks do not depend on it); `untested_uv` holds what
-    `features.planarity` needs to test it later."""
+    `features.planarity` needs to test it later. `stages`: where the extraction chunks and the matching
+    blocks run (default: `PoolStages`, this machine's threads and the pool's processes)."""
     report = progress or (lambda stage, fraction: None)
     workers = resolve_workers(config.workers)
     seconds: dict[str, float] = {}
@@ -297,11 +375,11 @@ def sift_tracks(
     # The processes start (spawn, imports) while the threads detect; they get the descriptors after. A given
     # pool keeps running after this call, a pool of its own is shut down.
     with nullcontext(pool) if pool is not None else sift_pool(config) as pool:
-        with ThreadPoolExecutor(workers) as threads:     # OpenCV and the image decoders release the GIL
-            detected = []
-            for image_features in threads.map(_detect_in_file, images.paths, repeat(config)):
-                detected.append(image_features)
-                report("features", DETECTION_SHARE * len(detected) / len(images))
+        stages = stages or PoolStages(pool, workers)
+        detected: list[DetectedImage] = []
+        for chunk_features in stages.extract(image_chunks(images.paths, stages.images_per_chunk), config):
+            detected.extend(chunk_features)
+            report("features", DETECTION_SHARE * len(detected) / len(images))
         features, colors = [f for f, _ in detected], [c for _, c in detected]
         seconds["detection"] = time.perf_counter() - started
 
@@ -310,7 +388,7 @@ def sift_tracks(
         # This process matches too (the pool's caller works): its RootSIFT sets serve both.
         pairs = candidate_pairs(images.names, [d.descriptors for d in work.descriptors], config)
         matches, geometries = match_and_verify_pairs(work, pairs, pool, lambda fraction: report(
-            "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction))
+            "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction), stages)
         seconds["matching_and_verification"] = time.perf_counter() - started
 
     offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -14,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import redis
 from fastapi.testclient import TestClient
 
 from service import renders
@@ -23,52 +21,24 @@ from service.celery_config import make_celery
 from service.renders import RenderFailed, RenderQueue, RenderSpec, read_render_error, run_render_task
 from service.settings import ServiceSettings
 from tests.service.conftest import endless_nerf_upload, job_pid, make_settings, unity_hall_files, wait_for_job
-from tests.service.servers import free_port
+from tests.service.servers import REDIS_SERVER, free_port, start_redis
 from tests.service.test_job_machinery import CANCEL_DEADLINE_SECONDS, process_alive
-
-REDIS_SERVER = shutil.which("redis-server") or "/usr/bin/redis-server"
-START_SECONDS = 60.0
 
 
 @pytest.fixture(scope="module")
 def broker_url(tmp_path_factory):
     if not Path(REDIS_SERVER).exists():
         pytest.fail("redis-server is not installed (apt-get install redis-server; scripts/test.sh does it)")
-    port = free_port()
-    folder = tmp_path_factory.mktemp("redis")
-    server = subprocess.Popen(
-        [
-            REDIS_SERVER,
-            "--port",
-            str(port),
-            "--bind",
-            "127.0.0.1",
-            "--save",
-            "",
-            "--appendonly",
-            "no",
-            "--dir",
-            str(folder),
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    client = redis.Redis(host="127.0.0.1", port=port)
-    deadline = time.monotonic() + START_SECONDS
-    while True:
-        try:
-            client.ping()
-            break
-        except redis.ConnectionError:
-            assert server.poll() is None and time.monotonic() < deadline, "redis-server did not start"
-            time.sleep(0.1)
-    yield f"redis://127.0.0.1:{port}/0"
+    server, url = start_redis(tmp_path_factory.mktemp("redis"))
+    yield url
     server.terminate()
     server.wait(timeout=10)
 
 
-def start_worker(env: dict[str, str], concurrency: int = 1) -> subprocess.Popen:
-    """A Celery worker process (prefork) with these SFMNERF_* settings."""
+def start_worker(env: dict[str, str], concurrency: int = 1, queues: str = "celery,renders"
+                 ) -> subprocess.Popen:
+    """A Celery worker process (prefork) with these SFMNERF_* settings, serving these queues (by default
+    jobs and renders: one worker serves both here)."""
     return subprocess.Popen(
         [
             sys.executable,
@@ -78,7 +48,7 @@ def start_worker(env: dict[str, str], concurrency: int = 1) -> subprocess.Popen:
             "service.celery_app",
             "worker",
             "-Q",
-            "celery,renders",  # jobs and renders: one worker serves both here
+            queues,
             "--pool",
             "prefork",
             "--concurrency",

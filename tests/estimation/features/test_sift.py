@@ -18,9 +18,12 @@ from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import InputError
 from estimation.features.matching import match_descriptors
 from estimation.features.sift import (
+    FeatureStages,
     adaptive_contrast_threshold,
     detect_features,
+    extract_chunk,
     image_contrast,
+    match_block,
     root_sift,
     sample_colors,
     sift_tracks,
@@ -208,6 +211,44 @@ def test_one_worker_detects_matches_and_verifies_exactly_as_two_do(shared_data, 
     np.testing.assert_array_equal(serial.tracks.track_index, parallel.tracks.track_index)
     np.testing.assert_array_equal(serial.tracks.uv, parallel.tracks.uv)
     assert set(serial.seconds_per_stage) == {"detection", "matching_and_verification"}
+
+
+class SerialStages:
+    """The chunked stages one after the other in this process, with coarse chunks (as other machines'
+    workers run them), recording what they were given."""
+
+    images_per_chunk = 2
+    pairs_per_block = 3
+
+    def __init__(self) -> None:
+        self.chunks: list = []
+        self.blocks: list = []
+
+    def extract(self, chunks, config):
+        self.chunks = chunks
+        return (extract_chunk(chunk, config) for chunk in chunks)
+
+    def match(self, work, blocks):
+        self.blocks = blocks
+        return (match_block(work, block) for block in blocks)
+
+
+def test_chunks_of_images_and_blocks_of_pairs_give_what_the_pool_gives(shared_data, unity_sift):
+    images, pooled = unity_sift
+    stages = SerialStages()
+    chunked = sift_tracks(images, SiftConfig(max_features=1500, workers=1), TwoViewConfig(), RansacConfig(),
+                          K=find_calibration(shared_data / "unity_hall"), stages=stages)
+    assert isinstance(stages, FeatureStages)
+    assert [len(chunk) for chunk in stages.chunks] == [2, 2, 1]        # 5 images
+    # Each query image's pairs stay in one block; a block closes once it holds 3 pairs.
+    queries = [query for block in stages.blocks for query in block]
+    assert sorted(query for query, _ in queries) == [0, 1, 2, 3]
+    assert all(sum(len(partners) for _, partners in block[:-1]) < 3 for block in stages.blocks)
+    assert len(stages.blocks) > 1
+    assert chunked.keypoints_per_image == pooled.keypoints_per_image
+    assert chunked.verified_per_pair == pooled.verified_per_pair
+    np.testing.assert_array_equal(chunked.tracks.track_index, pooled.tracks.track_index)
+    np.testing.assert_array_equal(chunked.tracks.uv, pooled.tracks.uv)
 
 
 def test_the_worker_processes_start_before_the_images_are_detected(tmp_path, monkeypatch):
