@@ -84,8 +84,9 @@ def run_one(
     from PIL import Image
 
     from neural import TrainConfig, evaluate, load_run, train
+    from neural.artefacts import IMAGE_CACHE_DIR
     from neural.data import load_dataset_for
-    from neural.inference import IMAGE_CACHE_DIR, render_frame, to_uint8, view_camera
+    from neural.inference import render_frame, to_uint8, view_camera
 
     data = out / "sfm" / scene
     run_dir = out / scene / configuration

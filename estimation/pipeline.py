@@ -16,12 +16,21 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from estimation.artefacts import (
+    DEPTHS_NAME,
+    FIGURES_DIR,
+    FRAMES_DIR,
+    MODELS_DIR,
+    PLY_NAME,
+    REPORT_NAME,
+    SPARSE_DIR,
+    TRANSFORMS_NAME,
+)
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement, along_ray_sigmas, bundle_adjust
 from estimation.config import BundleAdjustmentConfig, CameraConfig, ReconstructionConfig
 from estimation.errors import InputError
 from estimation.geometry.projection import Camera
 from estimation.io.export import (
-    DEPTHS_NAME,
     DepthObservations,
     transforms_dict,
     write_colmap_text,
@@ -47,15 +56,6 @@ if TYPE_CHECKING:
     from estimation.features.planarity import PairTypes
     from estimation.features.sift import FeatureStages
 
-SPARSE_DIR = "sparse"
-MODELS_DIR = "models"
-"""With export_all_models, model k >= 2 (largest first) goes to OUT/models/<k>/ (the largest is OUT/)."""
-PLY_NAME = "points.ply"
-TRANSFORMS_NAME = "transforms.json"
-REPORT_NAME = "report.json"
-FIGURES_DIR = "figures"
-FRAMES_DIR = "frames"
-"""A video's keyframes, as images, under OUT/ (transforms.json points at them there)."""
 FIGURE_NAMES = {
     "initial_pair_matches": "initial_pair_matches.png",
     "triangulation": "triangulation_linear_vs_nonlinear.png",

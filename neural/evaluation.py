@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neural.artefacts import IMAGE_CACHE_DIR
 from neural.data import Dataset, load_dataset_for
-from neural.inference import IMAGE_CACHE_DIR, Camera, load_run, render_frame, to_uint8
+from neural.inference import Camera, load_run, render_frame, to_uint8
 
 
 @dataclass(frozen=True)

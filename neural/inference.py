@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neural.artefacts import RUN_CONFIG_FILE
 from neural.camera_path import (
     CameraPathError,
     Capture,
@@ -35,9 +36,6 @@ from neural.rays import generate_rays
 from neural.scene import SceneInfo, SceneNormalization
 from neural.video import write_video
 
-RUN_CONFIG_FILE = "config.json"
-#: Resized training images are cached in this folder of the run (evaluating the run reuses them).
-IMAGE_CACHE_DIR = "image_cache"
 #: Orbit cameras sit this many degrees above the plane normal to the mean training "up".
 DEFAULT_ORBIT_ELEVATION_DEG = 30.0
 #: A pixel sees the scene when its accumulated opacity reaches EMPTY_VIEW_OPACITY; a view where fewer than

@@ -21,7 +21,9 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from estimation.artefacts import TRANSFORMS_NAME
 from neural.appearance import PhotoAppearance
+from neural.artefacts import IMAGE_CACHE_DIR, METRICS_FILE, RUN_CONFIG_FILE
 from neural.budget import (
     PROBE_MAX_SIDE,
     PROBE_RENDER_RAYS,
@@ -44,8 +46,6 @@ from neural.config import TrainConfig
 from neural.data import FORMAT_DEFAULTS, Dataset, dataset_format, load_dataset_for
 from neural.errors import CheckpointError
 from neural.inference import (
-    IMAGE_CACHE_DIR,
-    RUN_CONFIG_FILE,
     Camera,
     background_colour,
     depth_to_uint8,
@@ -62,7 +62,6 @@ from neural.rendering import packed_depth_loss
 
 ProgressCallback = Callable[[str, float], None]
 MetricsCallback = Callable[[dict[str, Any]], None]
-METRICS_FILE = "metrics.jsonl"
 StopReason = Literal["steps", "minutes", "stop_requested"]
 #: Fewer depth rays in the training photos than this: too few points to supervise depth; trained without.
 MIN_DEPTH_RAYS = 100
@@ -570,7 +569,7 @@ def size_for_budget(data: Path, config: TrainConfig) -> tuple[TrainConfig, Train
             None,
         )
         rates = probe.measure_rates()
-    meta = json.loads((data / "transforms.json").read_text())
+    meta = json.loads((data / TRANSFORMS_NAME).read_text())
     width, height = int(meta["w"]), int(meta["h"])
     steps = budget_steps(probe.config.steps, probe.config.minutes, rates.seconds_per_step)
     train_images = len(probe.dataset.split("train"))

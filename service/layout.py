@@ -1,15 +1,13 @@
 """Where a job's files live: its folder under the data folder, its inputs and outputs, and the names of
-the artefacts the service reads from the packages' outputs.
-
-The artefact names are the packages' own (estimation.pipeline REPORT_NAME ..., neural.inference
-RUN_CONFIG_FILE, neural.training METRICS_FILE); they are spelled here because those modules load OpenCV,
-GTSAM or PyTorch, which the API process never imports. tests/service/test_layout.py holds them equal.
-"""
+the artefacts the service reads from the packages' outputs (the packages' own, from their import-free
+`artefacts` modules: the API process never loads OpenCV, GTSAM or PyTorch)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from estimation.artefacts import PLY_NAME, REPORT_NAME, TRANSFORMS_NAME
+from neural.artefacts import METRICS_FILE, RUN_CONFIG_FILE
 from service.settings import ServiceSettings
 
 INPUT_DIR = "input"
@@ -21,15 +19,16 @@ SPREAD_DIR = "spread"
 """A spread reconstruction's stage specifications, task claims and chunk results (one folder per attempt),
 in its job folder: every Celery worker reads and writes them there (the data folder is shared)."""
 
-RECONSTRUCTION_REPORT = "report.json"
-"""estimation.pipeline.REPORT_NAME: what a reconstruction registered (in its output folder)."""
-RECONSTRUCTION_EXPORTS = ("points.ply", "colmap.zip", "transforms.json")
-"""The files a reconstruction's output serves (estimation.pipeline PLY_NAME and TRANSFORMS_NAME; colmap.zip is
-the service's own archive of its sparse/ folder)."""
-RUN_CONFIG = "config.json"
-"""neural.inference.RUN_CONFIG_FILE: a NeRF run's configuration and camera."""
-RUN_METRICS = "metrics.jsonl"
-"""neural.training.METRICS_FILE: a NeRF run's metrics, one JSON object a line."""
+RECONSTRUCTION_REPORT = REPORT_NAME
+"""What a reconstruction registered (in its output folder)."""
+COLMAP_ARCHIVE = "colmap.zip"
+"""The service's own archive of a reconstruction's sparse/ folder."""
+RECONSTRUCTION_EXPORTS = (PLY_NAME, COLMAP_ARCHIVE, TRANSFORMS_NAME)
+"""The files a reconstruction's output serves."""
+RUN_CONFIG = RUN_CONFIG_FILE
+"""A NeRF run's configuration and camera."""
+RUN_METRICS = METRICS_FILE
+"""A NeRF run's metrics, one JSON object a line."""
 
 
 def job_dir(settings: ServiceSettings, job_id: str) -> Path:

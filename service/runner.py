@@ -218,8 +218,9 @@ def run_evaluation(context: JobContext) -> dict[str, Any]:
     """The scene pipeline's held-out renders of the source NeRF job's latest checkpoint on its data
     (params: split, max_side): output/<image>.png per view and output/metrics.json."""
     from neural import TrainConfig
+    from neural.artefacts import IMAGE_CACHE_DIR
     from neural.data import load_dataset_for
-    from neural.inference import IMAGE_CACHE_DIR, read_run_config
+    from neural.inference import read_run_config
 
     params: EvaluationParams = context.params
     nerf_job = context.store.get(context.job.source_job_id)

@@ -411,7 +411,6 @@ def read_colmap_points(path: Path) -> np.ndarray:
 
 # --- depths.npz -----------------------------------------------------------------------------------
 
-DEPTHS_NAME = "depths.npz"
 DEPTH_FIELDS = ("file_paths", "frame", "point", "sigma", "pixel_sigma")
 """The arrays of a depths file:
 - file_paths (F,) str: the frames' file_path, as and in the order of transforms.json;

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from estimation.artefacts import DEPTHS_NAME
 from estimation.errors import InputError
-from estimation.io.export import DEPTHS_NAME, read_depths
+from estimation.io.export import read_depths
 from neural.data.dataset import DepthRays
 from neural.errors import DatasetError
 from neural.scene import SceneNormalization

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
+from estimation.artefacts import TRANSFORMS_NAME
 from neural.config import TrainConfig
 from neural.data.blender import load_blender
 from neural.data.bounds import unbounded_scene
@@ -44,7 +45,7 @@ def dataset_format(path: Path | str) -> DatasetFormat:
         return "npz"
     if any((path / f"transforms_{split}.json").is_file() for split in SPLITS):
         return "blender"
-    if (path / "transforms.json").is_file():
+    if (path / TRANSFORMS_NAME).is_file():
         return "reconstruction"
     raise DatasetError(
         f"{path}: not a dataset folder (expected transforms_train.json / transforms_val.json, "

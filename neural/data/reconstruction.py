@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from estimation.artefacts import PLY_NAME, SPARSE_DIR, TRANSFORMS_NAME
 from estimation.errors import InputError
 from estimation.io.export import read_colmap_points, read_ply_points
 from neural.data.bounds import near_far_from_points, normalization_from_points
@@ -26,8 +27,8 @@ HOLDOUT_EVERY = 8
 def sparse_points(root: Path) -> np.ndarray:
     """The reconstruction's sparse points from points.ply, else sparse/points3D.txt."""
     for candidate, reader in (
-        (root / "points.ply", read_ply_points),
-        (root / "sparse/points3D.txt", read_colmap_points),
+        (root / PLY_NAME, read_ply_points),
+        (root / SPARSE_DIR / "points3D.txt", read_colmap_points),
     ):
         if candidate.is_file():
             try:
@@ -50,7 +51,7 @@ def load_reconstruction(
     Photos with distortion (k1 k2 p1 p2) or intrinsics of their own are resampled into one pinhole camera
     (neural.undistortion), so the dataset's K describes every image.
     """
-    json_path = root / "transforms.json"
+    json_path = root / TRANSFORMS_NAME
     meta = read_json(json_path)
     frames = require(meta, "frames", json_path)
     if not isinstance(frames, list) or not frames:

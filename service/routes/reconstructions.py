@@ -10,12 +10,13 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Response, UploadFile, status
 from fastapi.responses import FileResponse
 
+from estimation.artefacts import PLY_NAME, SPARSE_DIR, TRANSFORMS_NAME
 from service.actions.jobs import find_job
 from service.actions.reconstructions import ReconstructionInputs
 from service.actions.reconstructions import create_reconstruction as create
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
 from service.kinds import JobKind, JobState
-from service.layout import RECONSTRUCTION_EXPORTS, RECONSTRUCTION_REPORT, output_dir
+from service.layout import COLMAP_ARCHIVE, RECONSTRUCTION_EXPORTS, RECONSTRUCTION_REPORT, output_dir
 from service.openapi import file_response
 from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file, input_files
 from service.schemas import ErrorOut, JobOut, ReconstructionOut
@@ -136,7 +137,7 @@ def _file(path: Path, media_type: str, filename: str | None = None) -> FileRespo
 )
 def get_points(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> FileResponse:
     return _file(
-        _succeeded_output(store, settings, job_id) / "points.ply", "application/octet-stream", "points.ply"
+        _succeeded_output(store, settings, job_id) / PLY_NAME, "application/octet-stream", PLY_NAME
     )
 
 
@@ -146,7 +147,7 @@ def get_points(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> Fil
     summary="Cameras in nerfstudio's transforms.json format",
 )
 def get_transforms(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> FileResponse:
-    return _file(_succeeded_output(store, settings, job_id) / "transforms.json", "application/json")
+    return _file(_succeeded_output(store, settings, job_id) / TRANSFORMS_NAME, "application/json")
 
 
 @router.get(
@@ -157,18 +158,18 @@ def get_transforms(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) ->
 )
 def get_colmap(job_id: JobIdPath, store: StoreDep, settings: SettingsDep) -> FileResponse:
     out = _succeeded_output(store, settings, job_id)
-    archive = out / "colmap.zip"
+    archive = out / COLMAP_ARCHIVE
     if not archive.is_file():
-        sparse = out / "sparse"
+        sparse = out / SPARSE_DIR
         if not sparse.is_dir():
             raise HTTPException(status.HTTP_404_NOT_FOUND, "this reconstruction wrote no COLMAP model")
         partial = archive.with_suffix(".zip.partial")
         with zipfile.ZipFile(partial, "w", zipfile.ZIP_DEFLATED) as zf:
             for path in sorted(sparse.iterdir()):
                 if path.is_file():
-                    zf.write(path, f"sparse/{path.name}")
+                    zf.write(path, f"{SPARSE_DIR}/{path.name}")
         partial.replace(archive)
-    return FileResponse(archive, media_type="application/zip", filename="colmap.zip")
+    return FileResponse(archive, media_type="application/zip", filename=COLMAP_ARCHIVE)
 
 
 @router.get(

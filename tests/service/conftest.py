@@ -109,7 +109,7 @@ def capture_reconstruction_config(monkeypatch: pytest.MonkeyPatch) -> list:
 
     seen: list = []
 
-    def capture(images_dir, out_dir, config, progress=None):
+    def capture(images_dir, out_dir, config, progress=None, stages=None):
         seen.append(config)
         raise estimation.InputError("stopped after reading the configuration")
 

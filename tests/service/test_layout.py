@@ -1,15 +1,25 @@
-"""The job folder layout names the packages' artefacts exactly as the packages write them."""
+"""The job folder layout takes the packages' artefact names without loading what writes them: the API
+process stays free of OpenCV, GTSAM and PyTorch."""
 
 from __future__ import annotations
 
-from estimation.pipeline import PLY_NAME, REPORT_NAME, TRANSFORMS_NAME
-from neural.inference import RUN_CONFIG_FILE
-from neural.training import METRICS_FILE
-from service.layout import RECONSTRUCTION_EXPORTS, RECONSTRUCTION_REPORT, RUN_CONFIG, RUN_METRICS
+import subprocess
+import sys
+
+HEAVY_MODULES = ("cv2", "gtsam", "torch")
 
 
-def test_the_artefact_names_are_the_packages_own():
-    assert RECONSTRUCTION_REPORT == REPORT_NAME
-    assert {PLY_NAME, TRANSFORMS_NAME} <= set(RECONSTRUCTION_EXPORTS)
-    assert RUN_CONFIG == RUN_CONFIG_FILE
-    assert RUN_METRICS == METRICS_FILE
+def test_the_layout_loads_no_heavy_library():
+    probe = (
+        "import sys, service.layout; "
+        f"print([name for name in {HEAVY_MODULES!r} if name in sys.modules])"
+    )
+    loaded = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert loaded.stdout.strip() == "[]"
+
+
+def test_the_reconstruction_exports_are_the_files_the_pipeline_writes():
+    from estimation.artefacts import PLY_NAME, TRANSFORMS_NAME
+    from service.layout import RECONSTRUCTION_EXPORTS
+
+    assert {PLY_NAME, TRANSFORMS_NAME} < set(RECONSTRUCTION_EXPORTS)
