@@ -78,7 +78,7 @@ def test_every_file_the_documents_name_exists():
 
 
 def test_every_python_name_the_documents_name_exists():
-    """`estimation.api.initial_intrinsics`, `neural.data.confined_path`, ...: a module, then attributes."""
+    """`estimation.pipeline.initial_intrinsics`, `neural.data.Dataset`, ...: a module, then attributes."""
     missing = []
     for document in DOCUMENTS:
         for name in sorted(set(DOTTED_NAME.findall(document.read_text(encoding="utf-8")))):
