@@ -12,8 +12,8 @@ overhead against the CLI on Unity Hall.
    another checkout's service (e.g. /work/main, the code before renders left the API) in the same run.
    Load: --load-scenes clients (8) each POST a Unity Hall scene at the same moment (tiny budgets) and poll
    it to its end while --load-renderers clients (48) render and 4 poll GET /v1/jobs/{id}: the status
-   latency percentiles (target p99 < 500 ms), scenes per hour, and the API's peak RSS, alone and with its
-   job and render processes.
+   latency percentiles (target p99 < 500 ms), scenes per hour, the API's peak RSS, alone and with its
+   job and render processes, and how long it takes to exit on SIGTERM right after.
 3. Upload -> finished Unity Hall through the API (POST, then polling every 50 ms) against
    `sfmnerf reconstruct` on the same input (a fresh process each time, as the API's job is), median of N runs,
    API and CLI runs interleaved.
@@ -291,9 +291,14 @@ def load_section(args: argparse.Namespace) -> None:
             row = asyncio.run(scenes_under_renders(
                 base_url, server.pid, nerf_id, args.load_scenes, args.load_renderers, scene_options
             ))  # fmt: skip
-        finally:
+            stopping = time.perf_counter()  # the renders' clients are gone; their requests may still run
             server.terminate()
-            server.wait(timeout=60)
+            server.wait(timeout=120)
+            exit_seconds = time.perf_counter() - stopping
+        finally:
+            if server.poll() is None:
+                server.kill()
+                server.wait()
         tracebacks = (Path(tmp) / "server.log").read_text(errors="replace").count("Traceback")
     ms = np.array(row["latencies"]) * 1000
     states = ", ".join(f"{k}: {v}" for k, v in sorted(Counter(state for state, _ in row["ended"]).items()))
@@ -314,7 +319,7 @@ def load_section(args: argparse.Namespace) -> None:
         f"{states} | {last:.1f} | {3600 * succeeded / last:.0f} | {row['api_rss'] / 2**20:.0f} | "
         f"{row['tree_rss'] / 2**20:.0f} | {answers} |"
     )
-    print(f"tracebacks in the server's log: {tracebacks}")
+    print(f"tracebacks in the server's log: {tracebacks}; exit after SIGTERM: {exit_seconds:.1f} s")
     print(flush=True)
 
 
