@@ -2,9 +2,9 @@
 at random moments and restarted on the same data folder; nothing is lost, stuck or run twice.
 
 At the end every scene and every job of the folder is in a terminal state, each attempt of a job ran once
-(its log holds one start line per attempt), every file a succeeded job or scene lists is served, and the
-server's log and the job processes' logs hold no traceback. The kill moments come from a seeded RNG.
-"""
+(its log holds one start line per attempt), every file a succeeded job or scene lists is served, the folder
+of an upload the API died during is removed at a later start, and the server's log and the job processes'
+logs hold no traceback. The kill moments come from a seeded RNG."""
 
 from __future__ import annotations
 
@@ -24,13 +24,14 @@ import pytest
 
 from service.kinds import TERMINAL_STATES
 from service.layout import WORKER_LOG_NAME
+from service.uploads import ORPHAN_MIN_AGE_SECONDS
 from tests.service.conftest import TINY_MODEL_OPTIONS, tiny_nerf_npz, unity_hall_files
 from tests.service.servers import free_port, start_server
 
 SEED = 25
 CLIENTS = 4
 KILLS = 3
-KILL_DELAY_SECONDS = (1.0, 6.0)
+KILL_DELAY_SECONDS = (2.0, 15.0)
 """A kill comes this long (uniform) after the API answered ready."""
 RUN_TIMEOUT_SECONDS = 600.0
 REQUEST_TIMEOUT_SECONDS = 30.0
@@ -196,6 +197,12 @@ def test_kill_9_of_the_api_at_random_moments_loses_no_job_and_runs_none_twice(tm
             assert all(item["state"] == "succeeded" for item in jobs + scenes), [
                 (item["id"], item["state"], item["error"]) for item in jobs + scenes
             ]
+            # A scene's child jobs (those made from another job) are the ones its stages name: a restart
+            # between creating a child and recording it in the scene would leave a second, unnamed one.
+            children = {
+                job_id for scene in scenes for stage in scene["stages"] for job_id in stage["job_ids"]
+            }
+            assert not [job["id"] for job in jobs if job["source_job_id"] and job["id"] not in children]
             requeued = 0
             for job in jobs:
                 lines = admin.request("GET", f"/v1/jobs/{job['id']}/logs", deadline).json()["lines"]
@@ -215,6 +222,15 @@ def test_kill_9_of_the_api_at_random_moments_loses_no_job_and_runs_none_twice(tm
                 if (r := admin.request("GET", url, deadline)).status_code != 200 or not r.content
             ]
             assert not missing, missing
+            # An upload the API died during left a folder without a job: the next start removes it once it
+            # is older than any upload in progress (the age is faked here).
+            stray = {path.name for path in (data_dir / "jobs").iterdir()} - {job["id"] for job in jobs}
+            aged = time.time() - ORPHAN_MIN_AGE_SECONDS - 1
+            for name in stray:
+                os.utime(data_dir / "jobs" / name, (aged, aged))
+            kill_api(server)
+            server = start_server(data_dir, port, settings=settings, log=log)
+            assert {path.name for path in (data_dir / "jobs").iterdir()} == {job["id"] for job in jobs}
         finally:
             kill_api(server)
     logs = {"server": server_log.read_text(errors="replace")}
