@@ -10,6 +10,10 @@ overhead against the CLI on Unity Hall.
    --render-seconds while 4 clients poll GET /v1/jobs/{id}: the status latency percentiles, and how the
    renders were answered (200, 503 + Retry-After, errors). --compare-root runs the same section against
    another checkout's service (e.g. /work/main, the code before renders left the API) in the same run.
+   Load: --load-scenes clients (8) each POST a Unity Hall scene at the same moment (tiny budgets) and poll
+   it to its end while --load-renderers clients (48) render and 4 poll GET /v1/jobs/{id}: the status
+   latency percentiles (target p99 < 500 ms), scenes per hour, the API's peak RSS, alone and with its
+   job and render processes, and how long it takes to exit on SIGTERM right after.
 3. Upload -> finished Unity Hall through the API (POST, then polling every 50 ms) against
    `sfmnerf reconstruct` on the same input (a fresh process each time, as the API's job is), median of N runs,
    API and CLI runs interleaved.
@@ -23,7 +27,8 @@ overhead against the CLI on Unity Hall.
 
     python benchmarks/bench_service.py [--runs 3] [--clients 50] [--render-clients 8 60]
         [--compare-root ../main] [--scene-steps 200] [--scene-sets unity_hall fountain-P11] [--page-loads 5]
-        [--sections renders polling overhead scenes page]
+        [--load-scenes 8] [--load-renderers 48] [--load-scene-steps 50]
+        [--sections renders load polling overhead scenes page]
 
 The load generator shares the machine with the server and the job: numbers are for this machine and load.
 """
@@ -41,6 +46,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 
@@ -58,10 +65,13 @@ from tests.service.servers import free_port, start_server  # noqa: E402
 DATA = ROOT.parent / "shared" / "data"
 UNITY_HALL = DATA / "unity_hall"
 SCENE_SETS = {"unity_hall": UNITY_HALL, "fountain-P11": DATA / "strecha" / "fountain-P11"}
-SECTIONS = ("renders", "polling", "overhead", "scenes", "page")
+SECTIONS = ("renders", "load", "polling", "overhead", "scenes", "page")
 LEGO_TINY = DATA / "lego_tiny.npz"
 RENDER_SIDE = 200
 STATUS_POLLERS = 4
+LOAD_SCENE_MAX_SIDE = 100
+"""The load scenes' NeRF trains on images at most this long (small: the figures are the API's, not NeRF's)."""
+RSS_SAMPLE_SECONDS = 0.25
 TINY_SIDE = 20
 TINY_NERF = {
     "model": "vanilla",
@@ -120,46 +130,197 @@ async def poll_under_load(base_url: str, job_id: str, clients: int) -> tuple[lis
         return latencies, time.perf_counter() - began, errors
 
 
+async def render_loop(
+    client: httpx.AsyncClient, job_id: str, until: Callable[[], bool], answers: dict
+) -> None:
+    """POSTs renders of the NeRF job from a new camera each time (no cache hit) until `until()`; counts the
+    answers by status (429/503: waits its Retry-After)."""
+    rng = random.Random()
+    while not until():
+        camera = {
+            "eye": [rng.uniform(2, 4), rng.uniform(-4, -2), rng.uniform(0.5, 2)],
+            "look_at": [0.0, 0.0, 0.0],
+            "width": RENDER_SIDE,
+            "height": RENDER_SIDE,
+        }
+        try:
+            response = await client.post(f"/v1/nerf/{job_id}/render", json=camera)
+            key = str(response.status_code)
+            if response.status_code in (429, 503):
+                await asyncio.sleep(float(response.headers.get("Retry-After", "1")))
+        except httpx.HTTPError as error:
+            key = type(error).__name__
+        answers[key] = answers.get(key, 0) + 1
+
+
+async def status_loop(
+    client: httpx.AsyncClient, job_id: str, until: Callable[[], bool], latencies: list, answers: dict
+) -> None:
+    """GET /v1/jobs/{id} every 50 ms until `until()`, recording each request's latency."""
+    while not until():
+        start = time.perf_counter()
+        try:
+            await client.get(f"/v1/jobs/{job_id}")
+            latencies.append(time.perf_counter() - start)
+        except httpx.HTTPError:
+            answers["status error"] = answers.get("status error", 0) + 1
+        await asyncio.sleep(0.05)
+
+
 async def status_under_renders(base_url: str, job_id: str, clients: int, seconds: float) -> dict:
     """`clients` render loops and STATUS_POLLERS status loops for `seconds`; latencies and answer counts."""
     latencies: list[float] = []
     answers: dict[str, int] = {}
     deadline = time.perf_counter() + seconds
+
+    def until() -> bool:
+        return time.perf_counter() >= deadline
+
     limits = httpx.Limits(max_connections=clients + STATUS_POLLERS + 4)
     async with httpx.AsyncClient(base_url=base_url, limits=limits, timeout=120) as client:
-
-        async def renderer() -> None:
-            rng = random.Random()
-            while time.perf_counter() < deadline:
-                camera = {
-                    "eye": [rng.uniform(2, 4), rng.uniform(-4, -2), rng.uniform(0.5, 2)],
-                    "look_at": [0.0, 0.0, 0.0],
-                    "width": RENDER_SIDE,
-                    "height": RENDER_SIDE,
-                }
-                try:
-                    response = await client.post(f"/v1/nerf/{job_id}/render", json=camera)
-                    key = str(response.status_code)
-                    if response.status_code in (429, 503):
-                        await asyncio.sleep(float(response.headers.get("Retry-After", "1")))
-                except httpx.HTTPError as error:
-                    key = type(error).__name__
-                answers[key] = answers.get(key, 0) + 1
-
-        async def poller() -> None:
-            while time.perf_counter() < deadline:
-                start = time.perf_counter()
-                try:
-                    await client.get(f"/v1/jobs/{job_id}")
-                    latencies.append(time.perf_counter() - start)
-                except httpx.HTTPError:
-                    answers["status error"] = answers.get("status error", 0) + 1
-                await asyncio.sleep(0.05)
-
         await asyncio.gather(
-            *(renderer() for _ in range(clients)), *(poller() for _ in range(STATUS_POLLERS))
+            *(render_loop(client, job_id, until, answers) for _ in range(clients)),
+            *(status_loop(client, job_id, until, latencies, answers) for _ in range(STATUS_POLLERS)),
         )
     return {"latencies": latencies, "answers": answers}
+
+
+def process_tree_rss(root_pid: int) -> tuple[int, int]:
+    """(RSS of the process, RSS of it and every descendant), bytes (Linux /proc)."""
+    children: dict[int, list[int]] = {}
+    rss: dict[int, int] = {}
+    page = os.sysconf("SC_PAGE_SIZE")
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:  # it exited meanwhile
+            continue
+        children.setdefault(int(fields[1]), []).append(int(entry.name))
+        rss[int(entry.name)] = int(fields[21]) * page
+    tree, pending = 0, [root_pid]
+    while pending:
+        pid = pending.pop()
+        tree += rss.get(pid, 0)
+        pending += children.get(pid, [])
+    return rss.get(root_pid, 0), tree
+
+
+async def peak_rss(pid: int, until: Callable[[], bool]) -> tuple[int, int]:
+    """The peak of process_tree_rss(pid), sampled every RSS_SAMPLE_SECONDS until `until()`."""
+    peak_api, peak_tree = 0, 0
+    while not until():
+        api, tree = await asyncio.to_thread(process_tree_rss, pid)
+        peak_api, peak_tree = max(peak_api, api), max(peak_tree, tree)
+        await asyncio.sleep(RSS_SAMPLE_SECONDS)
+    return peak_api, peak_tree
+
+
+async def scenes_under_renders(
+    base_url: str, server_pid: int, nerf_id: str, scenes: int, renderers: int, scene_options: dict
+) -> dict:
+    """`scenes` clients each POST a Unity Hall scene at the same moment and poll it to its end, while
+    `renderers` clients render views of the NeRF job and STATUS_POLLERS poll its status; the status
+    latencies, render answers, each scene's seconds, and the API's peak RSS (alone and with its children)."""
+    latencies: list[float] = []
+    answers: dict[str, int] = {}
+    ended: list[tuple[str, float]] = []
+    photos = unity_hall_files(UNITY_HALL)
+    begun = time.perf_counter()
+
+    def until() -> bool:
+        return len(ended) == scenes or time.perf_counter() - begun > SCENE_TIMEOUT_SECONDS
+
+    async def one_scene(client: httpx.AsyncClient) -> None:
+        response = await client.post("/v1/scenes", files=photos, data=scene_options)
+        if response.status_code != 202:
+            ended.append((f"refused {response.status_code}", time.perf_counter() - begun))
+            return
+        state = "running"
+        while state == "running" and time.perf_counter() - begun < SCENE_TIMEOUT_SECONDS:
+            await asyncio.sleep(0.5)
+            try:
+                state = (await client.get(response.headers["Location"])).json()["state"]
+            except httpx.HTTPError as error:
+                answers[f"scene status {type(error).__name__}"] = (
+                    answers.get(f"scene status {type(error).__name__}", 0) + 1
+                )
+        ended.append((state, time.perf_counter() - begun))
+
+    limits = httpx.Limits(max_connections=scenes + renderers + STATUS_POLLERS + 4)
+    async with httpx.AsyncClient(base_url=base_url, limits=limits, timeout=300) as client:
+        _, (api_rss, tree_rss), *_ = await asyncio.gather(
+            asyncio.gather(*(one_scene(client) for _ in range(scenes))),
+            peak_rss(server_pid, until),
+            *(render_loop(client, nerf_id, until, answers) for _ in range(renderers)),
+            *(status_loop(client, nerf_id, until, latencies, answers) for _ in range(STATUS_POLLERS)),
+        )
+    return {"latencies": latencies, "answers": answers, "ended": ended, "api_rss": api_rss,
+            "tree_rss": tree_rss}  # fmt: skip
+
+
+def trained_tiny_nerf(client: httpx.Client) -> str:
+    """The id of a tiny NeRF trained through the API (the renders' model)."""
+    files = {"dataset": ("tiny.npz", tiny_nerf_npz(LEGO_TINY, TINY_SIDE), "application/octet-stream")}
+    job_id = client.post("/v1/nerf", files=files, data=TINY_NERF).json()["id"]
+    assert wait_finished(client, job_id)["state"] == "succeeded"
+    return job_id
+
+
+def load_section(args: argparse.Namespace) -> None:
+    """Scenes submitted at once while clients render: status latency, scenes per hour, API peak RSS."""
+    scene_options = {
+        "steps": str(args.load_scene_steps),
+        "batch_rays": "256",
+        "options": json.dumps({"max_side": LOAD_SCENE_MAX_SIDE}),
+        "orbit_frames": str(args.load_orbit_frames),
+        "orbit_max_side": "48",
+        "held_out_max_side": "40",
+    }
+    with (
+        tempfile.TemporaryDirectory(prefix="sfmnerf-bench-") as tmp,
+        open(Path(tmp) / "server.log", "wb") as log,
+    ):
+        port = free_port()
+        server = start_server(Path(tmp) / "data", port, log=log)
+        base_url = f"http://127.0.0.1:{port}"
+        try:
+            with httpx.Client(base_url=base_url, timeout=60) as client:
+                nerf_id = trained_tiny_nerf(client)
+            row = asyncio.run(scenes_under_renders(
+                base_url, server.pid, nerf_id, args.load_scenes, args.load_renderers, scene_options
+            ))  # fmt: skip
+            stopping = time.perf_counter()  # the renders' clients are gone; their requests may still run
+            server.terminate()
+            server.wait(timeout=120)
+            exit_seconds = time.perf_counter() - stopping
+        finally:
+            if server.poll() is None:
+                server.kill()
+                server.wait()
+        tracebacks = (Path(tmp) / "server.log").read_text(errors="replace").count("Traceback")
+    ms = np.array(row["latencies"]) * 1000
+    states = ", ".join(f"{k}: {v}" for k, v in sorted(Counter(state for state, _ in row["ended"]).items()))
+    last = max(seconds for _, seconds in row["ended"])
+    succeeded = sum(state == "succeeded" for state, _ in row["ended"])
+    answers = ", ".join(f"{k}: {v}" for k, v in sorted(row["answers"].items()))
+    print(
+        f"{args.load_scenes} clients each POST a Unity Hall scene at once ({args.load_scene_steps} NeRF "
+        f"steps of 256 rays at <= {LOAD_SCENE_MAX_SIDE} px, {args.load_orbit_frames} orbit frames) while "
+        f"{args.load_renderers} clients render {RENDER_SIDE}x{RENDER_SIDE} views and {STATUS_POLLERS} poll "
+        "GET /v1/jobs/{id}; embedded defaults"
+    )
+    print("| status requests | p50 ms | p99 ms | max ms | scenes | last scene ended s | succeeded per hour | "
+          "API peak RSS MB | API tree peak RSS MB | render answers |")  # fmt: skip
+    print("|---:|---:|---:|---:|---|---:|---:|---:|---:|---|")
+    print(
+        f"| {len(ms)} | {np.percentile(ms, 50):.1f} | {np.percentile(ms, 99):.1f} | {ms.max():.1f} | "
+        f"{states} | {last:.1f} | {3600 * succeeded / last:.0f} | {row['api_rss'] / 2**20:.0f} | "
+        f"{row['tree_rss'] / 2**20:.0f} | {answers} |"
+    )
+    print(f"tracebacks in the server's log: {tracebacks}; exit after SIGTERM: {exit_seconds:.1f} s")
+    print(flush=True)
 
 
 def render_section(root: Path, counts: list[int], seconds: float) -> list[tuple[int, dict]]:
@@ -171,10 +332,7 @@ def render_section(root: Path, counts: list[int], seconds: float) -> list[tuple[
         base_url = f"http://127.0.0.1:{port}"
         try:
             with httpx.Client(base_url=base_url, timeout=60) as client:
-                dataset = tiny_nerf_npz(LEGO_TINY, TINY_SIDE)
-                files = {"dataset": ("tiny.npz", dataset, "application/octet-stream")}
-                job_id = client.post("/v1/nerf", files=files, data=TINY_NERF).json()["id"]
-                assert wait_finished(client, job_id)["state"] == "succeeded"
+                job_id = trained_tiny_nerf(client)
             for count in counts:
                 rows.append((count, asyncio.run(status_under_renders(base_url, job_id, count, seconds))))
         finally:
@@ -348,6 +506,10 @@ def main() -> None:
         "--render-clients", type=int, nargs="+", default=[8, 60], help="Render client counts."
     )
     parser.add_argument("--render-seconds", type=float, default=30.0, help="Window of each render load.")
+    parser.add_argument("--load-scenes", type=int, default=8, help="Scenes submitted at once (load).")
+    parser.add_argument("--load-renderers", type=int, default=48, help="Render clients beside them (load).")
+    parser.add_argument("--load-scene-steps", type=int, default=20, help="NeRF steps of those scenes.")
+    parser.add_argument("--load-orbit-frames", type=int, default=4, help="Orbit frames of those scenes.")
     parser.add_argument(
         "--compare-root", type=Path, default=None, help="Another checkout to run side by side."
     )
@@ -355,7 +517,9 @@ def main() -> None:
     sections = set(args.sections)
     if "renders" in sections:
         print_render_section(args)
-    if not sections - {"renders"}:
+    if "load" in sections:
+        load_section(args)
+    if not sections - {"renders", "load"}:
         return
     scene_options = {
         "steps": str(args.scene_steps),

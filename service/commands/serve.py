@@ -6,6 +6,10 @@ from pathlib import Path
 
 import click
 
+SHUTDOWN_GRACE_SECONDS = 5.0
+"""On SIGTERM, requests still running after this long are cancelled (renders waiting in a full queue held
+the exit for ~50 s), then the running jobs are stopped and re-queued."""
+
 
 @click.command()
 @click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on.")
@@ -41,4 +45,10 @@ def serve(host: str, port: int, data_dir: Path | None, concurrency: int | None, 
         f"sfmnerf: data in {settings.data_dir}, executor {settings.executor}, "
         f"database {settings.resolved_database_url.split('@')[-1]}"
     )
-    uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level)
+    uvicorn.run(
+        create_app(settings),
+        host=host,
+        port=port,
+        log_level=log_level,
+        timeout_graceful_shutdown=SHUTDOWN_GRACE_SECONDS,
+    )

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import IO
 
 import httpx
 import redis
@@ -51,12 +52,17 @@ def start_redis(folder: Path) -> tuple[subprocess.Popen, str]:
 
 
 def start_server(
-    data_dir: Path, port: int, root: Path = ROOT, settings: dict[str, str] | None = None
+    data_dir: Path,
+    port: int,
+    root: Path = ROOT,
+    settings: dict[str, str] | None = None,
+    log: IO[bytes] | None = None,
 ) -> subprocess.Popen:
     """`sfmnerf serve` in its own process, as a user runs it; returns once /readyz answers 200.
 
     `root`: the source tree whose service runs (another checkout, to compare versions in one benchmark);
-    `settings`: SFMNERF_* environment variables for it."""
+    `settings`: SFMNERF_* environment variables for it; `log`: where its stdout and stderr go (default:
+    nowhere). It leads its own process group, so a test can kill it with every process it started."""
     process = subprocess.Popen(
         [
             sys.executable,
@@ -74,8 +80,9 @@ def start_server(
         ],
         cwd=root,
         env={**os.environ, **(settings or {}), "PYTHONPATH": str(root)},
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        stdout=log or subprocess.DEVNULL,
+        stderr=subprocess.STDOUT if log else subprocess.DEVNULL,
+        start_new_session=True,
     )
     deadline = time.monotonic() + SERVER_START_SECONDS
     while time.monotonic() < deadline:
