@@ -163,7 +163,8 @@ def test_an_unexpected_render_error_is_answered_at_once_as_500_without_server_pa
         raise RuntimeError(f"out of luck in {tmp_path}")
 
     monkeypatch.setattr(renders, "render_png", crash)
-    spec = RenderSpec("job", str(tmp_path), "latest", 1, tuple(map(tuple, np.eye(4))), 8, 8, None, None)
+    spec = RenderSpec("job", str(tmp_path), "latest", 1, tuple(map(tuple, np.eye(4))), "data", 8, 8, None,
+                      None)
     out_path, error_path = tmp_path / "view.png", tmp_path / "view.error"
     run_render_task(asdict(spec), str(out_path), str(error_path), None)
     answer = read_render_error(error_path)
@@ -212,7 +213,8 @@ def test_a_render_goes_to_a_celery_worker_and_its_error_comes_back(celery_setup,
     settings = client.app.state.settings
     run_dir = settings.jobs_dir / "norun" / "output"
     run_dir.mkdir(parents=True)
-    spec = RenderSpec("norun", str(run_dir), "latest", 1, tuple(map(tuple, np.eye(4))), 8, 8, None, None)
+    spec = RenderSpec("norun", str(run_dir), "latest", 1, tuple(map(tuple, np.eye(4))), "data", 8, 8, None,
+                      None)
     with pytest.raises(RenderFailed) as failed:
         asyncio.run(RenderQueue(settings).render(spec))
     assert failed.value.status_code == 422 and failed.value.detail.startswith("checkpoint:")

@@ -82,7 +82,8 @@ def test_the_migrations_build_exactly_the_models_schema_with_a_separate_owner_re
             assert MigrationContext.configure(connection).get_current_revision() == "0005"
             columns = {c["name"]: c for c in inspect(connection).get_columns("jobs")}
         assert columns["owner"]["nullable"] and {"supervisor_id", "pinned"} <= set(columns)
-        assert store.create(JobKind.video, {}).params == {"num_frames": 36, "width": 200, "height": 200}
+        video_defaults = {"num_frames": 36, "width": 200, "height": 200, "path": "captured"}
+        assert store.create(JobKind.video, {}).params == video_defaults
     finally:
         store.dispose()
 
