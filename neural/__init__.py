@@ -13,8 +13,8 @@ _EXPORTS: dict[str, str] = {
     "TrainConfig": "neural.config",
     "Dataset": "neural.data",
     "load_dataset": "neural.data",
-    "SceneInfo": "neural.scene",
-    "SceneNormalization": "neural.scene",
+    "Bounds": "neural.bounds",
+    "SceneNormalization": "neural.bounds",
     "TrainResult": "neural.training",
     "train": "neural.training",
     "render_view": "neural.inference",
@@ -37,7 +37,7 @@ __all__ = [
     "DatasetError",
     "EvalResult",
     "ImageMetrics",
-    "SceneInfo",
+    "Bounds",
     "SceneNormalization",
     "TrainConfig",
     "TrainResult",
@@ -52,6 +52,7 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
+    from neural.bounds import Bounds, SceneNormalization
     from neural.checkpoints import CheckpointInfo, list_checkpoints
     from neural.config import TrainConfig
     from neural.data import Dataset, load_dataset
@@ -59,7 +60,6 @@ if TYPE_CHECKING:
     from neural.evaluation import EvalResult, ImageMetrics, evaluate
     from neural.inference import load_run, render_orbit, render_view
     from neural.models import build_model
-    from neural.scene import SceneInfo, SceneNormalization
     from neural.training import TrainResult, train
 
 

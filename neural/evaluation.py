@@ -12,7 +12,7 @@ import torch
 
 from neural.artefacts import IMAGE_CACHE_DIR
 from neural.data import Dataset, load_dataset_for
-from neural.inference import Camera, load_run, render_frame, to_uint8
+from neural.inference import PinholeIntrinsics, load_run, render_frame, to_uint8
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ def evaluate(
         if isinstance(data, Dataset)
         else load_dataset_for(data, run.config, Path(run_dir) / IMAGE_CACHE_DIR)
     )
-    camera = Camera(dataset.width, dataset.height, dataset.fx, dataset.fy, dataset.cx, dataset.cy)
+    camera = PinholeIntrinsics(dataset.width, dataset.height, dataset.fx, dataset.fy, dataset.cx, dataset.cy)
     if out_dir is not None:
         Path(out_dir).mkdir(parents=True, exist_ok=True)
     metrics, seconds = [], 0.0

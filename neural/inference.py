@@ -2,7 +2,7 @@
 
 A run's poses live in its scene frame; callers pass poses in the dataset's original frame (for Blender and
 tiny-NeRF data the two coincide; a reconstruction's frame is re-centred and scaled, see
-neural.scene.SceneNormalization) or in the capture frame of its photos (neural.camera_path.capture_frame),
+neural.bounds.SceneNormalization) or in the capture frame of its photos (neural.camera_path.capture_frame),
 or no pose for the default view (a registered camera), and this module converts them, once.
 """
 
@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from neural.artefacts import RUN_CONFIG_FILE
+from neural.bounds import Bounds, SceneNormalization
 from neural.camera_path import (
     CameraPathError,
     Capture,
@@ -33,7 +34,6 @@ from neural.config import TrainConfig
 from neural.errors import CheckpointError
 from neural.models import RadianceModel, build_model
 from neural.rays import generate_rays
-from neural.scene import SceneInfo, SceneNormalization
 from neural.video import write_video
 
 #: Orbit cameras sit this many degrees above the plane normal to the mean training "up".
@@ -64,7 +64,7 @@ class RenderedImage(NamedTuple):
 
 
 @dataclass(frozen=True)
-class Camera:
+class PinholeIntrinsics:
     """Pinhole intrinsics in pixels for an image of width x height."""
 
     width: int
@@ -74,10 +74,10 @@ class Camera:
     cx: float
     cy: float
 
-    def downscaled(self, factor: int) -> Camera:
+    def downscaled(self, factor: int) -> PinholeIntrinsics:
         """The camera of factor x factor pixel blocks (the image cropped to whole blocks)."""
         f = float(factor)
-        return Camera(
+        return PinholeIntrinsics(
             self.width // factor, self.height // factor, self.fx / f, self.fy / f, self.cx / f, self.cy / f
         )
 
@@ -88,9 +88,9 @@ class LoadedRun:
 
     model: RadianceModel
     config: TrainConfig
-    scene: SceneInfo
+    scene: Bounds
     normalization: SceneNormalization
-    camera: Camera
+    camera: PinholeIntrinsics
     orbit: dict[str, Any]
     step: int
     device: torch.device
@@ -141,7 +141,7 @@ def render_rays_chunked(
     model: RadianceModel,
     origins: Tensor,
     directions: Tensor,
-    scene: SceneInfo,
+    scene: Bounds,
     background: Tensor,
     chunk_rays: int,
 ) -> RenderedImage:
@@ -167,8 +167,8 @@ def render_rays_chunked(
 def render_image(
     model: RadianceModel,
     c2w_scene: Tensor,
-    camera: Camera,
-    scene: SceneInfo,
+    camera: PinholeIntrinsics,
+    scene: Bounds,
     background: Tensor,
     chunk_rays: int,
 ) -> RenderedImage:
@@ -184,7 +184,7 @@ def to_uint8(rgb: Tensor | np.ndarray) -> np.ndarray:
     return (np.clip(array, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def depth_to_uint8(depth: Tensor, scene: SceneInfo) -> np.ndarray:
+def depth_to_uint8(depth: Tensor, scene: Bounds) -> np.ndarray:
     """Depth as a grey (H,W,3) image, near bright: linear from [near, far] to [255, 0], or for an unbounded
     scene (far is very far) as disparity near / depth."""
     if scene.unbounded:
@@ -217,7 +217,7 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
             f"{path}: checkpoint holds model {payload.get('model_name')!r} but {run_dir / RUN_CONFIG_FILE} "
             f"says {config.model!r}"
         )
-    scene = SceneInfo.from_dict(info["scene"])
+    scene = Bounds.from_dict(info["scene"])
     model = build_model(config.model, scene, **payload["model_config"]).to(target)
     load_model_state(model, payload["model_state"], path)
     model.eval()
@@ -226,7 +226,7 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
         config=config,
         scene=scene,
         normalization=SceneNormalization.from_dict(info["normalization"]),
-        camera=Camera(**info["camera"]),
+        camera=PinholeIntrinsics(**info["camera"]),
         orbit=info["orbit"],
         step=int(payload["step"]),
         device=target,
@@ -236,18 +236,20 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
     )
 
 
-def view_camera(run: LoadedRun, width: int, height: int, fx: float | None, fov_x: float | None) -> Camera:
+def view_camera(
+    run: LoadedRun, width: int, height: int, fx: float | None, fov_x: float | None
+) -> PinholeIntrinsics:
     """Intrinsics for a requested view: fx given, else from the horizontal field of view, else the training
     camera's, scaled to the requested width; fy = fx (square pixels), principal point at the centre."""
     if fx is None and fov_x is not None:
         fx = 0.5 * width / math.tan(0.5 * fov_x)
     if fx is None:
         fx = run.camera.fx * width / run.camera.width
-    return Camera(width, height, fx, fx, width / 2.0, height / 2.0)
+    return PinholeIntrinsics(width, height, fx, fx, width / 2.0, height / 2.0)
 
 
 def render_frame(
-    run: LoadedRun, c2w: np.ndarray | None, camera: Camera, frame: PoseFrame = "data"
+    run: LoadedRun, c2w: np.ndarray | None, camera: PinholeIntrinsics, frame: PoseFrame = "data"
 ) -> RenderedImage:
     """Render a view whose camera-to-world pose (OpenGL) is given in `frame` (None: the default view)."""
     pose = torch.as_tensor(run.pose_to_scene(c2w, frame), dtype=torch.float32, device=run.device)

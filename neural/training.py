@@ -46,7 +46,7 @@ from neural.config import TrainConfig
 from neural.data import FORMAT_DEFAULTS, Dataset, dataset_format, load_dataset_for
 from neural.errors import CheckpointError
 from neural.inference import (
-    Camera,
+    PinholeIntrinsics,
     background_colour,
     depth_to_uint8,
     orbit_parameters,
@@ -311,7 +311,7 @@ class Trainer:
         self.background = background_colour(self.config.background, self.device)
         self.sampler = RayBatchSampler(self.dataset, self.dataset.split("train"), self.device)
         self.val_index = self._first_val_index()
-        camera = Camera(
+        camera = PinholeIntrinsics(
             self.dataset.width, self.dataset.height, self.dataset.fx, self.dataset.fy, self.dataset.cx,
             self.dataset.cy,
         )  # fmt: skip

@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 
+from neural.bounds import Bounds
 from neural.data.dataset import SPLITS, Dataset
 from neural.data.files import check_rigid_pose, image_path, read_json, require
 from neural.data.images import ImageLoading, check_same_size
 from neural.errors import DatasetError
-from neural.scene import SceneInfo
 
 #: The NeRF-synthetic convention for Blender scenes and tiny-NeRF files without their own bounds.
 SYNTHETIC_NEAR, SYNTHETIC_FAR = 2.0, 6.0
@@ -46,7 +46,7 @@ def synthetic_dataset(
         fy=focal * height / original_height,
         cx=width / 2.0,
         cy=height / 2.0,
-        scene=SceneInfo(
+        scene=Bounds(
             near=near, far=far, scene_box_min=(-half, -half, -half), scene_box_max=(half, half, half)
         ),
         splits=splits,

@@ -7,9 +7,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from neural.bounds import Bounds, SceneNormalization
 from neural.data.dataset import Dataset
 from neural.errors import DatasetError
-from neural.scene import SceneInfo, SceneNormalization
 
 #: Percentiles of the sparse points that bound a reconstruction's box (robust to stray points).
 POINT_BOX_PERCENTILES = (2.0, 98.0)
@@ -56,7 +56,7 @@ def unbounded_scene(dataset: Dataset) -> Dataset:
     low = np.minimum(np.asarray(dataset.scene.scene_box_min), centres.min(axis=0))
     high = np.maximum(np.asarray(dataset.scene.scene_box_max), centres.max(axis=0))
     half_side = 0.5 * float((high - low).max())
-    scene = SceneInfo(
+    scene = Bounds(
         near=dataset.scene.near,
         far=max(UNBOUNDED_FAR_HALF_SIDES * half_side, 2.0 * dataset.scene.far),
         scene_box_min=tuple(low.tolist()),

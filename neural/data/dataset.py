@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neural.bounds import Bounds, SceneNormalization
 from neural.errors import DatasetError
-from neural.scene import SceneInfo, SceneNormalization
 
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 
@@ -50,7 +50,7 @@ class Dataset:
     fy: float
     cx: float
     cy: float
-    scene: SceneInfo
+    scene: Bounds
     splits: dict[str, np.ndarray]  # split name -> indices into images
     image_names: list[str]
     source: Path

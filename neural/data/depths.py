@@ -11,9 +11,9 @@ import numpy as np
 from estimation.artefacts import DEPTHS_NAME
 from estimation.errors import InputError
 from estimation.io.export import read_depths
+from neural.bounds import SceneNormalization
 from neural.data.dataset import DepthRays
 from neural.errors import DatasetError
-from neural.scene import SceneNormalization
 
 
 def project_to_pixels(

@@ -11,13 +11,13 @@ import numpy as np
 from estimation.artefacts import PLY_NAME, SPARSE_DIR, TRANSFORMS_NAME
 from estimation.errors import InputError
 from estimation.io.export import read_colmap_points, read_ply_points
+from neural.bounds import Bounds
 from neural.data.bounds import near_far_from_points, normalization_from_points
 from neural.data.dataset import SPLITS, Dataset
 from neural.data.depths import load_depth_rays
 from neural.data.files import check_rigid_pose, image_path, read_json, require
 from neural.data.images import ImageLoading
 from neural.errors import DatasetError
-from neural.scene import SceneInfo
 from neural.undistortion import camera_from_transforms, pinhole_target, resample_to, to_nerfstudio_intrinsics
 
 #: A reconstruction without listed splits holds out every HOLDOUT_EVERY-th frame for validation (LLFF).
@@ -79,7 +79,7 @@ def load_reconstruction(
     normalization, box_low, box_high = normalization_from_points(points)
     scene_poses = normalization.pose_to_scene(original_poses)
     near, far = near_far_from_points(scene_poses, normalization.points_to_scene(points))
-    scene = SceneInfo(
+    scene = Bounds(
         near=near, far=far, scene_box_min=tuple(box_low.tolist()), scene_box_max=tuple(box_high.tolist())
     )
     target = file_camera

@@ -9,7 +9,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from neural.config import ModelName
-from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
+from neural.models.base import Bounds, RadianceModel, RayBundleOutput
 
 #: name -> (module, model class, config class); modules are imported on demand, so the package works
 #: (and imports quickly) whichever models are present.
@@ -30,7 +30,7 @@ def model_classes(name: str) -> tuple[type[RadianceModel], type[BaseModel]]:
     return getattr(module, model_name), getattr(module, config_name)
 
 
-def build_model(name: ModelName, scene: SceneInfo, **overrides: Any) -> RadianceModel:
+def build_model(name: ModelName, scene: Bounds, **overrides: Any) -> RadianceModel:
     """The model `name` for `scene`, its config fields overridden by `overrides` (unknown ones are errors)."""
     model_type, config_type = model_classes(name)
     return model_type(scene, config_type(**overrides))
@@ -41,7 +41,7 @@ __all__ = [
     "ModelName",
     "RadianceModel",
     "RayBundleOutput",
-    "SceneInfo",
+    "Bounds",
     "build_model",
     "model_classes",
 ]

@@ -9,10 +9,10 @@ import torch
 from pydantic import BaseModel
 from torch import Tensor
 
+from neural.bounds import Bounds
 from neural.rendering import SampleWeights
-from neural.scene import SceneInfo
 
-__all__ = ["RadianceModel", "RayBundleOutput", "SceneInfo"]
+__all__ = ["RadianceModel", "RayBundleOutput", "Bounds"]
 
 
 @dataclass
@@ -44,13 +44,13 @@ class RadianceModel(torch.nn.Module):
     #: Training settings this model works best with (keys of neural.config.MODEL_DEFAULTABLE), used
     #: where the user's TrainConfig leaves them unset.
     train_defaults: ClassVar[dict[str, Any]] = {}
-    #: Whether the model renders `SceneInfo.unbounded` scenes (content beyond the scene box).
+    #: Whether the model renders `Bounds.unbounded` scenes (content beyond the scene box).
     supports_unbounded: ClassVar[bool] = False
     #: Whether training renders return their packed samples' weights (`RayBundleOutput.samples`).
     packs_samples: ClassVar[bool] = False
     config: BaseModel
 
-    def __init__(self, scene: SceneInfo) -> None:
+    def __init__(self, scene: Bounds) -> None:
         super().__init__()
         self.scene = scene
 

@@ -11,7 +11,7 @@ Speed comes from (1) an occupancy grid, recomputed from the density grid itself,
 (2) a coarse-to-fine schedule that upsamples the grids and refits them to the occupied box, with the sample
 spacing tied to the voxel size, and (3) early ray termination and skipping the colour of samples with
 negligible weight. Everything is learned from RGB images alone; no masks, no assumed background.
-Unbounded scenes (`SceneInfo.unbounded`): the grids cover contracted space (neural.contraction: the scene
+Unbounded scenes (`Bounds.unbounded`): the grids cover contracted space (neural.contraction: the scene
 box is kept as it is, everything beyond is squeezed into a shell of thickness `shell_thickness`), points are
 contracted before every grid lookup, and rays are sampled at equal steps in contracted space
 (neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it).
@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from neural.contraction import InnerBox, uncontracted_norm
-from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
+from neural.models.base import Bounds, RadianceModel, RayBundleOutput
 from neural.occupancy import (
     GridSchedule,
     OccupancyGrid,
@@ -199,7 +199,7 @@ class FastModel(GridSchedule, RadianceModel):
         "precrop_steps": 0,
     }
 
-    def __init__(self, scene: SceneInfo, config: FastModelConfig | None = None) -> None:
+    def __init__(self, scene: Bounds, config: FastModelConfig | None = None) -> None:
         super().__init__(scene)
         self.config = config or FastModelConfig()
         # Grid coordinates: the world (scene frame) if bounded, contracted space for an unbounded scene.

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
-from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
+from neural.models.base import Bounds, RadianceModel, RayBundleOutput
 from neural.models.fast import MAX_LOG_DENSITY, grid_shape_for, sh_colour
 from neural.occupancy import GridSchedule, OccupancyGrid, render_packed_samples
 from neural.rendering import packed_distortion
@@ -108,7 +108,7 @@ class TensorVMModel(GridSchedule, RadianceModel):
     }
     map_positions = staticmethod(identity_positions)
 
-    def __init__(self, scene: SceneInfo, config: TensorVMConfig | None = None) -> None:
+    def __init__(self, scene: Bounds, config: TensorVMConfig | None = None) -> None:
         super().__init__(scene)
         self.config = config or TensorVMConfig()
         box_min = torch.tensor(scene.scene_box_min, dtype=torch.float32)

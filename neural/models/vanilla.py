@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor, nn
 
 from neural.encoding import PositionalEncoding
-from neural.models.base import RadianceModel, RayBundleOutput, SceneInfo
+from neural.models.base import Bounds, RadianceModel, RayBundleOutput
 from neural.rendering import RenderOutput, volume_render
 from neural.sampling import sample_pdf, stratified_samples
 
@@ -107,7 +107,7 @@ class VanillaModel(RadianceModel):
         "precrop_steps": 500,
     }
 
-    def __init__(self, scene: SceneInfo, config: VanillaModelConfig | None = None) -> None:
+    def __init__(self, scene: Bounds, config: VanillaModelConfig | None = None) -> None:
         super().__init__(scene)
         self.config = config or VanillaModelConfig()
         self.coarse = NerfMLP(self.config)

@@ -16,7 +16,7 @@ import click
 from neural.config import ModelName
 
 if TYPE_CHECKING:
-    from neural.inference import Camera
+    from neural.inference import PinholeIntrinsics
 
 USER_ERRORS: tuple[type[Exception], ...] = (ValueError, FileNotFoundError)  # DatasetError/CheckpointError too
 
@@ -111,7 +111,9 @@ def frames_from_transforms(path: Path) -> tuple[dict[str, Any], list[dict[str, A
     return meta, checked
 
 
-def camera_for_transforms(default: Camera, meta: dict[str, Any], path: Path | str) -> Camera:
+def camera_for_transforms(
+    default: PinholeIntrinsics, meta: dict[str, Any], path: Path | str
+) -> PinholeIntrinsics:
     """The intrinsics a transforms JSON asks for, at the default camera's (requested) size.
 
     fx: fl_x scaled from the file's width w, else 0.5 W / tan(camera_angle_x / 2), else the default's;

@@ -7,10 +7,10 @@ import math
 
 import torch
 
+from neural.bounds import Bounds
 from neural.models.base import RadianceModel
 from neural.occupancy import ray_box_intersection
 from neural.rays import generate_rays
-from neural.scene import SceneInfo
 
 # Three coloured boxes (min, max, rgb) on a white background, seen from a ring of cameras.
 BOXES = [
@@ -18,7 +18,7 @@ BOXES = [
     ((0.1, -0.3, -0.5), (0.6, 0.3, 0.5), (0.1, 0.8, 0.2)),
     ((-0.3, -0.6, 0.25), (0.3, -0.1, 0.6), (0.1, 0.2, 0.9)),
 ]
-SCENE = SceneInfo(near=1.5, far=5.0, scene_box_min=(-1.0, -1.0, -1.0), scene_box_max=(1.0, 1.0, 1.0))
+SCENE = Bounds(near=1.5, far=5.0, scene_box_min=(-1.0, -1.0, -1.0), scene_box_max=(1.0, 1.0, 1.0))
 WHITE = torch.ones(3)
 
 
@@ -64,7 +64,7 @@ def ring_views(
 
 #: The unbounded scene: the boxes inside a textured sphere of this radius around the origin.
 SPHERE_RADIUS = 30.0
-UNBOUNDED_SCENE = SceneInfo(
+UNBOUNDED_SCENE = Bounds(
     near=0.2, far=3000.0, scene_box_min=(-3.0, -3.0, -3.0), scene_box_max=(3.0, 3.0, 3.0), unbounded=True
 )
 

@@ -5,10 +5,10 @@ import math
 import torch
 
 from neural.encoding import PositionalEncoding
-from neural.models import SceneInfo, build_model
+from neural.models import Bounds, build_model
 from neural.models.vanilla import NerfMLP, VanillaModelConfig
 
-SCENE = SceneInfo(near=2.0, far=6.0, scene_box_min=(-1.5, -1.5, -1.5), scene_box_max=(1.5, 1.5, 1.5))
+SCENE = Bounds(near=2.0, far=6.0, scene_box_min=(-1.5, -1.5, -1.5), scene_box_max=(1.5, 1.5, 1.5))
 
 
 def test_encoding_sizes_for_the_paper_settings_include_the_raw_input():

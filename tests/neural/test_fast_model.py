@@ -9,7 +9,7 @@ import torch
 
 from neural.checkpoints import load_model_state
 from neural.models import build_model
-from neural.models.base import SceneInfo
+from neural.models.base import Bounds
 from neural.models.fast import FastModel, FastModelConfig
 from neural.occupancy import OccupancyGrid, ray_box_intersection
 from neural.rendering import volume_render, volume_render_packed
@@ -198,7 +198,7 @@ def test_a_model_config_stored_before_the_view_grid_existed_keeps_one_colour_gri
 def test_a_model_config_stored_before_the_inner_box_existed_keeps_the_cube_and_its_full_shell():
     """Unbounded checkpoints written before inner_region / shell_thickness hold grids over the cube's
     contracted space [-2, 2]^3; their stored config builds that model again, and its checkpoint loads."""
-    flat = SceneInfo(near=0.1, far=1000.0, scene_box_min=(-2.0, -0.5, -1.0), scene_box_max=(2.0, 0.5, 1.0),
+    flat = Bounds(near=0.1, far=1000.0, scene_box_min=(-2.0, -0.5, -1.0), scene_box_max=(2.0, 0.5, 1.0),
                      unbounded=True)  # fmt: skip
     stored = small_config().model_dump()
     for name in ("inner_region", "shell_thickness", "shell_initial_alpha", "occupancy_min_seen_steps"):
@@ -214,7 +214,7 @@ def test_a_model_config_stored_before_the_inner_box_existed_keeps_the_cube_and_i
 def test_an_unbounded_grid_keeps_a_flat_scene_box_at_equal_voxels_and_most_of_them_inside():
     """A facade-like box (4 x 1 x 2): inside it grid coordinates are world / 2, so the voxels are as long
     along every axis; the thin shell leaves the box 1 / (1 + w)^3 of the voxels, and the world fits in."""
-    flat = SceneInfo(near=0.1, far=1000.0, scene_box_min=(-2.0, -0.5, -1.0), scene_box_max=(2.0, 0.5, 1.0),
+    flat = Bounds(near=0.1, far=1000.0, scene_box_min=(-2.0, -0.5, -1.0), scene_box_max=(2.0, 0.5, 1.0),
                      unbounded=True)  # fmt: skip
     model = FastModel(flat, small_config(initial_voxels=40**3, shell_thickness=0.25))
     assert model.config.inner_region == "box" and model.unit_length == 2.0

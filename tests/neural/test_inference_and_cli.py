@@ -66,11 +66,11 @@ def test_evaluate_reports_each_validation_image(tiny_run, tiny_npz):
 
 
 def test_chunk_size_does_not_change_the_render(tiny_run, tiny_npz):
-    from neural.inference import Camera, load_run, render_image
+    from neural.inference import PinholeIntrinsics, load_run, render_image
 
     run = load_run(tiny_run)
     pose = torch.as_tensor(np.load(tiny_npz)["poses"][0])
-    camera = Camera(10, 10, 70.0, 70.0, 5.0, 5.0)
+    camera = PinholeIntrinsics(10, 10, 70.0, 70.0, 5.0, 5.0)
     whole = render_image(run.model, pose, camera, run.scene, run.background, chunk_rays=1000)
     chunked = render_image(run.model, pose, camera, run.scene, run.background, chunk_rays=7)
     torch.testing.assert_close(whole.rgb, chunked.rgb)
@@ -158,7 +158,7 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, tiny_run):
 
 def test_reconstruction_runs_take_poses_in_the_original_frame(tmp_path):
     from neural.data import load_dataset
-    from neural.inference import Camera, load_run, render_image
+    from neural.inference import PinholeIntrinsics, load_run, render_image
     from tests.neural.test_data import write_reconstruction
 
     _, original_poses, _ = write_reconstruction(tmp_path / "sfm")
@@ -166,7 +166,7 @@ def test_reconstruction_runs_take_poses_in_the_original_frame(tmp_path):
     train(tmp_path / "sfm", tmp_path / "run", config)
     dataset = load_dataset(tmp_path / "sfm")
     run = load_run(tmp_path / "run")
-    camera = Camera(16, 12, 20.0, 20.0, 8.0, 6.0)
+    camera = PinholeIntrinsics(16, 12, 20.0, 20.0, 8.0, 6.0)
     expected = render_image(
         run.model, torch.as_tensor(dataset.poses[2]), camera, run.scene, run.background, 64
     )
@@ -181,10 +181,10 @@ def test_reconstruction_runs_take_poses_in_the_original_frame(tmp_path):
 
 
 def test_render_intrinsics_follow_the_transforms_file_scaled_to_the_requested_size():
-    from neural.inference import Camera
+    from neural.inference import PinholeIntrinsics
     from service.commands.nerf import camera_for_transforms
 
-    default = Camera(400, 300, 999.0, 999.0, 200.0, 150.0)
+    default = PinholeIntrinsics(400, 300, 999.0, 999.0, 200.0, 150.0)
     sfm = {"fl_x": 530.0, "fl_y": 532.0, "cx": 407.5, "cy": 313.5, "w": 800, "h": 600}
     camera = camera_for_transforms(default, sfm, "t.json")
     assert (camera.fx, camera.fy, camera.cx, camera.cy) == (265.0, 266.0, 203.75, 156.75)

@@ -185,7 +185,7 @@ def test_a_run_resumes_as_the_model_it_saved_when_the_model_defaults_changed_sin
 
 
 def test_validation_downscale_keeps_pixel_blocks_and_their_rays_aligned():
-    from neural.inference import Camera
+    from neural.inference import PinholeIntrinsics
     from neural.rays import generate_rays, pixel_rays
     from neural.training import downscale
 
@@ -193,7 +193,7 @@ def test_validation_downscale_keeps_pixel_blocks_and_their_rays_aligned():
     small = downscale(image, 2)
     assert small.shape == (2, 3, 3)
     np.testing.assert_allclose(small[1, 2], image[2:4, 4:6].mean(axis=(0, 1)))
-    camera = Camera(6, 4, fx=5.0, fy=5.0, cx=3.2, cy=1.9)
+    camera = PinholeIntrinsics(6, 4, fx=5.0, fy=5.0, cx=3.2, cy=1.9)
     half = camera.downscaled(2)
     c2w = torch.eye(4, dtype=torch.float64)
     small_rays = generate_rays(c2w, half.width, half.height, half.fx, half.fy, half.cx, half.cy)

@@ -10,8 +10,8 @@ import torch
 from neural.camera_path import CAPTURE_FRAME_EYE, CameraPathError
 from neural.config import TrainConfig
 from neural.inference import (
-    Camera,
     EmptyViewError,
+    PinholeIntrinsics,
     RenderedImage,
     camera_path,
     check_sees_scene,
@@ -46,7 +46,7 @@ def test_a_photo_run_records_every_registered_camera_in_its_config(photo_run):
 def test_a_render_without_a_camera_is_the_default_photos_view(photo_run):
     run = load_run(photo_run / "run")
     default = run.cameras[run.capture().default_index]
-    camera = Camera(16, 12, 20.0, 20.0, 8.0, 6.0)
+    camera = PinholeIntrinsics(16, 12, 20.0, 20.0, 8.0, 6.0)
     expected = render_image(run.model, torch.as_tensor(default, dtype=torch.float32), camera, run.scene,
                             run.background, 64)  # fmt: skip
     rendered = render_view(photo_run / "run", None, 16, 12, fx=20.0).astype(int)

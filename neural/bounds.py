@@ -9,7 +9,7 @@ import numpy as np
 
 
 @dataclass(frozen=True)
-class SceneInfo:
+class Bounds:
     """Ray bounds (near, far: distances along unit directions) and the axis-aligned box holding the scene.
 
     unbounded: the box is only the region of interest; content reaches out to `far` all around it (models
@@ -24,9 +24,9 @@ class SceneInfo:
 
     def __post_init__(self) -> None:
         if not 0 <= self.near < self.far:
-            raise ValueError(f"SceneInfo needs 0 <= near < far, got near={self.near}, far={self.far}")
+            raise ValueError(f"Bounds needs 0 <= near < far, got near={self.near}, far={self.far}")
         if any(lo >= hi for lo, hi in zip(self.scene_box_min, self.scene_box_max, strict=True)):
-            raise ValueError(f"SceneInfo box min {self.scene_box_min} must be below max {self.scene_box_max}")
+            raise ValueError(f"Bounds box min {self.scene_box_min} must be below max {self.scene_box_max}")
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -38,7 +38,7 @@ class SceneInfo:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> SceneInfo:
+    def from_dict(cls, data: dict[str, Any]) -> Bounds:
         return cls(
             near=float(data["near"]),
             far=float(data["far"]),
