@@ -74,16 +74,20 @@ class Api:
         )
 
     def request(self, method: str, path: str, deadline: float, **kwargs) -> httpx.Response:
-        """The first answer that is not a connection failure or a 503 (the API restarting)."""
+        """The first answer that is not a connection failure, a 503 (the API restarting) or a 429 (the
+        upload checks busy: sent again after its Retry-After, as a client should)."""
         while True:
+            pause = RETRY_SECONDS
             try:
                 response = self.client.request(method, path, **kwargs)
-                if response.status_code != 503:
+                if response.status_code == 429:
+                    pause = float(response.headers.get("Retry-After", RETRY_SECONDS))
+                elif response.status_code != 503:
                     return response
             except httpx.TransportError:
                 pass
             assert time.monotonic() < deadline, f"{method} {path}: no answer before the deadline"
-            time.sleep(RETRY_SECONDS)
+            time.sleep(pause)
 
 
 class Submitter(threading.Thread):
