@@ -35,6 +35,7 @@ from service.housekeeping import HOUSEKEEPING_SECONDS, expire_finished_jobs
 from service.job_end import complete_job, runtime_exceeded
 from service.kinds import JobKind, JobState
 from service.layout import WORKER_LOG_NAME, job_dir
+from service.loop_thread import LoopThread
 from service.settings import WORKER_SETTINGS_ENV, ServiceSettings
 from service.store.job_store import JobStore
 from service.store.tables import Job
@@ -127,8 +128,7 @@ class LocalExecutor:
         self.supervisor_id: str | None = None
         self._processes: dict[str, _JobProcess] = {}
         self._wake = threading.Event()
-        self._stopping = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._supervision = LoopThread("sfmnerf-supervisor", self._loop)
         self._lease = _Every(settings.supervisor_lease_seconds / 3)
         self._housekeeping = _Every(HOUSEKEEPING_SECONDS)
 
@@ -137,15 +137,12 @@ class LocalExecutor:
     def start(self) -> None:
         self.supervisor_id = self.store.register_supervisor()
         self._take_over_orphans()
-        self._stopping.clear()
-        self._thread = threading.Thread(target=self._loop, name="sfmnerf-supervisor", daemon=True)
-        self._thread.start()
+        self._supervision.start()
 
     def stop(self) -> None:
-        self._stopping.set()
-        self._wake.set()
-        if self._thread:
-            self._thread.join(timeout=10)
+        self._supervision.stopping.set()
+        self._wake.set()  # the loop may be waiting for work: it sees `stopping` at once
+        self._supervision.stop()
         for job_id, running in list(self._processes.items()):
             running.process.kill()
             running.process.wait()
@@ -164,14 +161,14 @@ class LocalExecutor:
         self._wake.set()  # the owner (this or another API process) sees the job's cancel flag
 
     def problem(self) -> str | None:
-        if self._thread is None or not self._thread.is_alive():
+        if not self._supervision.is_alive():
             return "the job supervisor is not running"
         return None
 
     # ---- the supervisor loop --------------------------------------------------------------------------
 
     def _loop(self) -> None:
-        while not self._stopping.is_set():
+        while not self._supervision.stopping.is_set():
             try:
                 if self._lease.due():
                     self.store.renew_lease(self.supervisor_id)
@@ -305,18 +302,13 @@ class CeleryExecutor:
         self.store = store
         self.celery = make_celery(settings)
         self._housekeeping = _Every(HOUSEKEEPING_SECONDS)
-        self._stopping = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._reaper = LoopThread("sfmnerf-reaper", self._reap_loop)
 
     def start(self) -> None:
-        self._stopping.clear()
-        self._thread = threading.Thread(target=self._reap_loop, name="sfmnerf-reaper", daemon=True)
-        self._thread.start()
+        self._reaper.start()
 
     def stop(self) -> None:
-        self._stopping.set()
-        if self._thread:
-            self._thread.join(timeout=10)
+        self._reaper.stop()
 
     def submit(self, job_id: str) -> None:
         job = self.store.get(job_id)
@@ -355,7 +347,7 @@ class CeleryExecutor:
 
     def _reap_loop(self) -> None:
         timeout = timedelta(seconds=self.settings.heartbeat_timeout_seconds)
-        while not self._stopping.wait(self.settings.heartbeat_seconds):
+        while not self._reaper.stopping.wait(self.settings.heartbeat_seconds):
             try:
                 for job in self.store.stale_running(timeout):
                     error = (

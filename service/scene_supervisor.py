@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import logging
-import threading
 from typing import Any
 
 from service.actions.nerf import NerfInputs, TrainOptions, create_nerf, queue_evaluation, queue_video
@@ -23,6 +22,7 @@ from service.errors import ServiceError
 from service.executor import Executor
 from service.kinds import JobState
 from service.layout import RECONSTRUCTION_REPORT, output_dir
+from service.loop_thread import LoopThread
 from service.params import EvaluationParams, VideoParams
 from service.pipeline import DONE, HELD_OUT_SPLIT, SceneOptions, registration_problem, views_plan
 from service.settings import ServiceSettings
@@ -136,18 +136,13 @@ class SceneSupervisor:
 
     def __init__(self, steps: SceneSteps) -> None:
         self.steps = steps
-        self._stopping = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._advancing = LoopThread("sfmnerf-scenes", self._loop)
 
     def start(self) -> None:
-        self._stopping.clear()
-        self._thread = threading.Thread(target=self._loop, name="sfmnerf-scenes", daemon=True)
-        self._thread.start()
+        self._advancing.start()
 
     def stop(self) -> None:
-        self._stopping.set()
-        if self._thread:
-            self._thread.join(timeout=10)
+        self._advancing.stop()
 
     def advance_all(self) -> None:
         """One pass over the running scenes, each advanced on its own (SceneSteps.advance fails only it)."""
@@ -160,7 +155,7 @@ class SceneSupervisor:
                     self.steps.advance(current)
 
     def _loop(self) -> None:
-        while not self._stopping.wait(SUPERVISOR_POLL_SECONDS):
+        while not self._advancing.stopping.wait(SUPERVISOR_POLL_SECONDS):
             try:
                 self.advance_all()
             except Exception:  # a database hiccup must not end supervision

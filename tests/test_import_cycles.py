@@ -15,7 +15,7 @@ SERVICE_FLOORS = [
         "ground",
         [
             "kinds", "errors", "settings", "layout", "params", "pipeline", "auth", "openapi", "celery_config",
-            "strict_json", "http_limits", "security_headers", "child_processes", "fair_queue",
+            "strict_json", "http_limits", "security_headers", "child_processes", "fair_queue", "loop_thread",
         ],
     ),
     ("store", ["store", "schemas"]),
