@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import logging
-from typing import Any
 
 from service.actions.nerf import NerfInputs, TrainOptions, create_nerf, queue_evaluation, queue_video
 from service.actions.scenes import owner_client, scene_lock, scene_owner, stage_jobs
@@ -27,7 +26,7 @@ from service.params import EvaluationParams, VideoParams
 from service.pipeline import DONE, HELD_OUT_SPLIT, SceneOptions, registration_problem, views_plan
 from service.settings import ServiceSettings
 from service.store.job_store import JobStore
-from service.store.tables import Job, Scene, utcnow
+from service.store.tables import Job, Scene, SceneChild, utcnow
 from service.uploads import without_server_paths
 
 log = logging.getLogger(__name__)
@@ -99,27 +98,25 @@ class SceneSteps:
             reconstruction_id=scene.reconstruction_job_id,
         )
         client = owner_client(scene_owner(self.store, scene))
-        job = create_nerf(self.store, self.executor, self.settings, client, inputs)
-        self.store.update_scene(scene.id, nerf_job_id=job.id, log=f"NeRF job {job.id} started")
+        child = SceneChild(scene.id, "nerf_job_id")
+        job = create_nerf(self.store, self.executor, self.settings, client, inputs, scene_child=child)
+        self.store.update_scene(scene.id, log=f"NeRF job {job.id} started")
 
     def _start_views(self, scene: Scene) -> None:
         options = SceneOptions.model_validate(scene.params)
-        values: dict[str, Any] = {}
         nerf = self.store.get(scene.nerf_job_id)
         train_seconds = float((nerf.result or {}).get("seconds") or 0.0) if nerf else 0.0
         run_dir = output_dir(self.settings, scene.nerf_job_id)
         plan, (width, height) = views_plan(options, run_dir, train_seconds)
         if scene.video_job_id is None:
             video = VideoParams(num_frames=plan.frames, width=width, height=height)
-            values["video_job_id"] = queue_video(
-                self.store, self.executor, self.settings, scene.nerf_job_id, video
-            ).id
+            child = SceneChild(scene.id, "video_job_id")
+            queue_video(self.store, self.executor, self.settings, scene.nerf_job_id, video, scene_child=child)
         if scene.evaluation_job_id is None:
             held_out = EvaluationParams(split=HELD_OUT_SPLIT, max_side=plan.held_out_max_side)
-            values["evaluation_job_id"] = queue_evaluation(
-                self.store, self.executor, scene.nerf_job_id, held_out
-            ).id
-        self.store.update_scene(scene.id, log="orbit video and held-out renders queued", **values)
+            child = SceneChild(scene.id, "evaluation_job_id")
+            queue_evaluation(self.store, self.executor, scene.nerf_job_id, held_out, scene_child=child)
+        self.store.update_scene(scene.id, log="orbit video and held-out renders queued")
 
     def _fail(self, scene: Scene, reason: str) -> None:
         self.store.update_scene(

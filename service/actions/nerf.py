@@ -21,7 +21,7 @@ from service.layout import INPUT_DIR, job_dir, output_dir
 from service.params import EvaluationParams, NerfParams, VideoParams
 from service.settings import ServiceSettings
 from service.store.job_store import JobStore
-from service.store.tables import Job, new_job_id
+from service.store.tables import Job, SceneChild, new_job_id
 from service.uploads import (
     extract_zip,
     find_dataset_root,
@@ -124,9 +124,15 @@ def _check_dataset(job_id: str, path: Path, field: str, settings: ServiceSetting
 
 
 def create_nerf(
-    store: JobStore, executor: Executor, settings: ServiceSettings, client: Client, inputs: NerfInputs
+    store: JobStore,
+    executor: Executor,
+    settings: ServiceSettings,
+    client: Client,
+    inputs: NerfInputs,
+    scene_child: SceneChild | None = None,
 ) -> Job:
-    """Checks the options and the training data and queues the NeRF job."""
+    """Checks the options and the training data and queues the NeRF job (recorded on its scene when it is
+    one's child)."""
     if (inputs.dataset is None) == (inputs.reconstruction_id is None):
         raise invalid("dataset: give either an uploaded dataset or reconstruction_id, exactly one")
     config = inputs.train.train_config(settings)
@@ -152,6 +158,7 @@ def create_nerf(
             source_job_id=source_job_id,
             webhook_url=webhook_url,
             owner=client.name,
+            scene_child=scene_child,
         )
     executor.submit(job_id)
     return job
@@ -218,23 +225,36 @@ def check_video(video: VideoParams, settings: ServiceSettings) -> None:
 
 
 def queue_evaluation(
-    store: JobStore, executor: Executor, nerf_job_id: str, evaluation: EvaluationParams
+    store: JobStore,
+    executor: Executor,
+    nerf_job_id: str,
+    evaluation: EvaluationParams,
+    scene_child: SceneChild | None = None,
 ) -> Job:
     """Held-out renders of the NeRF job's latest checkpoint scored against its data (a scene's last stage),
     owned by the NeRF job's owner."""
     source = find_job(store, nerf_job_id, JobKind.nerf)
-    job = store.create(JobKind.evaluation, evaluation, source_job_id=nerf_job_id, owner=source.owner)
+    job = store.create(
+        JobKind.evaluation, evaluation, source_job_id=nerf_job_id, owner=source.owner, scene_child=scene_child
+    )
     executor.submit(job.id)
     return job
 
 
 def queue_video(
-    store: JobStore, executor: Executor, settings: ServiceSettings, nerf_job_id: str, video: VideoParams
+    store: JobStore,
+    executor: Executor,
+    settings: ServiceSettings,
+    nerf_job_id: str,
+    video: VideoParams,
+    scene_child: SceneChild | None = None,
 ) -> Job:
     """An orbit video job of the NeRF job's latest checkpoint (owned by the NeRF job's owner)."""
     source = find_job(store, nerf_job_id, JobKind.nerf)
     check_video(video, settings)
     require_checkpoint(nerf_job_id, settings)
-    job = store.create(JobKind.video, video, source_job_id=nerf_job_id, owner=source.owner)
+    job = store.create(
+        JobKind.video, video, source_job_id=nerf_job_id, owner=source.owner, scene_child=scene_child
+    )
     executor.submit(job.id)
     return job

@@ -8,7 +8,16 @@ from service.actions.reconstructions import InputFile
 from service.schemas import ErrorOut, JobOut
 
 NOT_FOUND = {404: {"model": ErrorOut, "description": "No job with this id."}}
-NO_SPACE = {507: {"model": ErrorOut, "description": "The server's disk is too full for new work."}}
+#: Answers of every route that starts new work (service.deps.require_disk_space, the upload checks).
+NEW_WORK_REFUSED = {
+    429: {
+        "model": ErrorOut,
+        "description": "The client has its most jobs waiting, or every upload check is busy: send it again "
+        "after Retry-After seconds.",
+        "headers": {"Retry-After": {"description": "Seconds to wait.", "schema": {"type": "integer"}}},
+    },
+    507: {"model": ErrorOut, "description": "The server's disk, or the client's disk quota, is full."},
+}
 REJECTED = {
     413: {"model": ErrorOut, "description": "A limit was exceeded (named in the message)."},
     422: {"description": "Bad input; the message names the field and file."},

@@ -12,7 +12,7 @@ from service.actions.jobs import find_job
 from service.actions.jobs import retry_job as retry
 from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDep, require_disk_space
 from service.kinds import JobKind, JobState
-from service.routes.common import MAX_PAGE, NO_SPACE, NOT_FOUND, accepted
+from service.routes.common import MAX_PAGE, NEW_WORK_REFUSED, NOT_FOUND, accepted
 from service.schemas import ErrorOut, JobList, JobOut, LogsOut
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -66,7 +66,7 @@ def cancel_job(job_id: JobIdPath, store: StoreDep, executor: ExecutorDep, settin
     "/{job_id}/retry",
     response_model=JobOut,
     status_code=202,
-    responses={**NOT_FOUND, **NO_SPACE, 409: {"model": ErrorOut}},
+    responses={**NOT_FOUND, **NEW_WORK_REFUSED, 409: {"model": ErrorOut}},
     dependencies=[Depends(require_disk_space)],
     summary="Run a failed or cancelled job again with the same inputs (a new job)",
 )

@@ -38,7 +38,7 @@ from service.kinds import JobKind, JobState
 from service.layout import RUN_CONFIG, RUN_METRICS, job_dir, output_dir
 from service.openapi import file_response
 from service.renders import RenderBusy, RenderFailed, RenderSpec, spec_from_request
-from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file
+from service.routes.common import NEW_WORK_REFUSED, NOT_FOUND, REJECTED, accepted, input_file
 from service.runner import finite_or_none
 from service.schemas import (
     CameraPathOut,
@@ -61,7 +61,7 @@ PNG = file_response("image/png", description="The rendered view.")
     "",
     response_model=JobOut,
     status_code=202,
-    responses={**REJECTED, **NOT_FOUND, **NO_SPACE},
+    responses={**REJECTED, **NOT_FOUND, **NEW_WORK_REFUSED},
     dependencies=[Depends(require_disk_space)],
     summary="Train a NeRF on an uploaded dataset (Blender zip or .npz) or a reconstruction",
 )
@@ -265,7 +265,7 @@ async def render(
     responses={
         **NOT_FOUND,
         **NO_CHECKPOINT,
-        **NO_SPACE,
+        **NEW_WORK_REFUSED,
         413: {"model": ErrorOut, "description": "Over the video budget SFMNERF_MAX_VIDEO_PIXELS."},
     },
     dependencies=[Depends(require_disk_space)],

@@ -18,7 +18,7 @@ from service.deps import ClientDep, ExecutorDep, JobIdPath, SettingsDep, StoreDe
 from service.kinds import JobKind, JobState
 from service.layout import COLMAP_ARCHIVE, RECONSTRUCTION_EXPORTS, RECONSTRUCTION_REPORT, output_dir
 from service.openapi import file_response
-from service.routes.common import NO_SPACE, NOT_FOUND, REJECTED, accepted, input_file, input_files
+from service.routes.common import NEW_WORK_REFUSED, NOT_FOUND, REJECTED, accepted, input_file, input_files
 from service.schemas import ErrorOut, JobOut, ReconstructionOut
 from service.uploads import UploadRejected, inside, sanitize_filename
 
@@ -31,7 +31,7 @@ NOT_READY = {409: {"model": ErrorOut, "description": "The job has not succeeded 
     "",
     response_model=JobOut,
     status_code=202,
-    responses={**REJECTED, **NO_SPACE},
+    responses={**REJECTED, **NEW_WORK_REFUSED},
     dependencies=[Depends(require_disk_space)],
     summary="Upload images (+ match files, calibration) and start a reconstruction",
 )

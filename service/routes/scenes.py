@@ -36,7 +36,7 @@ from service.kinds import JobState
 from service.layout import RECONSTRUCTION_EXPORTS, output_dir
 from service.openapi import file_response
 from service.pipeline import DONE, EVALUATION_FILE, STAGE_WEIGHTS, STAGES
-from service.routes.common import MAX_PAGE, NO_SPACE, REJECTED, accepted, input_file, input_files
+from service.routes.common import MAX_PAGE, NEW_WORK_REFUSED, REJECTED, accepted, input_file, input_files
 from service.schemas import ErrorOut, JobOut
 from service.store.tables import Scene
 
@@ -183,7 +183,7 @@ router = APIRouter(prefix="/v1/scenes", tags=["scenes"], dependencies=[Depends(v
     "",
     response_model=SceneOut,
     status_code=202,
-    responses={**REJECTED, **NO_SPACE},
+    responses={**REJECTED, **NEW_WORK_REFUSED},
     dependencies=[Depends(require_disk_space)],
     summary="Photos to novel views: reconstruction, NeRF, orbit video and held-out renders",
 )
@@ -306,7 +306,7 @@ def cancel_scene(
     "/{scene_id}/retry",
     response_model=SceneOut,
     status_code=202,
-    responses={**SCENE_NOT_FOUND, **CONFLICT, **NO_SPACE},
+    responses={**SCENE_NOT_FOUND, **CONFLICT, **NEW_WORK_REFUSED},
     dependencies=[Depends(require_disk_space)],
     summary="Run a failed or cancelled scene again from the stage it stopped at",
 )

@@ -14,7 +14,7 @@ from service.fair_queue import fair_order
 from service.kinds import TERMINAL_STATES, JobKind, JobState
 from service.params import parse_params
 from service.store.database import Database
-from service.store.tables import SCENE_CHILD_COLUMNS, Job, LogLine, new_job_id, utcnow
+from service.store.tables import SCENE_CHILD_COLUMNS, Job, LogLine, Scene, SceneChild, new_job_id, utcnow
 
 
 class JobRows(Database):
@@ -30,7 +30,11 @@ class JobRows(Database):
         retry_of: str | None = None,
         webhook_url: str | None = None,
         owner: str | None = None,
+        scene_child: SceneChild | None = None,
     ) -> Job:
+        """A queued job; with scene_child, recorded on its scene in the same transaction."""
+        if scene_child is not None and scene_child.column not in {c.key for c in SCENE_CHILD_COLUMNS}:
+            raise ValueError(f"{scene_child.column!r} is not a scene's child-job column")
         job = Job(
             id=job_id or new_job_id(),
             kind=str(kind),
@@ -44,6 +48,11 @@ class JobRows(Database):
         )
         with self._sessions.begin() as session:
             session.add(job)
+            if scene_child is not None:
+                scene = session.get(Scene, scene_child.scene_id, with_for_update=True)
+                if scene is None:
+                    raise LookupError(f"scene {scene_child.scene_id} does not exist")
+                setattr(scene, scene_child.column, job.id)
         return job
 
     def get(self, job_id: str) -> Job | None:

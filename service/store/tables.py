@@ -4,7 +4,7 @@ scenes. The schema is created and upgraded by the Alembic migrations in `service
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, NamedTuple
 from uuid import uuid4
 
 from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, TypeDecorator
@@ -124,3 +124,12 @@ SCENE_CHILD_COLUMNS = (
     Scene.evaluation_job_id,
 )
 """A scene's child jobs, one column per job, in the order of its stages."""
+
+
+class SceneChild(NamedTuple):
+    """Where a scene records a child job: the scene's id and the column's name (one of SCENE_CHILD_COLUMNS).
+    The job and this record are written in one transaction, so a crash cannot leave a child job that its
+    scene does not know of (and would start again)."""
+
+    scene_id: str
+    column: str

@@ -90,3 +90,18 @@ def test_webhooks_are_claimed_in_turns_and_one_client_never_holds_every_sender(t
     claims = [store.claim_webhook(stale_before, per_owner=2) for _ in range(4)]
     assert [job.id if job else None for job in claims] == [alices[0], bobs, alices[1], None]
     store.dispose()
+
+
+def test_every_route_that_starts_work_documents_429_with_retry_after_and_507(tmp_path):
+    """Every operation answering 202 (it queues a job, behind the quota check) lists both refusals."""
+    schema = create_app(make_settings(tmp_path / "data")).openapi()
+    starting = [
+        (path, method, operation["responses"])
+        for path, operations in schema["paths"].items()
+        for method, operation in operations.items()
+        if "202" in operation["responses"]
+    ]
+    assert len(starting) >= 5, [path for path, _, _ in starting]
+    for path, method, answers in starting:
+        assert {"429", "507"} <= answers.keys(), (path, method)
+        assert "Retry-After" in answers["429"]["headers"], (path, method)

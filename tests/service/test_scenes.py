@@ -415,3 +415,66 @@ def test_an_error_in_one_scenes_step_fails_that_scene_and_the_others_move_on(set
     assert store.get(broken.reconstruction_job_id).state == JobState.succeeded
     assert healthy.state == JobState.running and healthy.stage == "nerf", healthy.log
     store.dispose()
+
+
+def _scene_at_the_nerf_stage(store, settings):
+    """A running scene whose reconstruction succeeded and whose NeRF has not been started."""
+    from service.kinds import JobKind, JobState
+    from service.store import Scene, new_job_id
+
+    job = store.create(JobKind.reconstruction, {})
+    store.finish(job.id, store.claim(job.id, worker="test"), JobState.succeeded)
+    scene = Scene(id=new_job_id(), state=JobState.running, stage="nerf", log=[],
+                  params={"train_config": {"model": "fast"}}, reconstruction_job_id=job.id)  # fmt: skip
+    return store.create_scene(scene)
+
+
+def test_a_child_job_and_its_place_on_the_scene_are_written_together(settings):
+    """The job and the scene's record of it are one transaction: a scene that does not exist gets no job."""
+    from service.kinds import JobKind
+    from service.store import JobStore
+    from service.store.tables import SceneChild
+
+    store = JobStore(settings.resolved_database_url)
+    scene = _scene_at_the_nerf_stage(store, settings)
+    job = store.create(JobKind.nerf, {}, scene_child=SceneChild(scene.id, "nerf_job_id"))
+    assert store.get_scene(scene.id).nerf_job_id == job.id
+    jobs_before = store.list()[1]
+    with pytest.raises(LookupError, match="does not exist"):
+        store.create(JobKind.nerf, {}, scene_child=SceneChild("0" * 32, "nerf_job_id"))
+    with pytest.raises(ValueError, match="not a scene's child-job column"):
+        store.create(JobKind.nerf, {}, scene_child=SceneChild(scene.id, "state"))
+    assert store.list()[1] == jobs_before
+    store.dispose()
+
+
+def test_a_crash_right_after_a_child_job_starts_does_not_start_it_twice(settings, monkeypatch):
+    """The supervisor dies between creating the scene's NeRF job and logging it; the next pass finds the
+    job on the scene and starts no second one."""
+    import service.scene_supervisor as supervision
+    from service.kinds import JobKind
+    from service.store import JobStore
+
+    store = JobStore(settings.resolved_database_url)
+    scene = _scene_at_the_nerf_stage(store, settings)
+
+    def create_nerf(store, executor, settings, client, inputs, scene_child=None):
+        job = store.create(JobKind.nerf, {}, scene_child=scene_child)
+        executor.submit(job.id)
+        return job
+
+    def crash(*args, **kwargs):
+        raise SystemExit("killed")
+
+    monkeypatch.setattr(supervision, "create_nerf", create_nerf)
+    executor = RecordingExecutor()
+    steps = supervision.SceneSteps(store, executor, settings)
+    with monkeypatch.context() as killed:
+        killed.setattr(store, "update_scene", crash)
+        with pytest.raises(SystemExit):
+            steps.advance(store.get_scene(scene.id))
+    steps.advance(store.get_scene(scene.id))
+    nerf_jobs = [job for job in store.list()[0] if job.kind == JobKind.nerf]
+    assert len(nerf_jobs) == 1 and executor.submitted == [nerf_jobs[0].id]
+    assert store.get_scene(scene.id).nerf_job_id == nerf_jobs[0].id
+    store.dispose()
