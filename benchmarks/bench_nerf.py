@@ -12,8 +12,8 @@ current default, --variant adds more) is trained with the product's trainer (`ne
 time budget, evaluated (`neural.evaluate`, not counted as training time), then resumed up to the next
 budget, so one training run gives the figures at every budget. Then one 200x200 frame is rendered and timed.
 Each (configuration, resolution) runs in its own subprocess so that its peak memory (ru_maxrss) is its own.
-Data: 100x100 -> ../shared/data/lego_tiny.npz (the same views, downscaled), 200x200 ->
-../shared/data/lego_200. Budgets are minutes (default: 2 at 100 px, 5 at 200 px) or, for comparisons that do
+Data (under --data-root, default ../shared/data): 100x100 -> lego_tiny.npz (the same views, downscaled),
+200x200 -> lego_200. Budgets are minutes (default: 2 at 100 px, 5 at 200 px) or, for comparisons that do
 not depend on the machine's load, --steps. Prints one table and writes results.json into --out.
 Run it under the shared lock:
 
@@ -36,7 +36,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
-DATASETS = {100: DATA / "lego_tiny.npz", 200: DATA / "lego_200"}
+#: Each resolution's data set, under --data-root (default DATA).
+DATASETS = {100: "lego_tiny.npz", 200: "lego_200"}
 #: The issue's targets for the default configuration: resolution -> (minutes, dB on held-out views).
 TARGETS_DB = {100: (2.0, 31.0), 200: (5.0, 31.5)}
 #: The tuning runs must beat the target by this much, so that the untouched val views keep the target.
@@ -84,7 +85,7 @@ def load_average() -> str:
     return " ".join(f"{value:.2f}" for value in os.getloadavg())
 
 
-def tune_split_data(resolution: int, out: Path) -> Path:
+def tune_split_data(resolution: int, data: Path, out: Path) -> Path:
     """A tiny-NeRF file of lego's train views only: 70 to train on (code 0), every 8th held out (code 1)."""
     import numpy as np
 
@@ -93,7 +94,7 @@ def tune_split_data(resolution: int, out: Path) -> Path:
     path = out / f"lego_tune_{resolution}.npz"
     if path.exists():
         return path
-    dataset = load_dataset(DATASETS[resolution])
+    dataset = load_dataset(data)
     train = dataset.split("train")
     held_out = np.arange(train.size) % TUNE_HOLDOUT_EVERY == TUNE_HOLDOUT_EVERY - 1
     np.savez(
@@ -239,6 +240,9 @@ def main() -> None:
     )
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     parser.add_argument(
+        "--data-root", type=Path, default=DATA, help="the folder holding lego_tiny.npz and lego_200"
+    )
+    parser.add_argument(
         "--out", type=Path, default=Path("bench_nerf_runs"), help="run folders and results.json"
     )
     parser.add_argument("--single", help=argparse.SUPPRESS)  # JSON job of one subprocess
@@ -257,7 +261,8 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     results = []
     for resolution in args.resolutions:
-        data = tune_split_data(resolution, args.out) if args.tune else DATASETS[resolution]
+        data = args.data_root.resolve() / DATASETS[resolution]
+        data = tune_split_data(resolution, data, args.out) if args.tune else data
         for name, settings in configs.items():
             if (args.out / f"{name}_{resolution}").exists():
                 raise SystemExit(f"{args.out}/{name}_{resolution} exists: choose another --out or remove it")

@@ -39,7 +39,7 @@ from pathlib import Path
 from bench_nerf import load_average, with_variants
 
 REPO = Path(__file__).resolve().parents[1]
-STRECHA = REPO.parent / "shared" / "data" / "strecha"
+DATA = REPO.parent / "shared" / "data"
 SCENES = ("fountain-P11", "Herz-Jesus-P8")
 #: TrainConfig settings of each configuration (the rest: the fast model's defaults).
 CONFIGURATIONS: dict[str, dict] = {
@@ -51,14 +51,15 @@ RENDER_SIZE = (800, 600)
 CLI = "import sys; from service.cli import main; sys.argv[0] = 'sfmnerf'; main()"
 
 
-def reconstruct(scene: str, out: Path) -> dict:
-    """`sfmnerf reconstruct` of the scene into OUT/sfm/SCENE unless it is there; its report and seconds."""
+def reconstruct(scene: str, out: Path, data_root: Path) -> dict:
+    """`sfmnerf reconstruct` of DATA_ROOT/strecha/SCENE into OUT/sfm/SCENE unless it is there; its report and
+    seconds."""
     folder = out / "sfm" / scene
     seconds = None
     if not (folder / "transforms.json").is_file():
         start = time.perf_counter()
-        command = [sys.executable, "-c", CLI, "reconstruct", str(STRECHA / scene), "--out", str(folder),
-                   "--features", "sift"]  # fmt: skip
+        command = [sys.executable, "-c", CLI, "reconstruct", str(data_root / "strecha" / scene),
+                   "--out", str(folder), "--features", "sift"]  # fmt: skip
         subprocess.run(command, check=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
         seconds = time.perf_counter() - start
     report = json.loads((folder / "report.json").read_text())
@@ -189,6 +190,10 @@ def main() -> None:
     parser.add_argument("--max-side", type=int, default=800, help="training image size (longer side)")
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads (2 cores here)")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    parser.add_argument(
+        "--data-root", type=Path, default=DATA,
+        help="the folder holding strecha/SCENE (unused for a scene whose OUT/sfm/SCENE exists)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("bench_nerf_real_runs"))
     parser.add_argument(
         "--side-by-side",
@@ -215,7 +220,7 @@ def main() -> None:
 
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"== reconstructing (load average {load_average()})", flush=True)
-    sfm = [reconstruct(scene, args.out) for scene in args.scenes]
+    sfm = [reconstruct(scene, args.out, args.data_root) for scene in args.scenes]
     results = []
     for scene in args.scenes:
         for configuration in configurations:
