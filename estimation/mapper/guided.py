@@ -3,11 +3,11 @@
 An image's 2D-3D correspondences come from its tracks, i.e. from its pairwise matches: an image matched
 with few registered images (a video frame beyond its neighbours' window, a view reached by a wide jump)
 sees few of the model's points that way, although many of them lie in its view. Its weak pose hypothesis
-(the absolute-pose RANSAC that failed the inlier minimums) predicts where each point of the model appears;
-each keypoint of the image is then compared with the descriptors of the points predicted near it (every
-observation's descriptor of a point, the closest one counting), which leaves few distractors for the ratio
-test. What it finds is only evidence for the pose: the registration that uses it is estimated again and
-held to the same checks (`verification`).
+(the absolute-pose RANSAC that failed the inlier minimums) predicts which points are in view and where;
+each keypoint of the image is matched to its nearest point in view by descriptor (a point's descriptor:
+the normalized mean of its observations' RootSIFT), kept when it passes the ratio test over every point in
+view and the point is predicted near the keypoint. What it finds is only evidence for the pose: the
+registration that uses it is estimated again and held to the same checks (`verification`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 class GuidedMatches(NamedTuple):
@@ -26,55 +25,44 @@ class GuidedMatches(NamedTuple):
     distances: np.ndarray   # (G,) descriptor distance of each match (the closest observation's)
 
 
-def descriptor_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """||a_i - b_i|| = sqrt(2 - 2 a_i . b_i) row by row for unit-norm descriptors (RootSIFT)."""
-    return np.sqrt(np.maximum(2.0 - 2.0 * np.einsum("ij,ij->i", a, b), 0.0))
+KEYPOINT_BLOCK = 1024
+"""Keypoints compared with every candidate point at once (a block x points similarity matrix)."""
 
 
-def _rows_of(owner: np.ndarray, wanted: np.ndarray, num_owners: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every row r with owner[r] == wanted[k], for each k: (k of each, r of each), grouped by k."""
-    order = np.argsort(owner, kind="stable")
-    per_owner = np.bincount(owner, minlength=num_owners)
-    start = np.cumsum(per_owner) - per_owner
-    count = per_owner[wanted]
-    of_wanted = np.repeat(np.arange(len(wanted)), count)
-    within = np.arange(len(of_wanted)) - np.repeat(np.cumsum(count) - count, count)
-    return of_wanted, order[np.repeat(start[wanted], count) + within]
+def mean_descriptors(descriptors: np.ndarray, owner: np.ndarray, num_owners: int) -> np.ndarray:
+    """(num_owners, D) unit-norm mean of the unit-norm descriptors (Q, D) of each owner (owner (Q,))."""
+    sums = np.zeros((num_owners, descriptors.shape[1]))
+    np.add.at(sums, owner, descriptors)
+    return sums / np.maximum(np.linalg.norm(sums, axis=1, keepdims=True), 1e-12)
 
 
-def _first_per_group(group: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per group, the element of smallest value and the group's second smallest value (inf without one)."""
-    order = np.lexsort((value, group))
-    first = np.ones(len(order), bool)
-    first[1:] = group[order][1:] != group[order][:-1]
-    position = np.flatnonzero(first)
-    following = np.minimum(position + 1, len(order) - 1)
-    has_second = (position + 1 < len(order)) & (group[order][following] == group[order][position])
-    return order[position], np.where(has_second, value[order][following], np.inf)
-
-
-def guided_matches(projected_uv: np.ndarray, descriptor_point: np.ndarray, point_descriptors: np.ndarray,
-                   keypoint_uv: np.ndarray, keypoint_descriptors: np.ndarray, radius_px: float, ratio: float,
-                   max_distance: float) -> GuidedMatches:
-    """Keypoint k matches point p when p projects within radius_px of k (projected_uv (P, 2), keypoint_uv
-    (N, 2)), d(k, p) = min over p's descriptors (point_descriptors (Q, 128) unit-norm, descriptor_point (Q,)
-    their point) of ||d_k - d|| is at most max_distance and below ratio x d(k, p') of the next closest point
-    p' near k (Lowe's test among the predicted candidates); each point keeps its closest keypoint."""
-    empty = GuidedMatches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
-    if len(projected_uv) == 0 or len(keypoint_uv) == 0:
-        return empty
-    near = cKDTree(keypoint_uv).query_ball_point(projected_uv, radius_px)
-    pair_point = np.repeat(np.arange(len(projected_uv)), [len(keypoints) for keypoints in near])
-    if len(pair_point) == 0:
-        return empty
-    pair_keypoint = np.concatenate(near).astype(np.int64)
-    pair_of_row, row = _rows_of(np.asarray(descriptor_point, np.int64), pair_point, len(projected_uv))
-    row_distance = descriptor_distances(point_descriptors[row],
-                                        keypoint_descriptors[pair_keypoint[pair_of_row]])
-    pair_distance = np.full(len(pair_point), np.inf)
-    np.minimum.at(pair_distance, pair_of_row, row_distance)
-    best, second = _first_per_group(pair_keypoint, pair_distance)
-    chosen = best[(pair_distance[best] <= max_distance) & (pair_distance[best] < ratio * second)]
-    closest, _ = _first_per_group(pair_point[chosen], pair_distance[chosen])
-    chosen = chosen[closest]
-    return GuidedMatches(pair_keypoint[chosen], pair_point[chosen], pair_distance[chosen])
+def guided_matches(projected_uv: np.ndarray, point_descriptors: np.ndarray, keypoint_uv: np.ndarray,
+                   keypoint_descriptors: np.ndarray, radius_px: float, ratio: float, max_distance: float
+                   ) -> GuidedMatches:
+    """Keypoint k (keypoint_uv (N, 2), unit-norm descriptors (N, D)) matches point p (projected_uv (P, 2),
+    unit-norm descriptors (P, D), the points in the predicted view) when p is its nearest point in
+    descriptor space, d1 = ||d_k - d_p|| <= max_distance and d1 < ratio x d2 (d2: the second nearest point
+    in view: Lowe's test over the whole view, so that a repeated texture is refused rather than matched to
+    whichever copy the prediction lies near), and p projects within radius_px of k; each point keeps its
+    closest keypoint."""
+    if len(projected_uv) < 2 or len(keypoint_uv) == 0:
+        return GuidedMatches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    nearest, d1, d2 = [], [], []
+    points = np.asarray(point_descriptors, np.float32)
+    for start in range(0, len(keypoint_uv), KEYPOINT_BLOCK):
+        similarity = np.asarray(keypoint_descriptors[start:start + KEYPOINT_BLOCK], np.float32) @ points.T
+        two = np.argpartition(-similarity, 1, axis=1)[:, :2]
+        best = np.take_along_axis(similarity, two, axis=1)
+        swap = best[:, 1] > best[:, 0]
+        two[swap], best[swap] = two[swap][:, ::-1], best[swap][:, ::-1]
+        nearest.append(two[:, 0])
+        d1.append(np.sqrt(np.maximum(2.0 - 2.0 * best[:, 0], 0.0)))
+        d2.append(np.sqrt(np.maximum(2.0 - 2.0 * best[:, 1], 0.0)))
+    point, first, second = np.concatenate(nearest), np.concatenate(d1), np.concatenate(d2)
+    near = np.linalg.norm(projected_uv[point] - keypoint_uv, axis=1) <= radius_px
+    chosen = np.flatnonzero((first <= max_distance) & (first < ratio * second) & near)
+    order = np.lexsort((first[chosen], point[chosen]))
+    keep = np.ones(len(order), bool)
+    keep[1:] = point[chosen][order][1:] != point[chosen][order][:-1]
+    chosen = chosen[order[keep]]
+    return GuidedMatches(chosen, point[chosen], first[chosen])
