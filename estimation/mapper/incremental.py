@@ -36,7 +36,7 @@ from estimation.geometry.projection import (
     project,
     transfer_pixels,
 )
-from estimation.mapper.guided import guided_matches, mean_descriptors
+from estimation.mapper.guided import guided_matches
 from estimation.mapper.initial_pair import (
     InitialPairCandidate,
     choose_initial_pair,
@@ -433,14 +433,13 @@ class _ModelBuilder:
         position = np.full(len(reconstruction.point_alive), -1, np.int64)
         position[candidates] = np.arange(len(candidates))
         used = used[position[reconstruction.obs_point[used]] >= 0]
-        point_descriptors = mean_descriptors(
-            keypoints.observation_descriptors(used, self.tracks.image_index[used]),
-            position[reconstruction.obs_point[used]], len(candidates))
         own = keypoints.observation_keypoint[reconstruction.correspondences_2d3d(image)[0]]
         free = np.setdiff1d(np.arange(len(keypoints.images[image].uv)), own)
         keypoint_uv = transfer_pixels(reconstruction.cameras[image], Camera.from_K(reconstruction.K),
                                       keypoints.images[image].uv[free])
-        matches = guided_matches(projected, point_descriptors, keypoint_uv,
+        matches = guided_matches(projected, position[reconstruction.obs_point[used]],
+                                 keypoints.observation_descriptors(used, self.tracks.image_index[used]),
+                                 keypoint_uv,
                                  keypoints.images[image].descriptors[free], self.mapper.guided_radius_px,
                                  sift.ratio, sift.max_distance)
         return keypoint_uv[matches.keypoints], candidates[matches.points]
