@@ -26,8 +26,8 @@ def test_a_keypoint_matches_its_nearest_point_in_view_when_the_prediction_puts_t
     keypoints_uv = np.array([[101.0, 99.0], [300.0, 330.0], [502.0, 501.0]])
     keypoints = np.vstack([points[0], points[2], points[3]])
 
-    matches = guided_matches(projected, np.arange(len(points)), points, keypoints_uv, keypoints, RADIUS, RATIO,
-                             MAX_DISTANCE)
+    matches = guided_matches(projected, np.arange(len(points)), points, keypoints_uv, keypoints, RADIUS,
+                             RATIO, MAX_DISTANCE)
 
     # Keypoint 1 has point 2's descriptor but lies 30 px from its predicted place.
     assert matches.keypoints.tolist() == [0, 2] and matches.points.tolist() == [0, 3]
@@ -43,8 +43,8 @@ def test_a_repeated_texture_fails_the_ratio_test_over_the_view_and_a_point_keeps
     keypoints_uv = np.array([[101.0, 100.0], [300.0, 301.0], [302.0, 300.0]])
     keypoints = np.vstack([points[0], points[2], noisy / np.linalg.norm(noisy)])
 
-    matches = guided_matches(projected, np.arange(len(points)), points, keypoints_uv, keypoints, RADIUS, RATIO,
-                             MAX_DISTANCE)
+    matches = guided_matches(projected, np.arange(len(points)), points, keypoints_uv, keypoints, RADIUS,
+                             RATIO, MAX_DISTANCE)
 
     # Keypoint 0 is as close to points 0 and 1: refused, though only point 0 is predicted near it.
     # Point 2 keeps keypoint 1 (the exact descriptor), not keypoint 2.
