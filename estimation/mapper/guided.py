@@ -25,8 +25,9 @@ class GuidedMatches(NamedTuple):
     distances: np.ndarray   # (G,) descriptor distance of each match (the closest observation's)
 
 
-KEYPOINT_BLOCK = 1024
-"""Keypoints compared with every candidate point at once (a block x points similarity matrix)."""
+SIMILARITY_ENTRIES = 1 << 24
+"""Most entries of one keypoints x descriptors similarity block (64 MB of float32): the keypoints are
+compared with the points' descriptors in blocks of this many over the descriptors' count."""
 
 
 def guided_matches(projected_uv: np.ndarray, descriptor_point: np.ndarray, point_descriptors: np.ndarray,
@@ -46,8 +47,9 @@ def guided_matches(projected_uv: np.ndarray, descriptor_point: np.ndarray, point
     rows = np.asarray(point_descriptors, np.float32)[order]
     starts = np.searchsorted(descriptor_point[order], np.arange(num_points))   # every point has a row
     nearest, similarities = [], []
-    for start in range(0, len(keypoint_uv), KEYPOINT_BLOCK):
-        block = np.asarray(keypoint_descriptors[start:start + KEYPOINT_BLOCK], np.float32)
+    block_size = max(1, SIMILARITY_ENTRIES // len(rows))
+    for start in range(0, len(keypoint_uv), block_size):
+        block = np.asarray(keypoint_descriptors[start:start + block_size], np.float32)
         per_point = np.maximum.reduceat(block @ rows.T, starts, axis=1)       # (B, P) closest observation
         two = np.argpartition(-per_point, 1, axis=1)[:, :2]
         best = np.take_along_axis(per_point, two, axis=1)
