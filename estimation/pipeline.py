@@ -187,7 +187,9 @@ def extract_tracks(
         "rejected_links": result.num_rejected_links,
         "seconds_per_stage": result.seconds_per_stage,
     }
-    features = FeatureTracks(result.tracks, source, details, pair_types, result.features)
+    # The descriptors stay in memory through the mapping only for guided matching (uint8: 128 B a keypoint).
+    keypoints = result.features if config.mapper.guided_matching else None
+    features = FeatureTracks(result.tracks, source, details, pair_types, keypoints)
     return features if defer_planarity else features.finished()
 
 
