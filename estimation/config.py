@@ -380,6 +380,11 @@ class MapperConfig(StrictConfig):
         "descriptors of the points its failed pose projects within guided_radius_px of them (SIFT "
         "features only); the pose is estimated again from both and held to the same checks.",
     )
+    guided_min_inliers: int = Field(
+        4, ge=1, description="A registration with guided matches needs this many of its inliers among them: "
+        "the pose then rests on evidence the failed attempt did not have, not on a second RANSAC draw over "
+        "nearly the same correspondences.",
+    )
     guided_radius_px: float = Field(
         8.0, gt=0, description="A keypoint is compared with the points the failed pose projects within this "
         "many pixels of it.",

@@ -466,10 +466,14 @@ class _ModelBuilder:
                 except DegenerateConfigurationError as error:
                     return f"{problem}; with {len(guided_points)} guided 2D-3D matches: {error}"
                 guided_problem = self.support_problem(all_uv, inliers)
+                guided_inliers = int(inliers[len(obs_ids):].sum())
+                if guided_problem is None and guided_inliers < self.mapper.guided_min_inliers:
+                    guided_problem = (f"{guided_inliers} of its inliers are guided matches (need "
+                                      f"{self.mapper.guided_min_inliers})")
                 if guided_problem is not None:
                     return f"{problem}; with {len(guided_points)} guided 2D-3D matches: {guided_problem}"
                 problem = None
-                self.guided[image] = int(inliers[len(obs_ids):].sum())
+                self.guided[image] = guided_inliers
                 inliers = inliers[:len(obs_ids)]
         if problem is None:
             problem = agreement_problem(self.rotation_agreement(image, pose.R),

@@ -92,3 +92,16 @@ def test_an_image_with_too_few_track_correspondences_registers_by_guided_matchin
     unguided = config.mapper.model_copy(update={"guided_matching": False})
     assert 4 not in reconstruct_models(tracks, scene.K, config.model_copy(update={"mapper": unguided}),
                                     keypoints=keypoints)[0].poses
+
+
+def test_a_registration_that_guided_matching_barely_adds_to_is_refused_with_the_reason():
+    """Image 5.png sees only 2 points beyond its 10 tracks: 12 inliers would pass the floor, but a pose
+    resting on 2 new matches is little more than a second RANSAC draw (guided_min_inliers)."""
+    scene, tracks, keypoints = scene_with_a_weakly_tracked_image(image=4, kept=10)
+    few = keypoints.images[4]
+    keypoints.images[4] = type(few)(few.uv[:12], few.sift[:12])
+
+    model = reconstruct_models(tracks, scene.K, ReconstructionConfig(), keypoints=keypoints)[0]
+
+    assert 4 not in model.poses
+    assert "2 guided 2D-3D matches: 2 of its inliers are guided matches (need 4)" in model.unregistered[4]
