@@ -2,7 +2,8 @@
 
 Per model: an initial pair from the image graph (`initial_pair`), then repeatedly the unregistered image
 with the best visibility pyramid score (`next_image`) registered by P3P in LO-RANSAC and refined
-(`geometry.absolute_pose`); after each registration its tracks are continued or triangulated, a local BA
+(`geometry.absolute_pose`), with guided 2D-3D matches (`guided`) when its tracks' correspondences fall short,
+and checked (`verification`); after each registration its tracks are continued or triangulated, a local BA
 adjusts the image and its best-connected neighbours, and the touched points are completed, merged and
 filtered. Whenever the model grew by `global_ba_growth`, and at the end, global refinement runs in rounds
 (BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change
