@@ -374,6 +374,21 @@ class MapperConfig(StrictConfig):
         "enough: the far-side pairs of a symmetric object's image vote for its mirrored placement, and "
         "they can outnumber its true neighbours (synthetic symmetric rings).",
     )
+    guided_matching: bool = Field(
+        True, description="An image whose absolute pose failed the inlier minimums on its tracks' 2D-3D "
+        "correspondences is matched again against the model (`mapper.guided`): its keypoints against the "
+        "descriptors of the points its failed pose projects within guided_radius_px of them (SIFT "
+        "features only); the pose is estimated again from both and held to the same checks.",
+    )
+    guided_min_inliers: int = Field(
+        4, ge=1, description="A registration with guided matches needs this many of its inliers among them: "
+        "the pose then rests on evidence the failed attempt did not have, not on a second RANSAC draw over "
+        "nearly the same correspondences.",
+    )
+    guided_radius_px: float = Field(
+        8.0, gt=0, description="A keypoint is compared with the points the failed pose projects within this "
+        "many pixels of it.",
+    )
     deregister_min_kept_ratio: float = Field(
         0.5, ge=0, le=1, description="After each global refinement, an image whose observations fell below "
         "this fraction of the inliers it was registered with is removed and tried again later.",

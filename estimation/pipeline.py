@@ -54,7 +54,7 @@ from estimation.types import ProgressCallback, Tracks
 
 if TYPE_CHECKING:
     from estimation.features.planarity import PairTypes
-    from estimation.features.sift import FeatureStages
+    from estimation.features.sift import FeatureStages, TrackFeatures
 
 FIGURE_NAMES = {
     "initial_pair_matches": "initial_pair_matches.png",
@@ -106,6 +106,7 @@ class FeatureTracks:
     source: str
     details: dict
     pair_types: PairTypes | None = None
+    keypoints: TrackFeatures | None = None   # SIFT's keypoints and descriptors (guided 2D-3D matching)
 
     def finished(self) -> FeatureTracks:
         """These tracks with every verified pair's geometry in details["two_view_geometry_per_pair"] (the
@@ -186,7 +187,9 @@ def extract_tracks(
         "rejected_links": result.num_rejected_links,
         "seconds_per_stage": result.seconds_per_stage,
     }
-    features = FeatureTracks(result.tracks, source, details, pair_types)
+    # The descriptors stay in memory through the mapping only for guided matching (uint8: 128 B a keypoint).
+    keypoints = result.features if config.mapper.guided_matching else None
+    features = FeatureTracks(result.tracks, source, details, pair_types, keypoints)
     return features if defer_planarity else features.finished()
 
 
@@ -314,6 +317,7 @@ def model_summary(images: ImageSet, model: SparseModel) -> dict:
         "noise_sigma_px": float(stats.noise_sigma_px),
         "reprojection_limit_px": float(stats.reprojection_limit_px),
         "merged_models": list(stats.merged_models),
+        "guided_registrations": dict(stats.guided_registrations),
     }
 
 
@@ -486,7 +490,8 @@ def reconstruct(
         models = tuple(reconstruct_models(features.tracks, camera, config,
                                           progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
                                           refine=initial.refine, pair_types=features.pair_types,
-                                          pair_geometries=features.epipolar_geometries()))
+                                          pair_geometries=features.epipolar_geometries(),
+                                          keypoints=features.keypoints))
         features = features.finished()
     finally:
         features.close()

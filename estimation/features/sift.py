@@ -72,6 +72,24 @@ class ImageFeatures(NamedTuple):
 
 
 @dataclass(frozen=True)
+class TrackFeatures:
+    """Every image's keypoints and SIFT descriptors, and the keypoint behind each observation of the tracks:
+    what guided 2D-3D matching (`estimation.mapper.guided`) compares an image's keypoints with."""
+
+    images: list[ImageFeatures]       # image index -> its keypoints (full-resolution pixels) and SIFT
+    observation_keypoint: np.ndarray  # (O,) keypoint index of each track observation in its image
+
+    def observation_descriptors(self, obs_ids: np.ndarray, obs_images: np.ndarray) -> np.ndarray:
+        """RootSIFT descriptors (len(obs_ids), 128) of the given track observations, seen in obs_images."""
+        keypoints = self.observation_keypoint[obs_ids]
+        rows = np.empty((len(obs_ids), self.images[0].sift.shape[1]), np.uint8)
+        for image in np.unique(obs_images):
+            chosen = obs_images == image
+            rows[chosen] = self.images[image].sift[keypoints[chosen]]
+        return root_sift(rows)
+
+
+@dataclass(frozen=True)
 class SiftResult:
     """Tracks from SIFT, with the counts that went into them."""
 
@@ -84,6 +102,7 @@ class SiftResult:
     seconds_per_stage: dict[str, float] = field(default_factory=dict)   # detection, matching_and_verification
     # with defer_planarity: the pixels of the matches (in i, in j) of each pair whose planarity is untested
     untested_uv: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    features: TrackFeatures | None = None   # the keypoints and descriptors behind the tracks
 
 
 def root_sift(descriptors: np.ndarray) -> np.ndarray:
@@ -425,4 +444,6 @@ def sift_tracks(
         seconds_per_stage=seconds,
         untested_uv={(i, j): (work.uv[i][matches[(i, j)].index_a], work.uv[j][matches[(i, j)].index_b])
                      for (i, j), geometry in geometries.items() if not geometry.planarity_tested},
+        features=TrackFeatures(features, used_nodes[assembly.observation_node]
+                               - offsets[assembly.tracks.image_index]),
     )

@@ -22,6 +22,7 @@ class TrackAssembly(NamedTuple):
     tracks: Tracks
     node_track: np.ndarray          # (N,) int: track of each node, -1 where dropped
     num_rejected_links: int         # links refused because they would see an image twice in a track
+    observation_node: np.ndarray    # (O,) int: the node of each observation of `tracks`
 
 
 class ImageAwareUnionFind:
@@ -112,4 +113,5 @@ def assemble_tracks(
         uv=np.asarray(node_uv, float).reshape(-1, 2)[observation_nodes],
         colors=colors,
     )
-    return TrackAssembly(tracks=tracks, node_track=node_track, num_rejected_links=int(rejected))
+    return TrackAssembly(tracks=tracks, node_track=node_track, num_rejected_links=int(rejected),
+                         observation_node=observation_nodes)

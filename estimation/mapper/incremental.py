@@ -2,7 +2,8 @@
 
 Per model: an initial pair from the image graph (`initial_pair`), then repeatedly the unregistered image
 with the best visibility pyramid score (`next_image`) registered by P3P in LO-RANSAC and refined
-(`geometry.absolute_pose`); after each registration its tracks are continued or triangulated, a local BA
+(`geometry.absolute_pose`), with guided 2D-3D matches (`guided`) when its tracks' correspondences fall short,
+and checked (`verification`); after each registration its tracks are continued or triangulated, a local BA
 adjusts the image and its best-connected neighbours, and the touched points are completed, merged and
 filtered. Whenever the model grew by `global_ba_growth`, and at the end, global refinement runs in rounds
 (BA -> complete/merge -> filter -> re-triangulate under-reconstructed pairs) until few observations change
@@ -19,7 +20,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -28,7 +29,15 @@ from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
 from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors_per_hypothesis
-from estimation.geometry.projection import Camera, CameraInput, as_camera, is_shared
+from estimation.geometry.projection import (
+    Camera,
+    CameraInput,
+    as_camera,
+    is_shared,
+    project,
+    transfer_pixels,
+)
+from estimation.mapper.guided import guided_matches
 from estimation.mapper.initial_pair import (
     InitialPairCandidate,
     choose_initial_pair,
@@ -56,6 +65,9 @@ from estimation.mapper.verification import (
 )
 from estimation.two_view.geometry import TwoViewGeometry
 from estimation.types import CameraPose, ProgressCallback, Tracks
+
+if TYPE_CHECKING:
+    from estimation.features.sift import TrackFeatures
 
 FINAL_BA_ROUNDS = 3
 """Converged global BA, filter, and BA again while the filter removed more than a few observations."""
@@ -95,6 +107,8 @@ class ReconstructionStats:
     principal_point_test: PrincipalPointTest | None = None
     # other models moved into this one's frame (`_ModelBuilder.merge`): what supported each
     merged_models: list[str] = field(default_factory=list)
+    # images registered with guided 2D-3D matches (`_ModelBuilder.guided_correspondences`) -> their inliers
+    guided_registrations: dict[str, int] = field(default_factory=dict)
 
 
 class PrincipalPointTest(NamedTuple):
@@ -231,7 +245,8 @@ class _ModelBuilder:
 
     def __init__(self, tracks: Tracks, camera: CameraInput, refine: IntrinsicsRefinement,
                  config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
-                 progress: ProgressCallback | None, votes: list[list[VerifiedPair]] | None = None) -> None:
+                 progress: ProgressCallback | None, votes: list[list[VerifiedPair]] | None = None,
+                 keypoints: TrackFeatures | None = None) -> None:
         self.config, self.mapper = config, config.mapper
         # The principal point is refined only from the final global refinement on (`release_principal_point`):
         # while the model grows, its few images cannot determine it, and a drifting one bends what follows.
@@ -244,6 +259,8 @@ class _ModelBuilder:
         self.trials = np.zeros(len(tracks.image_names), np.int64)
         self.failures: dict[int, str] = {}
         self.votes = votes or [[] for _ in tracks.image_names]   # image -> its verified pairs
+        self.keypoints = keypoints   # SIFT's keypoints and descriptors: guided matching (None: without)
+        self.guided: dict[int, int] = {}   # image registered with guided matches -> their inliers
         self.registered_inliers = np.zeros(len(tracks.image_names), np.int64)
         self.deregistrations = np.zeros(len(tracks.image_names), np.int64)
         self.checks: list[RegistrationCheck] = []
@@ -376,42 +393,100 @@ class _ModelBuilder:
             self._cells_uv = self.tracks.uv
         return self._cells
 
+    def absolute_pose(self, points: np.ndarray, uv: np.ndarray) -> tuple[CameraPose, np.ndarray]:
+        """The pose of an image from its 2D-3D correspondences (working pixels) and its inlier mask, at the
+        noise-following PnP threshold; DegenerateConfigurationError when there is none."""
+        reconstruction = self.reconstruction
+        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.pnp_threshold})
+        if self.mapper.absolute_pose == "p3p":
+            result = absolute_pose_ransac(reconstruction.K, points, uv, ransac)
+            return result.pose, result.inlier_mask
+        linear = pnp_ransac(reconstruction.K, points, uv, ransac)
+        pose = pnp_nonlinear(
+            reconstruction.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
+        ).pose
+        errors = reprojection_errors_per_hypothesis(reconstruction.K, np.column_stack([pose.R, pose.t]),
+                                                    points, uv)
+        return pose, errors < ransac.pnp_threshold_px
+
+    def support_problem(self, uv: np.ndarray, inliers: np.ndarray) -> str | None:
+        """Why a pose with these inliers among the correspondences at uv has too weak a support (the
+        thresholds, relaxed or not, never under the verification's floor), or None."""
+        min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,
+                                                         self.mapper.verify_min_inlier_ratio)
+        support = InlierSupport(int(inliers.sum()), len(uv), inlier_spread(uv[inliers], *self.image_size))
+        return support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
+
+    def guided_correspondences(self, image: int, pose: CameraPose, point_ids: np.ndarray
+                               ) -> tuple[np.ndarray, np.ndarray]:
+        """(working pixels (G, 2), point ids (G,)): the image's keypoints matched to live points that `pose`
+        projects near them (`guided.guided_matches`), without the points of its tracks' correspondences
+        (point_ids) and the keypoints behind them."""
+        reconstruction, keypoints, sift = self.reconstruction, self.keypoints, self.config.sift
+        candidates = np.flatnonzero(reconstruction.point_alive)
+        candidates = candidates[~np.isin(candidates, point_ids)]
+        projection = project(reconstruction.K, pose.R, pose.t, reconstruction.point_xyz[candidates])
+        width, height = self.image_size
+        inside = ((projection.depth > 0) & (projection.uv >= 0).all(axis=1)
+                  & (projection.uv[:, 0] < width) & (projection.uv[:, 1] < height))
+        candidates, projected = candidates[inside], projection.uv[inside]
+        used = reconstruction.used_observations()
+        position = np.full(len(reconstruction.point_alive), -1, np.int64)
+        position[candidates] = np.arange(len(candidates))
+        used = used[position[reconstruction.obs_point[used]] >= 0]
+        own = keypoints.observation_keypoint[reconstruction.correspondences_2d3d(image)[0]]
+        free = np.setdiff1d(np.arange(len(keypoints.images[image].uv)), own)
+        keypoint_uv = transfer_pixels(reconstruction.cameras[image], Camera.from_K(reconstruction.K),
+                                      keypoints.images[image].uv[free])
+        matches = guided_matches(projected, position[reconstruction.obs_point[used]],
+                                 keypoints.observation_descriptors(used, self.tracks.image_index[used]),
+                                 keypoint_uv,
+                                 keypoints.images[image].descriptors[free], self.mapper.guided_radius_px,
+                                 sift.ratio, sift.max_distance)
+        return keypoint_uv[matches.keypoints], candidates[matches.points]
+
     def register(self, image: int) -> str | None:
-        """Absolute pose of `image` from its 2D-3D correspondences; adds its inlier observations to their
-        points. Returns why it failed, or None."""
+        """Absolute pose of `image` from its 2D-3D correspondences (with guided ones when its tracks' alone
+        are too few, `guided_correspondences`), held to the registration checks; adds its inlier
+        observations to their points. Returns why it failed, or None."""
         reconstruction = self.reconstruction
         obs_ids, point_ids = reconstruction.correspondences_2d3d(image)
         points, uv = reconstruction.point_xyz.take(point_ids, axis=0), self.tracks.uv.take(obs_ids, axis=0)
-        ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.pnp_threshold})
         try:
-            if self.mapper.absolute_pose == "p3p":
-                result = absolute_pose_ransac(reconstruction.K, points, uv, ransac)
-                pose, inliers = result.pose, result.inlier_mask
-            else:
-                linear = pnp_ransac(reconstruction.K, points, uv, ransac)
-                pose = pnp_nonlinear(
-                    reconstruction.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
-                ).pose
-                errors = reprojection_errors_per_hypothesis(
-                    reconstruction.K, np.column_stack([pose.R, pose.t]), points, uv)
-                inliers = errors < ransac.pnp_threshold_px
+            pose, inliers = self.absolute_pose(points, uv)
         except DegenerateConfigurationError as error:
             return str(error)
-        min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,
-                                                         self.mapper.verify_min_inlier_ratio)
-        support = InlierSupport(int(inliers.sum()), len(obs_ids),
-                                inlier_spread(uv[inliers], *self.image_size))
-        problem = support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
+        problem = self.support_problem(uv, inliers)
+        if problem is not None and self.keypoints is not None and self.mapper.guided_matching:
+            guided_uv, guided_points = self.guided_correspondences(image, pose, point_ids)
+            if len(guided_points):
+                all_uv = np.concatenate([uv, guided_uv])
+                try:
+                    pose, inliers = self.absolute_pose(
+                        np.concatenate([points, reconstruction.point_xyz[guided_points]]), all_uv)
+                except DegenerateConfigurationError as error:
+                    return f"{problem}; with {len(guided_points)} guided 2D-3D matches: {error}"
+                guided_problem = self.support_problem(all_uv, inliers)
+                guided_inliers = int(inliers[len(obs_ids):].sum())
+                if guided_problem is None and guided_inliers < self.mapper.guided_min_inliers:
+                    guided_problem = (f"{guided_inliers} of its inliers are guided matches (need "
+                                      f"{self.mapper.guided_min_inliers})")
+                if guided_problem is not None:
+                    return f"{problem}; with {len(guided_points)} guided 2D-3D matches: {guided_problem}"
+                problem = None
+                self.guided[image] = guided_inliers
+                inliers = inliers[:len(obs_ids)]
         if problem is None:
             problem = agreement_problem(self.rotation_agreement(image, pose.R),
                                         self.mapper.verify_min_rotation_agreement, self.tracks.image_names)
             if problem is not None:
                 self.checks.append(RegistrationCheck(image, "refused", problem))
         if problem is not None:
+            self.guided.pop(image, None)
             return problem
         reconstruction.register_image(image, pose)
         reconstruction.add_observations(obs_ids[inliers], point_ids[inliers])
-        self.registered_inliers[image] = support.inliers
+        self.registered_inliers[image] = int(inliers.sum())   # its observations (guided matches are not)
         return None
 
     def rotation_agreement(self, image: int, R: np.ndarray) -> RotationAgreement:
@@ -801,6 +876,8 @@ def _finished_model(builder: _ModelBuilder, candidate: InitialPairCandidate,
         intrinsics_sigma=covariance.sigma() if covariance is not None else {},
         principal_point_test=principal_point_test,
         merged_models=list(builder.merges),
+        guided_registrations={tracks.image_names[image]: inliers for image, inliers in builder.guided.items()
+                              if reconstruction.registered[image]},
     )
     model = _sparse_model(builder, candidate, stats)
     model.checks, model.warnings = list(builder.checks), builder.mirror_warnings()
@@ -815,6 +892,7 @@ def reconstruct_models(
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     pair_types: dict[tuple[int, int], str] | None = None,
     pair_geometries: dict[tuple[int, int], TwoViewGeometry] | None = None,
+    keypoints: TrackFeatures | None = None,
 ) -> list[SparseModel]:
     """Every model incremental SfM can build from the tracks, largest first.
 
@@ -822,7 +900,9 @@ def reconstruct_models(
     image registers; models under min_model_images are discarded (their pair is not tried again).
     `pair_types` maps (i, j), i < j, to geometric verification's label; planar/panoramic pairs never start
     a model. `pair_geometries` (the verified geometry of each pair, by (i, j)) lets each registration be
-    checked against its pairs' relative rotations (`verification`). `camera` (a 3x3 K, a Camera, or one
+    checked against its pairs' relative rotations (`verification`); `keypoints` (SIFT's keypoints and
+    descriptors behind the tracks) lets an image that failed be matched again against the model
+    (`guided`). `camera` (a 3x3 K, a Camera, or one
     Camera per image) is every image's initial camera; each global BA refines the intrinsics as `refine`
     says, and the models' `cameras` carry the result.
     Raises DegenerateConfigurationError naming, per image, why no model could start.
@@ -858,7 +938,8 @@ def reconstruct_models(
         if choice.candidate is None:
             break
         candidate = choice.candidate
-        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress, votes)
+        builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress, votes,
+                                keypoints)
         with timer.stage("initial pair"):
             builder.initialize(candidate)
         builder.grow(num_images, num_images - int(available.sum()))

@@ -261,8 +261,8 @@ def test_the_distortion_json_of_sfmnerf_calibrate_comes_with_its_calibration_and
 
 def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shared_data, tmp_path):
     """lego_ring_400: 50 views around a symmetric object; the weakly supported registrations used to put
-    r_12 and r_28 on the far side of the ring (172-176 deg off) and r_34 6 deg off. Refused, they and 7
-    more views of one sector formed a second model, which the merge moves into the first."""
+    r_12 and r_28 on the far side of the ring (172-176 deg off) and r_34 6 deg off. Refused, they are
+    registered later by guided matching (r_34) or in a second model that the merge moves into the first."""
     from estimation.geometry.alignment import aligned_pose_errors
     from estimation.types import CameraPose
 
@@ -278,7 +278,9 @@ def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shar
     assert len(registered) >= 48
     assert errors.rotation_deg.mean() < 0.32    # 0.25 measured; COLMAP: 0.37 over the 35 it registers
     report = json.loads((tmp_path / "report.json").read_text())
-    assert "images merged" in report["models"][0]["merged_models"][0]
+    model = report["models"][0]
+    assert all("images merged" in merge for merge in model["merged_models"])
+    assert model["merged_models"] or model["guided_registrations"]
     assert {"registration_checks", "unregistered"} <= report.keys()
     assert len(report["unregistered"]) == 50 - len(registered)
     assert all(entry["reason"] for entry in report["unregistered"])
