@@ -142,11 +142,12 @@ def strecha_set(name: str) -> BenchSet:
 
 
 def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None = None, workers: int = 0,
-             estimator: str | None = None, seed: int = 0, mapper: dict | None = None) -> Outcome:
+             estimator: str | None = None, seed: int = 0, mapper: dict | None = None,
+             sift: dict | None = None) -> Outcome:
     limit = {} if max_reprojection_sigmas is None else {"max_reprojection_sigmas": max_reprojection_sigmas}
     config = ReconstructionConfig(features=bench.features, write_figures=False, filter=limit,
                                   ransac={"seed": seed}, mapper=mapper or {},
-                                  sift={"workers": workers},
+                                  sift={"workers": workers, **(sift or {})},
                                   two_view={} if estimator is None else {"estimator": estimator})
     start, cpu, children = time.perf_counter(), time.process_time(), child_cpu_seconds()
     result = reconstruct(bench.images, out, config)
@@ -262,6 +263,8 @@ def main() -> None:
                         help="ours: comma-separated RANSAC seeds, a run and a row each (pycolmap runs once)")
     parser.add_argument("--mapper", type=json.loads, default=None,
                         help="ours: MapperConfig fields as JSON (example in the docstring)")
+    parser.add_argument("--sift", type=json.loads, default=None,
+                        help="ours: SiftConfig fields as JSON, e.g. '{\"max_image_side\": 3200}'")
     parser.add_argument("--uncalibrated", action="store_true",
                         help="lego, fountain, herzjesu without calibration.txt: both methods refine a focal "
                         "length prior (ours: simple-radial; pycolmap: SIMPLE_RADIAL, COLMAP's defaults)")
@@ -295,13 +298,14 @@ def main() -> None:
             total = sum(1 for p in bench.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
             seeds = [int(seed) for seed in args.seeds.split(",")]
             runs = {seed: run_ours(bench, work / f"ours_{key}_{seed}", args.max_reprojection_sigmas,
-                                   args.workers, args.estimator, seed, args.mapper) for seed in seeds}
+                                   args.workers, args.estimator, seed, args.mapper, args.sift)
+                    for seed in seeds}
             skip_colmap = args.no_pycolmap or key == "unity"
             theirs = None if skip_colmap else run_pycolmap(bench, work / f"colmap_{key}")
             pairs = [(runs[seeds[0]].seconds, theirs.seconds if theirs else float("nan"))]
             for _ in range(1, args.repeats):
                 again = run_ours(bench, work / f"ours_{key}_repeat", args.max_reprojection_sigmas,
-                                 args.workers, args.estimator, seeds[0], args.mapper)
+                                 args.workers, args.estimator, seeds[0], args.mapper, args.sift)
                 pairs.append((again.seconds, float("nan") if skip_colmap
                               else run_pycolmap(bench, work / f"colmap_{key}").seconds))
             if args.repeats > 1:

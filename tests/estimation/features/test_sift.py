@@ -13,6 +13,7 @@ import textwrap
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import InputError
@@ -64,6 +65,39 @@ def test_keypoints_detected_downscaled_are_mapped_back_to_full_resolution_pixels
     assert np.mean(distance < 1.5) > 0.9
     naive = np.linalg.norm(mapped.uv[:, None] - reference.uv[None] * 3, axis=2).min(axis=1)
     assert np.median(naive) > np.median(distance) + 0.5
+
+
+def test_a_large_photo_detected_at_half_size_gives_full_size_keypoints_that_match_full_size_detection(
+        shared_data):
+    """OpenCV's SIFT doubles the image before its first octave, so the image halved samples its finest
+    scale on the full-size grid: the keypoints, mapped back to full-size pixels, lie where full-size
+    detection puts them and their descriptors match full-size ones at the same place; only the scales
+    finer than a full-size pixel (the full size's upsampled octave) are missing. (A fountain-P11 photo
+    halved to 1536x1024 stands for the full size, to keep the test short; the default max_image_side halves
+    the 3072x2048 original the same way.)"""
+    photo = load_rgb(shared_data / "strecha" / "fountain-P11" / "0005.jpg")
+    full = cv2.resize(photo, (1536, 1024), interpolation=cv2.INTER_AREA)
+    unbounded = 20000                                   # every keypoint of either, no budget cut
+    at_full_size = detect_features(full, SiftConfig(max_features=unbounded, max_image_side=1536))
+    at_half_size = detect_features(full, SiftConfig(max_features=unbounded, max_image_side=768))
+    assert 2000 < len(at_half_size.uv) < len(at_full_size.uv)   # the full size's finest octave is left out
+    assert at_half_size.uv.max(axis=0)[0] > 1400                 # full-size pixels
+    nearest = cKDTree(at_full_size.uv).query(at_half_size.uv)[0]
+    assert np.mean(nearest < 1.0) > 0.75
+    assert np.median(nearest) < 0.5
+    matches = match_descriptors(at_half_size.descriptors, at_full_size.descriptors, ratio=0.8)
+    assert len(matches.ratio) > 0.6 * len(at_half_size.uv)
+    offset = np.linalg.norm(at_half_size.uv[matches.index_a] - at_full_size.uv[matches.index_b], axis=1)
+    assert np.mean(offset < 1.0) > 0.95
+
+
+def test_images_up_to_the_default_detection_size_are_detected_at_full_size():
+    """The default max_image_side downscales only larger photos: the benchmark's lego (200 px), rings
+    (400 px) and Unity Hall (800x600) keep their full-size detection."""
+    image = textured_image(800, 600, seed=4)
+    assert SiftConfig().max_image_side >= 800
+    np.testing.assert_array_equal(detect_features(image, SiftConfig()).uv,
+                                  detect_features(image, SiftConfig(max_image_side=3200)).uv)
 
 
 def test_the_default_contrast_threshold_keeps_opencvs_skip_of_flat_dog_samples():
