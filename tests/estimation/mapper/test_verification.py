@@ -4,6 +4,7 @@ relative rotations that two-view geometry verified for its pairs."""
 import numpy as np
 import pytest
 
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.geometry.alignment import aligned_pose_errors, relative_pose
 from estimation.geometry.linalg import skew
@@ -189,3 +190,24 @@ def test_the_verified_pairs_refuse_the_mirrored_placement_and_every_registered_i
     assert "near-mirror" in model.unregistered[5]
     assert any(check.image == 5 and check.event == "refused" for check in model.checks)
     assert any("near-mirror ambiguity" in warning and "6.png" in warning for warning in model.warnings)
+
+
+def test_without_calibration_the_pairs_F_still_refuse_the_mirrored_placement(symmetric_ring):
+    """The pairs verified with F only and a focal prior 1.3x the truth, refined by the BAs: the votes follow
+    the refined focal, and the far-side placement of image 5 is refused as with calibration."""
+    ring, _ = symmetric_ring
+    scene, config = ring.scene, ReconstructionConfig()
+    geometries = {}
+    for i in range(len(scene.poses)):
+        for j in range(i + 1, len(scene.poses)):
+            _, uv_i, uv_j = scene.tracks.pair_correspondences(i, j)
+            if len(uv_i) >= 40:
+                geometries[(i, j)] = verify_epipolar(uv_i, uv_j, None, None, config.two_view, config.ransac)
+    assert all(geometry.E is None for geometry in geometries.values())
+    prior = scene.K @ np.diag([1.3, 1.3, 1.0])
+    model = reconstruct_models(scene.tracks, prior, config, refine=IntrinsicsRefinement(focal=True),
+                               pair_geometries=geometries)[0]
+    errors = rotation_errors(model, scene)
+    assert max(errors.values()) < 1.0 and len(errors) >= 15
+    assert 5 not in model.poses and "near-mirror" in model.unregistered[5]
+    assert model.cameras[0].fx == pytest.approx(scene.K[0, 0], rel=0.01)
