@@ -151,20 +151,24 @@ def test_a_pair_with_a_verified_essential_matrix_keeps_its_rotations_whatever_th
     assert under_intrinsics(pair, np.eye(3), 2 * np.eye(3), min_singular_ratio=0.85) is pair
 
 
-@pytest.fixture(scope="module")
-def symmetric_ring():
-    """A 16-view ring around a half-turn symmetric object; image 5 matched 60 % of its features to the
-    far side, and the pairs sharing 40+ tracks verified as the front end does."""
-    ring = make_symmetric_ring(num_cameras=16, num_points=2000, confused=(5,), confusion=0.6, seed=0)
-    scene, config = ring.scene, ReconstructionConfig()
+def verified_pairs(scene, K: np.ndarray | None) -> dict[tuple[int, int], TwoViewGeometry]:
+    """The pairs sharing 40+ tracks verified as the front end does (with K: E; without: F only)."""
+    config = ReconstructionConfig()
     geometries = {}
     for i in range(len(scene.poses)):
         for j in range(i + 1, len(scene.poses)):
             _, uv_i, uv_j = scene.tracks.pair_correspondences(i, j)
             if len(uv_i) >= 40:
-                geometries[(i, j)] = verify_epipolar(uv_i, uv_j, scene.K, scene.K, config.two_view,
-                                                     config.ransac)
-    return ring, geometries
+                geometries[(i, j)] = verify_epipolar(uv_i, uv_j, K, K, config.two_view, config.ransac)
+    return geometries
+
+
+@pytest.fixture(scope="module")
+def symmetric_ring():
+    """A 16-view ring around a half-turn symmetric object; image 5 matched 60 % of its features to the
+    far side; its pairs verified with the true K (`verified_pairs`)."""
+    ring = make_symmetric_ring(num_cameras=16, num_points=2000, confused=(5,), confusion=0.6, seed=0)
+    return ring, verified_pairs(ring.scene, ring.scene.K)
 
 
 def rotation_errors(model, scene) -> dict[int, float]:
@@ -196,16 +200,12 @@ def test_without_calibration_the_pairs_F_still_refuse_the_mirrored_placement(sym
     """The pairs verified with F only and a focal prior 1.3x the truth, refined by the BAs: the votes follow
     the refined focal, and the far-side placement of image 5 is refused as with calibration."""
     ring, _ = symmetric_ring
-    scene, config = ring.scene, ReconstructionConfig()
-    geometries = {}
-    for i in range(len(scene.poses)):
-        for j in range(i + 1, len(scene.poses)):
-            _, uv_i, uv_j = scene.tracks.pair_correspondences(i, j)
-            if len(uv_i) >= 40:
-                geometries[(i, j)] = verify_epipolar(uv_i, uv_j, None, None, config.two_view, config.ransac)
+    scene = ring.scene
+    geometries = verified_pairs(scene, None)
     assert all(geometry.E is None for geometry in geometries.values())
     prior = scene.K @ np.diag([1.3, 1.3, 1.0])
-    model = reconstruct_models(scene.tracks, prior, config, refine=IntrinsicsRefinement(focal=True),
+    model = reconstruct_models(scene.tracks, prior, ReconstructionConfig(),
+                               refine=IntrinsicsRefinement(focal=True),
                                pair_geometries=geometries)[0]
     errors = rotation_errors(model, scene)
     assert max(errors.values()) < 1.0 and len(errors) >= 15
