@@ -372,6 +372,14 @@ class MapperConfig(StrictConfig):
         "vote catches far-side placements (130-180 deg there), not small errors. 30 refused lego_200's "
         "r_86 (its one voting pair 50 deg off) and left the mean rotation error at 0.437 deg, not 0.413.",
     )
+    verify_min_essential_singular_ratio: float = Field(
+        0.85, ge=0, le=1, description="Without calibration a pair verified only F; it votes when its "
+        "E = K^T F K under the model's current intrinsics is an essential matrix: second singular value >= "
+        "this times the first (1 for an exact F and the right K). Below it F disagrees with the camera (a "
+        "wide, near-planar pair's F, or an unrefined focal prior) and its rotation is no evidence: on "
+        "fountain-P11 under the refined focal, 0010's pairs with 0002-0004 (ratios 0.58-0.82) were 48-93 "
+        "deg off the truth and refused it, while 49 of 52 pairs within 10 deg had >= 0.85.",
+    )
     verify_min_rotation_agreement: float = Field(
         1.0, ge=0, le=1, description="Least share of the voting pairs' inliers that must agree with a "
         "registration's rotation (1: every voting pair, a veto); an image below it is refused (at "

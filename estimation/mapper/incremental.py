@@ -61,6 +61,7 @@ from estimation.mapper.verification import (
     inlier_spread,
     rotation_agreement,
     support_problem,
+    under_intrinsics,
     voting_pairs,
 )
 from estimation.two_view.geometry import TwoViewGeometry
@@ -259,6 +260,8 @@ class _ModelBuilder:
         self.trials = np.zeros(len(tracks.image_names), np.int64)
         self.failures: dict[int, str] = {}
         self.votes = votes or [[] for _ in tracks.image_names]   # image -> its verified pairs
+        self._votes_cameras: list[Camera] | None = None    # the cameras `_current_votes` were taken under
+        self._current_votes: dict[int, list[VerifiedPair]] = {}
         self.keypoints = keypoints   # SIFT's keypoints and descriptors: guided matching (None: without)
         self.guided: dict[int, int] = {}   # image registered with guided matches -> their inliers
         self.registered_inliers = np.zeros(len(tracks.image_names), np.int64)
@@ -489,10 +492,24 @@ class _ModelBuilder:
         self.registered_inliers[image] = int(inliers.sum())   # its observations (guided matches are not)
         return None
 
+    def current_votes(self, image: int) -> list[VerifiedPair]:
+        """The image's verified pairs, those resting on F under the model's current intrinsics (refined by
+        the global BAs when self-calibrating) rather than the initial prior, and only where they are
+        consistent with them (`under_intrinsics`); kept until the cameras change."""
+        cameras = self.reconstruction.cameras
+        if self._votes_cameras is not cameras:
+            self._votes_cameras, self._current_votes = cameras, {}
+        if image not in self._current_votes:
+            min_ratio = self.mapper.verify_min_essential_singular_ratio
+            current = (under_intrinsics(pair, cameras[image].K, cameras[pair.other].K, min_ratio)
+                       for pair in self.votes[image])
+            self._current_votes[image] = [pair for pair in current if pair is not None]
+        return self._current_votes[image]
+
     def rotation_agreement(self, image: int, R: np.ndarray) -> RotationAgreement:
         """How the rotation R of `image` agrees with its verified pairs with the other registered images."""
         reconstruction = self.reconstruction
-        pairs = [pair for pair in self.votes[image]
+        pairs = [pair for pair in self.current_votes(image)
                  if reconstruction.registered[pair.other] and pair.other != image]
         return rotation_agreement(R, pairs, {pair.other: reconstruction.R[pair.other] for pair in pairs},
                                   self.mapper.verify_max_rotation_deviation_deg)
@@ -530,8 +547,13 @@ class _ModelBuilder:
             return [], problem
         moved = {image: merge.similarity.apply_pose(second.pose(image)).R for image in second.order}
         R_of = {**{image: first.R[image] for image in first.order}, **moved}
+        K_of = {**{image: first.cameras[image].K for image in first.order},
+                **{image: second.cameras[image].K for image in second.order}}
         for image, R in moved.items():
-            pairs = [pair for pair in self.votes[image] if pair.other in R_of and pair.other != image]
+            current = (under_intrinsics(pair, K_of[image], K_of[pair.other],
+                                        self.mapper.verify_min_essential_singular_ratio)
+                       for pair in self.votes[image] if pair.other in R_of and pair.other != image)
+            pairs = [pair for pair in current if pair is not None]
             agreement = rotation_agreement(R, pairs, {pair.other: R_of[pair.other] for pair in pairs},
                                            self.mapper.verify_max_rotation_deviation_deg)
             problem = agreement_problem(agreement, self.mapper.verify_min_rotation_agreement,
@@ -922,7 +944,7 @@ def reconstruct_models(
     min_images = min(mapper.min_model_images, num_images)
     built: list[tuple[_ModelBuilder, SparseModel]] = []
     starts: list[tuple[InitialPairCandidate, dict[str, str]]] = []   # of each built model
-    votes = voting_pairs(pair_geometries or {}, K, num_images, mapper.verify_pair_min_inliers)
+    votes = voting_pairs(pair_geometries or {}, num_images, mapper.verify_pair_min_inliers)
     while len(built) < mapper.max_models and available.sum() >= 2:
         if progress:
             progress("initial pair", 0.02 + 0.85 * (num_images - available.sum()) / num_images)

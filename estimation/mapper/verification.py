@@ -7,7 +7,11 @@ reprojection error. So each registration is also held against:
   the image (a pose resting on one corner is poorly constrained);
 - the relative rotations that two-view geometry verified for its pairs with registered images, which were
   estimated from the pair's own matches, not from the model's points: a placement on the far side of the
-  ring disagrees by ~180 deg with every true neighbour.
+  ring disagrees by ~180 deg with every true neighbour. Without calibration a pair verified only F, and
+  the rotation of E = K^T F K depends on K: it is taken under the model's current (self-calibrated)
+  intrinsics, not the initial focal prior, and only when that E is an essential matrix (two equal
+  singular values): a wide, near-planar pair's F can be consistent with its matches and still give a
+  rotation 90 deg off under the right K.
 Each check is a pure function with a typed result; the mapper (`incremental`) decides what to do.
 """
 
@@ -18,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from estimation.geometry.alignment import rotation_angle_deg
-from estimation.two_view.essential import essential_from_fundamental, pose_candidates
+from estimation.two_view.essential import pose_candidates, project_to_essential
 from estimation.two_view.geometry import TwoViewGeometry
 
 NEAR_MIRROR = "a near-mirror placement"
@@ -78,23 +82,42 @@ class VerifiedPair(NamedTuple):
     """Two-view evidence about image `image` relative to the registered image `other`."""
 
     other: int
-    rotations: np.ndarray  # (2, 3, 3) `essential_rotations` of E, x_image^T E x_other = 0 (normalized)
-    inliers: int           # the pair's verified inliers: the weight of its vote
+    rotations: np.ndarray | None  # (2, 3, 3) `essential_rotations` of E, x_image^T E x_other = 0
+                                  # (normalized); None while it rests on F (`under_intrinsics` gives them)
+    inliers: int                  # the pair's verified inliers: the weight of its vote
+    F: np.ndarray | None = None   # pixels, x_image^T F x_other = 0: the pair's geometry without calibration
 
 
-def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], K: np.ndarray, num_images: int,
+def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], num_images: int,
                  min_inliers: int) -> list[list[VerifiedPair]]:
-    """Image m -> its verified pairs with >= min_inliers inliers, E oriented so that x_m^T E x_other = 0
-    (E of pair (i, j) relates x_j^T E x_i = 0, so image i gets E^T); without E (no calibration), the
-    E = K^T F K of the pair's F under the initial K."""
+    """Image m -> its verified pairs with >= min_inliers inliers, E (or F) oriented so that
+    x_m^T E x_other = 0 (E of pair (i, j) relates x_j^T E x_i = 0, so image i gets E^T); a pair with F only
+    (no calibration) gets its rotations from `under_intrinsics`."""
     votes: list[list[VerifiedPair]] = [[] for _ in range(num_images)]
     for (i, j), geometry in geometries.items():
         if geometry.num_inliers < min_inliers or (geometry.E is None and geometry.F is None):
             continue
-        E = geometry.E if geometry.E is not None else essential_from_fundamental(geometry.F, K)
-        votes[j].append(VerifiedPair(i, essential_rotations(E), geometry.num_inliers))
-        votes[i].append(VerifiedPair(j, essential_rotations(E.T), geometry.num_inliers))
+        if geometry.E is not None:
+            votes[j].append(VerifiedPair(i, essential_rotations(geometry.E), geometry.num_inliers))
+            votes[i].append(VerifiedPair(j, essential_rotations(geometry.E.T), geometry.num_inliers))
+        else:
+            votes[j].append(VerifiedPair(i, None, geometry.num_inliers, geometry.F))
+            votes[i].append(VerifiedPair(j, None, geometry.num_inliers, geometry.F.T))
     return votes
+
+
+def under_intrinsics(pair: VerifiedPair, K_image: np.ndarray, K_other: np.ndarray,
+                     min_singular_ratio: float) -> VerifiedPair | None:
+    """A pair resting on F with the rotations of E = K_image^T F K_other (pixel K of each image: the model's
+    current ones), or None (no vote) when that E is no essential matrix: its singular values s_2 / s_1 <
+    min_singular_ratio (F disagrees with those intrinsics); a pair with a verified E as it is."""
+    if pair.F is None:
+        return pair
+    E = K_image.T @ pair.F @ K_other
+    singular = np.linalg.svd(E, compute_uv=False)
+    if singular[1] < min_singular_ratio * singular[0]:
+        return None
+    return pair._replace(rotations=essential_rotations(project_to_essential(E)))
 
 
 class RotationAgreement(NamedTuple):

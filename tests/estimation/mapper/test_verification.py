@@ -4,6 +4,7 @@ relative rotations that two-view geometry verified for its pairs."""
 import numpy as np
 import pytest
 
+from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.geometry.alignment import aligned_pose_errors, relative_pose
 from estimation.geometry.linalg import skew
@@ -17,6 +18,7 @@ from estimation.mapper.verification import (
     inlier_spread,
     rotation_agreement,
     support_problem,
+    under_intrinsics,
     voting_pairs,
 )
 from estimation.synthetic import make_symmetric_ring, rotation_about_axis
@@ -63,7 +65,7 @@ def test_voting_pairs_orient_each_pair_from_the_voting_image_and_skip_weak_pairs
     E_01 = essential_of(relative_pose(poses[0], poses[1]))     # x_1^T E x_0 = 0
     strong = TwoViewGeometry(TwoViewGeometryType.CALIBRATED, np.ones(50, bool), None, E_01, None, 50, 50, 0)
     weak = TwoViewGeometry(TwoViewGeometryType.CALIBRATED, np.ones(10, bool), None, E_01, None, 10, 10, 0)
-    votes = voting_pairs({(0, 1): strong, (1, 2): weak}, np.eye(3), 3, min_inliers=30)
+    votes = voting_pairs({(0, 1): strong, (1, 2): weak}, 3, min_inliers=30)
     assert [pair.other for pair in votes[0]] == [1] and [pair.other for pair in votes[1]] == [0]
     assert votes[2] == []
     R_of = {m: pose.R for m, pose in enumerate(poses)}
@@ -86,20 +88,87 @@ def test_one_disagreeing_strong_pair_vetoes_a_rotation_at_full_agreement_and_nam
     assert rotation_agreement(np.eye(3), [], R_of, 30).share == 1.0     # no vote contradicts
 
 
-@pytest.fixture(scope="module")
-def symmetric_ring():
-    """A 16-view ring around a half-turn symmetric object; image 5 matched 60 % of its features to the
-    far side, and the pairs sharing 40+ tracks verified as the front end does."""
-    ring = make_symmetric_ring(num_cameras=16, num_points=2000, confused=(5,), confusion=0.6, seed=0)
-    scene, config = ring.scene, ReconstructionConfig()
+def pixel_K(focal: float) -> np.ndarray:
+    return np.array([[focal, 0.0, 320.0], [0.0, focal, 240.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture
+def wide_pair():
+    """Two views 40 deg apart around a point 5 units ahead of the first, focal length 576 px."""
+    return [CameraPose.from_center(rotation_about_axis(np.array([0.1, 1.0, 0.0]), np.radians(a)),
+                                   np.array([np.sin(np.radians(a)), 0.1, -np.cos(np.radians(a))]) * 5)
+            for a in (0, 40)]
+
+
+def uncalibrated_votes(F_01: np.ndarray) -> list[list[VerifiedPair]]:
+    """The votes of a pair (0, 1) verified with F only, x_1^T F x_0 = 0."""
+    geometry = TwoViewGeometry(TwoViewGeometryType.UNCALIBRATED, np.ones(80, bool), F_01, None, None,
+                               80, 0, 0)
+    return voting_pairs({(0, 1): geometry}, 2, min_inliers=30)
+
+
+def test_a_pair_verified_without_calibration_votes_with_F_under_the_refined_focal_not_the_prior(wide_pair):
+    """F's E = K^T F K turns with K: under a focal prior 1.33x the truth (1.2 x the image side where the
+    truth is 0.9 x, as on Strecha's photos) the 40 deg pair's rotation comes out ~12 deg off; under the
+    refined focal it is the truth, and a far-side placement is still refused."""
+    true_K, prior_K, min_ratio = pixel_K(576.0), pixel_K(768.0), 0.85
+    K_inverse = np.linalg.inv(true_K)
+    votes = uncalibrated_votes(K_inverse.T @ essential_of(relative_pose(*wide_pair)) @ K_inverse)
+    assert votes[1][0].rotations is None and votes[0][0].rotations is None    # they follow the intrinsics
+    R_of = {m: pose.R for m, pose in enumerate(wide_pair)}
+    turn = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.pi)
+    limit = 5.0
+    for image, other in ((1, 0), (0, 1)):
+        under_prior = [under_intrinsics(votes[image][0], prior_K, prior_K, min_ratio)]
+        off = rotation_agreement(wide_pair[image].R, under_prior, R_of, limit).deviations_deg[other]
+        assert off > 2 * limit
+        refined = [under_intrinsics(votes[image][0], true_K, true_K, min_ratio)]
+        agreement = rotation_agreement(wide_pair[image].R, refined, R_of, limit)
+        assert agreement.share == 1.0 and agreement.deviations_deg[other] < 1e-6
+        flipped = rotation_agreement(turn @ wide_pair[image].R, refined, R_of, limit)
+        assert flipped.share == 0.0
+        assert "near-mirror" in agreement_problem(flipped, 1.0, ["a", "b"])
+
+
+def test_an_F_that_fits_a_planar_pair_but_not_the_camera_does_not_vote(wide_pair):
+    """Matches on one plane fit F = [e]x H for any epipole e: one F of that family explains every match,
+    yet under the true K its E has unequal singular values (and a rotation ~40 deg off): no vote."""
+    K = pixel_K(576.0)
+    relative = relative_pose(*wide_pair)
+    plane_normal, plane_distance = np.array([0.0, 0.0, 1.0]), 5.0    # z = 5 in the first camera
+    H = K @ (relative.R + np.outer(relative.t, plane_normal) / plane_distance) @ np.linalg.inv(K)
+    F = skew(np.array([300.0, 200.0, 1.0])) @ H
+    plane = np.column_stack([np.random.default_rng(0).uniform(-1, 1, (20, 2)), np.full(20, plane_distance)])
+    x_0, x_1 = plane @ K.T, (plane @ relative.R.T + relative.t) @ K.T
+    assert np.abs(np.einsum("ni,ij,nj->n", x_1 / x_1[:, 2:], F, x_0 / x_0[:, 2:])).max() < 1e-9
+    votes = uncalibrated_votes(F)
+    assert under_intrinsics(votes[1][0], K, K, min_singular_ratio=0.85) is None
+    assert under_intrinsics(votes[1][0], K, K, min_singular_ratio=0.0) is not None
+
+
+def test_a_pair_with_a_verified_essential_matrix_keeps_its_rotations_whatever_the_intrinsics():
+    pair = VerifiedPair(1, essential_rotations(skew(np.array([1.0, 0.0, 0.0]))), 50)
+    assert under_intrinsics(pair, np.eye(3), 2 * np.eye(3), min_singular_ratio=0.85) is pair
+
+
+def verified_pairs(scene, K: np.ndarray | None) -> dict[tuple[int, int], TwoViewGeometry]:
+    """The pairs sharing 40+ tracks verified as the front end does (with K: E; without: F only)."""
+    config = ReconstructionConfig()
     geometries = {}
     for i in range(len(scene.poses)):
         for j in range(i + 1, len(scene.poses)):
             _, uv_i, uv_j = scene.tracks.pair_correspondences(i, j)
             if len(uv_i) >= 40:
-                geometries[(i, j)] = verify_epipolar(uv_i, uv_j, scene.K, scene.K, config.two_view,
-                                                     config.ransac)
-    return ring, geometries
+                geometries[(i, j)] = verify_epipolar(uv_i, uv_j, K, K, config.two_view, config.ransac)
+    return geometries
+
+
+@pytest.fixture(scope="module")
+def symmetric_ring():
+    """A 16-view ring around a half-turn symmetric object; image 5 matched 60 % of its features to the
+    far side; its pairs verified with the true K (`verified_pairs`)."""
+    ring = make_symmetric_ring(num_cameras=16, num_points=2000, confused=(5,), confusion=0.6, seed=0)
+    return ring, verified_pairs(ring.scene, ring.scene.K)
 
 
 def rotation_errors(model, scene) -> dict[int, float]:
@@ -125,3 +194,20 @@ def test_the_verified_pairs_refuse_the_mirrored_placement_and_every_registered_i
     assert "near-mirror" in model.unregistered[5]
     assert any(check.image == 5 and check.event == "refused" for check in model.checks)
     assert any("near-mirror ambiguity" in warning and "6.png" in warning for warning in model.warnings)
+
+
+def test_without_calibration_the_pairs_F_still_refuse_the_mirrored_placement(symmetric_ring):
+    """The pairs verified with F only and a focal prior 1.3x the truth, refined by the BAs: the votes follow
+    the refined focal, and the far-side placement of image 5 is refused as with calibration."""
+    ring, _ = symmetric_ring
+    scene = ring.scene
+    geometries = verified_pairs(scene, None)
+    assert all(geometry.E is None for geometry in geometries.values())
+    prior = scene.K @ np.diag([1.3, 1.3, 1.0])
+    model = reconstruct_models(scene.tracks, prior, ReconstructionConfig(),
+                               refine=IntrinsicsRefinement(focal=True),
+                               pair_geometries=geometries)[0]
+    errors = rotation_errors(model, scene)
+    assert max(errors.values()) < 1.0 and len(errors) >= 15
+    assert 5 not in model.poses and "near-mirror" in model.unregistered[5]
+    assert model.cameras[0].fx == pytest.approx(scene.K[0, 0], rel=0.01)
