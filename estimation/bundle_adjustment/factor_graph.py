@@ -491,7 +491,10 @@ def _point_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
         end = min(begin + POINT_COVARIANCE_CHUNK, len(block_inverses))
         lifted = np.einsum("pij,pjr->pir", block_inverses[begin:end],
                            coupling[3 * begin:3 * end].toarray().reshape(end - begin, 3, -1))
-        covariances[begin:end] += np.einsum("pir,rs,pjs->pij", lifted, camera_covariance, lifted)
+        # one matrix product with the camera covariance for the chunk's rows (a three-operand einsum
+        # would loop over every (r, s) pair of cameras per point)
+        spread = (lifted.reshape(-1, lifted.shape[-1]) @ camera_covariance).reshape(lifted.shape)
+        covariances[begin:end] += np.einsum("pis,pjs->pij", spread, lifted)
     return covariances
 
 
