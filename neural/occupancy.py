@@ -3,9 +3,9 @@
 The grid covers an axis-aligned box with `resolution` cells per axis. A cell is occupied when the density
 inside it may make a sample's opacity exceed a threshold. It starts fully occupied (warm-up) and is then
 recomputed from the model's density during training, so it is learned from the images alone (no masks).
-A cell may be emptied only once training has rendered samples in it on enough steps (`seen_steps`): a cell
-the photos have not yet reached (the far shell of an unbounded scene, whose density starts transparent)
-keeps its chance to become dense.
+A cell may be emptied only once training has evaluated the density of samples in it on enough steps
+(`seen_steps`; samples behind an opaque surface count: their density is evaluated for early ray termination):
+a cell that no training ray has yet reached keeps its chance to become dense.
 Samples are taken at a fixed spacing along each ray inside the box and kept only in occupied cells; the
 result is *packed*: one flat list of samples, sorted by ray and then by distance.
 
@@ -88,7 +88,7 @@ class OccupancyGrid(torch.nn.Module):
     """A boolean grid of cells over [box_min, box_max]; all cells start occupied.
 
     Buffers (saved in state_dict): `occupied` (X,Y,Z) bool, `seen_steps` (X,Y,Z) int32 (training steps that
-    rendered a sample in the cell, see `mark_seen`), `box_min` (3,), `box_max` (3,).
+    evaluated the density of a sample in the cell, see `mark_seen`), `box_min` (3,), `box_max` (3,).
     """
 
     def __init__(self, box_min: Tensor, box_max: Tensor, resolution: tuple[int, int, int]) -> None:
@@ -147,8 +147,12 @@ class OccupancyGrid(torch.nn.Module):
     def mark_seen(self, positions: Tensor) -> None:
         """One more seen step for every cell holding one of this training step's samples (N,3)."""
         cell, inside = _cell_indices(self.seen_steps.shape, positions, self.box_min, self.box_max)
-        hit = torch.zeros(self.seen_steps.numel(), dtype=torch.bool, device=cell.device)
-        hit[cell[inside]] = True
+        self._mark_cells(cell[inside])
+
+    def _mark_cells(self, cells: Tensor) -> None:
+        """One more seen step for each cell (flat indices, repeats counted once)."""
+        hit = torch.zeros(self.seen_steps.numel(), dtype=torch.bool, device=cells.device)
+        hit[cells] = True
         self.seen_steps += hit.reshape(self.seen_steps.shape)
 
     def set_occupied(self, occupied: Tensor) -> None:
@@ -208,9 +212,18 @@ class OccupancyGrid(torch.nn.Module):
         self.set_occupied((occupied[0, 0] > 0) | (self.seen_steps < min_seen_steps))
         return alpha
 
-    def query(self, positions: Tensor) -> Tensor:
-        """Occupied (N,) bool for world points (N,3); points outside the box are never occupied."""
-        return _lookup(self.occupied, positions, self.box_min, self.box_max, inside_only=True)
+    def query(self, positions: Tensor, mark_seen: bool = False) -> Tensor:
+        """Occupied (N,) bool for world points (N,3); points outside the box are never occupied.
+
+        mark_seen: the occupied cells among them count one more seen step (`mark_seen`), in the same lookup.
+        """
+        if not mark_seen:
+            return _lookup(self.occupied, positions, self.box_min, self.box_max, inside_only=True)
+        cell, inside = _cell_indices(self.occupied.shape, positions, self.box_min, self.box_max)
+        occupied = self.occupied.reshape(-1)[cell] & inside
+        with torch.no_grad():
+            self._mark_cells(cell[occupied])
+        return occupied
 
     def coarse_occupied(self) -> Tensor:
         """Occupancy of blocks of f^3 cells (f = COARSE_FACTOR) dilated by a block; (X,Y,Z)/f rounded up."""
@@ -271,7 +284,6 @@ class OccupancyGrid(torch.nn.Module):
         keep = _lookup(self.occupied, positions, self.box_min, self.box_max, inside_only=False)
         ray_index, t, positions = ray_index[keep], t[keep], positions[keep]
         return PackedSamples(ray_index, t, torch.full_like(t, step_size), positions)
-
 
     def sample(
         self,

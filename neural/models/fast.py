@@ -48,9 +48,14 @@ MAX_LOG_DENSITY = 15.0
 
 
 #: Fields added after the first stored configs, with the behaviour a stored config without them had.
-LEGACY_VALUES: dict[str, Any] = {"view_grid_stride": 1, "inner_region": "cube", "shell_thickness": 1.0}
+LEGACY_VALUES: dict[str, Any] = {
+    "view_grid_stride": 1, "inner_region": "cube", "shell_thickness": 1.0, "shell_step_factor": 1.0,
+}  # fmt: skip
 #: Every later field (those without a legacy value change training only, not a trained model).
-LATER_FIELDS = {*LEGACY_VALUES, "shell_initial_alpha", "occupancy_min_seen_steps"}
+LATER_FIELDS = {
+    *LEGACY_VALUES, "shell_initial_alpha", "occupancy_min_seen_steps", "occupancy_seen_occluded",
+    "tv_fraction",
+}  # fmt: skip
 
 
 class FastModelConfig(BaseModel):
@@ -90,7 +95,8 @@ class FastModelConfig(BaseModel):
         1e-2,
         gt=0,
         lt=1,
-        description="unbounded scenes: opacity of one sample step in the contracted shell at initialization",
+        description="unbounded scenes: opacity at initialization of a step in the contracted shell as long "
+        "(in contracted space) as the inner box's steps (shell_step_factor times that per shell sample)",
     )
     # A flat region of interest (a facade and its square) fills a fraction of its enclosing cube; a thin
     # shell leaves the inner box most voxels (1 / (1 + w)^3 of them; a half with w = 0.25).
@@ -102,13 +108,26 @@ class FastModelConfig(BaseModel):
     shell_thickness: float = Field(
         0.25, gt=0, description="unbounded scenes: thickness of the contracted shell, in inner half-sides"
     )
+    # The shell holds the far backdrop, seen at a few pixels per shell voxel: 4x coarser steps there cut a
+    # fountain-P11 ray's samples from ~180 to ~140 (neural/occupancy keeps most shell cells occupied).
+    shell_step_factor: float = Field(
+        4.0,
+        ge=1,
+        description="unbounded scenes: samples in the contracted shell are this many times farther apart (in "
+        "contracted space) than in the inner box",
+    )
     occupancy_warmup_steps: int = Field(40, ge=0, description="steps during which every cell counts occupied")
     occupancy_update_every: int = Field(16, gt=0, description="steps between occupancy-grid updates")
     occupancy_alpha_threshold: float = Field(
         1e-3, gt=0, lt=1, description="a cell is empty when no sample step in it can reach this opacity"
     )
     occupancy_min_seen_steps: int = Field(
-        8, ge=0, description="a cell stays occupied until training rendered samples in it on this many steps"
+        8, ge=0, description="a cell stays occupied until training evaluated samples in it on this many steps"
+    )
+    occupancy_seen_occluded: bool = Field(
+        True,
+        description="samples behind opaque surfaces (dropped by early ray termination) count as seen: the "
+        "occluded cells empty too, instead of staying occupied and costing a density lookup every step",
     )
     transmittance_threshold: float = Field(
         1e-4, ge=0, lt=1, description="samples behind this transmittance are dropped (early ray termination)"
@@ -118,6 +137,14 @@ class FastModelConfig(BaseModel):
     )
     tv_density_weight: float = Field(0.0, ge=0, description="total-variation weight on the density grid")
     tv_color_weight: float = Field(0.0, ge=0, description="total-variation weight on the colour grid")
+    # The full term over fountain-P11's 2M-voxel grids cost more than the rest of a step; a tenth of them
+    # (a random sub-box) costs an eighth (bench_nerf_real.py --step-time).
+    tv_fraction: float = Field(
+        0.1,
+        gt=0,
+        le=1,
+        description="total variation on a random sub-box of this fraction of the voxels each step (1: all)",
+    )
     distortion_weight: float = Field(0.0, ge=0, description="mip-NeRF 360 distortion loss weight")
     color_lr_scale: float = Field(
         1 / 3, gt=0, description="learning rate of the colour grid relative to the trainer's (density) lr"
@@ -180,6 +207,26 @@ def total_variation(grid: Tensor) -> Tensor:
         + (grid[:, :, :, 1:] - grid[:, :, :, :-1]).square().mean()
         + (grid[:, :, :, :, 1:] - grid[:, :, :, :, :-1]).square().mean()
     )
+
+
+def sampled_total_variation(
+    grid: Tensor, fraction: float, generator: torch.Generator | None = None
+) -> Tensor:
+    """`total_variation` of a random sub-box of a (1,C,X,Y,Z) grid holding about `fraction` of its voxels.
+
+    The full term reads and writes the whole grid several times per step (each shifted slice's backward
+    pass allocates a gradient of the grid's size); a sub-box costs its own size plus one such gradient,
+    and a random one regularises the whole grid over the steps.
+    """
+    sizes = grid.shape[2:]
+    side = fraction ** (1.0 / 3.0)
+    lengths = [min(n, max(2, round(n * side))) for n in sizes]
+    starts = [
+        int(torch.randint(n - length + 1, (1,), generator=generator, device=grid.device))
+        for n, length in zip(sizes, lengths, strict=True)
+    ]
+    box = tuple(slice(start, start + length) for start, length in zip(starts, lengths, strict=True))
+    return total_variation(grid[(slice(None), slice(None), *box)])
 
 
 class FastModel(GridSchedule, RadianceModel):
@@ -303,7 +350,11 @@ class FastModel(GridSchedule, RadianceModel):
 
     def density_at(self, positions: Tensor) -> Tensor:
         """sigma(x) = exp(interp(raw)(x) + shift) at world points (N,3); (N,)."""
-        return self.activate_density(self._sample_grid(self.density, self.to_grid_space(positions))[:, 0])
+        return self.grid_density(self.to_grid_space(positions))
+
+    def grid_density(self, grid_positions: Tensor) -> Tensor:
+        """sigma at grid-space points (N,3) (contracted for an unbounded scene); (N,)."""
+        return self.activate_density(self._sample_grid(self.density, grid_positions)[:, 0])
 
     def color_at(self, positions: Tensor, directions: Tensor) -> Tensor:
         """c(x, d) = sigmoid(sum_k coef_k(x) Y_k(d)) per channel; (N,3)."""
@@ -327,14 +378,14 @@ class FastModel(GridSchedule, RadianceModel):
     ) -> RayBundleOutput:
         """Packed volume rendering of the occupied samples of each ray (see module docstring)."""
         jitter = torch.rand(origins.shape[0], generator=generator, device=origins.device) if train else None
-        samples = self._occupied_samples(origins, directions, near, far, jitter)
+        samples = self._occupied_samples(origins, directions, near, far, jitter, train)
         out = render_packed_samples(
             samples, directions, self.density_at, self.color_at, background,
             self.config.color_weight_threshold,
         )  # fmt: skip
-        if train:
+        if train and not self.config.occupancy_seen_occluded:
             self.occupancy.mark_seen(self.to_grid_space(samples.positions))
-        extra_loss = self._regularizer() if train else None
+        extra_loss = self._regularizer(generator) if train else None
         if train and self.config.distortion_weight > 0:
             distortion = self.config.distortion_weight * packed_distortion(
                 out.weights, samples.t, samples.deltas, samples.ray_indices, origins.shape[0]
@@ -346,34 +397,49 @@ class FastModel(GridSchedule, RadianceModel):
         )
 
     def _occupied_samples(
-        self, origins: Tensor, directions: Tensor, near: float, far: float, jitter: Tensor | None
+        self, origins: Tensor, directions: Tensor, near: float, far: float, jitter: Tensor | None, train: bool
     ) -> PackedSamples:
         """Samples in occupied cells (world units), marched through the box or spaced for contraction, then
-        early ray termination (samples behind transmittance_threshold dropped)."""
+        early ray termination (samples behind transmittance_threshold dropped). Training marks the cells of
+        the samples before early termination seen (with occupancy_seen_occluded)."""
         threshold = self.config.transmittance_threshold
+        mark_seen = train and self.config.occupancy_seen_occluded
         box = self.inner_box
         if box is None:
-            return self.occupancy.sample(
-                origins, directions, near, far, self.step_size, jitter, self.density_at, threshold
-            )
+            samples = self.occupancy.march(origins, directions, near, far, self.step_size, jitter)
+            if mark_seen:
+                self.occupancy.mark_seen(samples.positions)
+            return drop_occluded(samples, origins.shape[0], self.density_at, threshold)
         scale = box.scale
         unit = contracted_space_samples(
             box.to_scaled(origins), directions, near / scale, far / scale, self.step_size, jitter,
-            box.extent(origins.device), box.shell,
+            box.extent(origins.device), box.shell / self.config.shell_step_factor,
         )  # fmt: skip
         positions = origins[unit.ray_indices] + directions[unit.ray_indices] * (unit.t * scale)[:, None]
-        keep = self.occupancy.query(box.contract(positions))
-        samples = PackedSamples(
-            unit.ray_indices[keep], unit.t[keep] * scale, unit.deltas[keep] * scale, positions[keep]
-        )
-        return drop_occluded(samples, origins.shape[0], self.density_at, threshold)
+        grid_positions = box.contract(positions)
+        keep = self.occupancy.query(grid_positions, mark_seen=mark_seen)
+        # Early termination looks the density up at the contracted points it has (no second contraction).
+        in_grid = drop_occluded(
+            PackedSamples(unit.ray_indices[keep], unit.t[keep] * scale, unit.deltas[keep] * scale,
+                          grid_positions[keep]),
+            origins.shape[0], self.grid_density, threshold,
+        )  # fmt: skip
+        world = origins[in_grid.ray_indices] + directions[in_grid.ray_indices] * in_grid.t[:, None]
+        return in_grid._replace(positions=world)
 
-    def _regularizer(self) -> Tensor | None:
+    def _regularizer(self, generator: torch.Generator | None) -> Tensor | None:
+        fraction = self.config.tv_fraction
+
+        def variation(grid: Tensor) -> Tensor:
+            if fraction == 1:
+                return total_variation(grid)
+            return sampled_total_variation(grid, fraction, generator)
+
         terms = []
         if self.config.tv_density_weight > 0:
-            terms.append(self.config.tv_density_weight * total_variation(self.density))
+            terms.append(self.config.tv_density_weight * variation(self.density))
         if self.config.tv_color_weight > 0:
-            terms.append(self.config.tv_color_weight * total_variation(self.color))
+            terms.append(self.config.tv_color_weight * variation(self.color))
         return torch.stack(terms).sum() if terms else None
 
     # -------------------------------------------------------------------------------------- training
@@ -401,7 +467,8 @@ class FastModel(GridSchedule, RadianceModel):
         """The longest world length a sample stands for in each cell (X-1,Y-1,Z-1), or one number.
 
         Contracted space: a step ds at contracted max norm rho > 1 is about r^2 ds / w long in the world
-        (`_shell_stretch`); taken at each cell's outer corner, and capped at the far end.
+        (`_shell_stretch`); taken at each cell's outer corner, and capped at the far end; the shell's steps
+        are shell_step_factor times longer in contracted space.
         """
         if self.inner_box is None:
             return self.step_size
@@ -414,7 +481,8 @@ class FastModel(GridSchedule, RadianceModel):
         outer = [torch.maximum(axis[:-1].abs(), axis[1:].abs()) for axis in axes]
         rho = torch.maximum(outer[0][:, None, None], outer[1][None, :, None])
         rho = torch.maximum(rho, outer[2][None, None, :])
-        return self.step_size * self.unit_length * self._shell_stretch(rho)
+        shell_steps = torch.where(rho > 1.0, self.config.shell_step_factor, 1.0)
+        return self.step_size * self.unit_length * self._shell_stretch(rho) * shell_steps
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""

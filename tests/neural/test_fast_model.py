@@ -98,12 +98,14 @@ def test_a_fresh_unbounded_model_gives_each_sample_step_its_initial_opacity_out_
     far shell does not start opaque (every ray would end there, and training crawls through it).
     With mip-NeRF 360's full shell: a thin one (0.25, the default) is only ~1.5 voxels of the 16^3 start deep,
     and the interpolated raw density falls too fast towards its outer edge (median step opacity 3e-4)."""
-    config = small_config(initial_alpha=1e-4, shell_initial_alpha=1e-2, shell_thickness=1.0)
+    config = small_config(
+        initial_alpha=1e-4, shell_initial_alpha=1e-2, shell_thickness=1.0, shell_step_factor=1.0
+    )
     model = FastModel(UNBOUNDED_SCENE, config)
     origins, directions, _ = ring_views(2, 8, half_fov_deg=40.0)
     near, far = UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far
     with torch.no_grad():
-        samples = model._occupied_samples(origins, directions, near, far, None)
+        samples = model._occupied_samples(origins, directions, near, far, None, train=False)
         alpha = -torch.expm1(-model.density_at(samples.positions) * samples.deltas)
         out = model.render_rays(origins, directions, near, far, WHITE, False)
     rho = model.inner_box.contracted_norm(model.inner_box.contract(samples.positions))
@@ -435,3 +437,59 @@ def test_packed_rendering_of_rays_without_samples_gives_the_background_and_a_sla
     assert torch.allclose(out.rgb[0], WHITE) and torch.allclose(out.rgb[2], WHITE)
     assert out.opacity[1] == pytest.approx(1 - math.exp(-2.0 * 1.0), abs=1e-6)
     assert torch.allclose(out.rgb[1], WHITE * math.exp(-2.0), atol=1e-6)
+
+
+@pytest.mark.parametrize("seen_occluded", [True, False])
+def test_cells_behind_an_opaque_wall_empty_once_their_density_was_evaluated(seen_occluded):
+    """Early ray termination drops the samples behind a wall, but their density was looked up: with
+    occupancy_seen_occluded those cells count as seen and the empty ones are emptied; without, only rendered
+    samples count and the cells behind the wall stay occupied (each step pays for their lookups)."""
+    model = FastModel(
+        SCENE, small_config(occupancy_min_seen_steps=1, occupancy_seen_occluded=seen_occluded)
+    )
+    x_axis = torch.linspace(-1.0, 1.0, model.grid_shape[0])
+    with torch.no_grad():
+        model.density.fill_(-30.0)
+        model.density[0, 0, x_axis.abs() < 0.15] = 20.0  # an opaque wall across x = 0
+    side = torch.linspace(-0.5, 0.5, 12)
+    y, z = torch.meshgrid(side, side, indexing="ij")
+    origins = torch.stack([torch.full_like(y, -3.0), y, z], dim=-1).reshape(-1, 3)
+    directions = torch.tensor([1.0, 0.0, 0.0]).expand_as(origins)
+    model.train()
+    model.render_rays(origins, directions, SCENE.near, SCENE.far, WHITE, train=True)
+    model.update_occupancy()
+    behind = torch.tensor([[0.6, 0.0, 0.0], [0.8, 0.3, -0.3]])
+    in_front = torch.tensor([[-0.6, 0.0, 0.0]])
+    assert not model.occupancy.query(in_front).any()  # rendered, empty: emptied either way
+    assert model.occupancy.query(torch.zeros(1, 3)).all()  # the wall stays
+    assert model.occupancy.query(behind).any() != seen_occluded
+
+
+def test_an_occupancy_query_that_marks_seen_counts_only_the_occupied_cells_once():
+    grid = OccupancyGrid(torch.full((3,), -1.0), torch.ones(3), (4, 4, 4))
+    grid.set_occupied(torch.arange(64).reshape(4, 4, 4) % 2 == 0)
+    points = torch.tensor([[-0.9, -0.9, -0.9], [-0.8, -0.8, -0.8], [-0.9, -0.9, -0.4], [5.0, 0.0, 0.0]])
+    occupied = grid.query(points, mark_seen=True)
+    assert occupied.tolist() == [True, True, False, False]  # cells (0,0,0) twice, (0,0,1) empty, outside
+    assert int(grid.seen_steps[0, 0, 0]) == 1 and int(grid.seen_steps.sum()) == 1
+    assert torch.equal(grid.query(points), occupied)
+
+
+def test_sampled_total_variation_is_the_total_variation_of_a_random_sub_box():
+    from neural.models.fast import sampled_total_variation, total_variation
+
+    grid = torch.zeros(1, 2, 20, 10, 10)
+    grid[:, :, ::2] = 1.0  # alternating planes: every x-difference is 1, the others 0
+    assert float(sampled_total_variation(grid, 0.1)) == pytest.approx(float(total_variation(grid)))
+    assert float(sampled_total_variation(grid, 1.0)) == pytest.approx(float(total_variation(grid)))
+    grid.requires_grad_(True)
+    sampled_total_variation(grid, 0.1, torch.Generator().manual_seed(0)).backward()
+    touched = grid.grad.abs().sum(dim=(0, 1)) > 0
+    assert 0.05 * touched.numel() < int(touched.sum()) < 0.3 * touched.numel()
+    # the touched voxels form one box
+    box = [touched.any(dim=tuple(k for k in range(3) if k != axis)).nonzero() for axis in range(3)]
+    assert int(touched.sum()) == math.prod(int(b.max() - b.min() + 1) for b in box)
+    # a random box: another seed, another place
+    other = grid.detach().clone().requires_grad_(True)
+    sampled_total_variation(other, 0.1, torch.Generator().manual_seed(5)).backward()
+    assert not torch.equal(other.grad.abs().sum(dim=(0, 1)) > 0, touched)
