@@ -16,6 +16,7 @@ the samples with `render_packed_samples`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -33,6 +34,9 @@ ColorFn = Callable[[Tensor, Tensor], Tensor]
 UPDATE_CHUNK = 2**18
 #: Cells per side of the blocks that the first level of ray marching strides through.
 COARSE_FACTOR = 4
+#: Early ray termination looks the density up at this many first samples of every ray, then only on the rays
+#: still visible behind them (a photo's rays mostly end at a surface early; those behind it cost nothing).
+TERMINATION_FIRST_SAMPLES = 32
 
 
 class RayBoxHits(NamedTuple):
@@ -302,14 +306,39 @@ class OccupancyGrid(torch.nn.Module):
 
 
 def drop_occluded(
-    samples: PackedSamples, num_rays: int, density_fn: DensityFn, transmittance_threshold: float
+    samples: PackedSamples,
+    num_rays: int,
+    density_fn: DensityFn,
+    transmittance_threshold: float,
+    first_samples: int = TERMINATION_FIRST_SAMPLES,
 ) -> PackedSamples:
-    """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold."""
+    """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold.
+
+    The density is looked up at the `first_samples` first samples of every ray, then only at the later
+    samples of the rays still visible behind them (T_i = T_head exp(-sum of the later optical depths)): the
+    same samples are kept as with every lookup, without paying for those behind early surfaces.
+    """
     if transmittance_threshold <= 0 or samples.t.numel() == 0:
         return samples
     with torch.no_grad():
-        optical_depth = density_fn(samples.positions) * samples.deltas
-        transmittance = packed_transmittance(optical_depth, samples.ray_indices, num_rays)
+        ray_indices = samples.ray_indices
+        counts = torch.bincount(ray_indices, minlength=num_rays)
+        ray_start = counts.cumsum(0) - counts
+        rank = torch.arange(ray_indices.numel(), device=ray_indices.device) - ray_start[ray_indices]
+        head = (rank < first_samples).nonzero(as_tuple=True)[0]
+        head_depth = density_fn(samples.positions[head]) * samples.deltas[head]
+        transmittance = torch.zeros_like(samples.t)
+        transmittance[head] = packed_transmittance(head_depth, ray_indices[head], num_rays)
+        ray_depth = torch.zeros(num_rays, dtype=head_depth.dtype, device=head_depth.device)
+        ray_depth.index_add_(0, ray_indices[head], head_depth)
+        visible_after = ray_depth < -math.log(transmittance_threshold)
+        tail = ((rank >= first_samples) & visible_after[ray_indices]).nonzero(as_tuple=True)[0]
+        if tail.numel():
+            tail_depth = density_fn(samples.positions[tail]) * samples.deltas[tail]
+            tail_rays = ray_indices[tail]
+            transmittance[tail] = torch.exp(-ray_depth[tail_rays]) * packed_transmittance(
+                tail_depth, tail_rays, num_rays
+            )
         keep = (transmittance > transmittance_threshold).nonzero(as_tuple=True)[0]
     return PackedSamples(*(field[keep] for field in samples))
 

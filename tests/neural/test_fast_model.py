@@ -493,3 +493,30 @@ def test_sampled_total_variation_is_the_total_variation_of_a_random_sub_box():
     other = grid.detach().clone().requires_grad_(True)
     sampled_total_variation(other, 0.1, torch.Generator().manual_seed(5)).backward()
     assert not torch.equal(other.grad.abs().sum(dim=(0, 1)) > 0, touched)
+
+
+@pytest.mark.parametrize("first_samples", [1, 3, 8])
+def test_early_termination_in_two_passes_keeps_exactly_the_samples_of_one_pass(first_samples):
+    """The later samples of a ray are looked up only while it is still visible behind its first ones; the
+    kept samples are those a lookup of every sample keeps."""
+    from neural.occupancy import PackedSamples, drop_occluded
+
+    generator = torch.Generator().manual_seed(4)
+    counts = torch.randint(0, 12, (40,), generator=generator)
+    ray_indices = torch.repeat_interleave(torch.arange(40), counts)
+    t = torch.rand(ray_indices.numel(), generator=generator)
+    positions = torch.rand(t.numel(), 3, generator=generator)
+    samples = PackedSamples(ray_indices, t, torch.full_like(t, 0.1), positions)
+    looked_up = []
+
+    def density(points):
+        looked_up.append(points.shape[0])
+        return 40.0 * points[:, 0] ** 4  # some rays end after a few samples, others never
+
+    once = drop_occluded(samples, 40, density, 1e-2, first_samples=10**6)
+    every_lookup = looked_up.pop()
+    twice = drop_occluded(samples, 40, density, 1e-2, first_samples=first_samples)
+    for field_once, field_twice in zip(once, twice, strict=True):
+        assert torch.equal(field_once, field_twice)
+    assert 0 < once.t.numel() < t.numel()
+    assert sum(looked_up) < every_lookup or first_samples == 1  # (after one sample every ray is visible)
