@@ -52,10 +52,7 @@ LEGACY_VALUES: dict[str, Any] = {
     "view_grid_stride": 1, "inner_region": "cube", "shell_thickness": 1.0, "shell_step_factor": 1.0,
 }  # fmt: skip
 #: Every later field (those without a legacy value change training only, not a trained model).
-LATER_FIELDS = {
-    *LEGACY_VALUES, "shell_initial_alpha", "occupancy_min_seen_steps", "occupancy_seen_occluded",
-    "tv_fraction",
-}  # fmt: skip
+LATER_FIELDS = {*LEGACY_VALUES, "shell_initial_alpha", "occupancy_min_seen_steps", "occupancy_seen_occluded"}
 
 
 class FastModelConfig(BaseModel):
@@ -137,14 +134,6 @@ class FastModelConfig(BaseModel):
     )
     tv_density_weight: float = Field(0.0, ge=0, description="total-variation weight on the density grid")
     tv_color_weight: float = Field(0.0, ge=0, description="total-variation weight on the colour grid")
-    # The full term over fountain-P11's 2M-voxel grids cost more than the rest of a step; a tenth of them
-    # (a random sub-box) costs an eighth (bench_nerf_real.py --step-time).
-    tv_fraction: float = Field(
-        0.1,
-        gt=0,
-        le=1,
-        description="total variation on a random sub-box of this fraction of the voxels each step (1: all)",
-    )
     distortion_weight: float = Field(0.0, ge=0, description="mip-NeRF 360 distortion loss weight")
     color_lr_scale: float = Field(
         1 / 3, gt=0, description="learning rate of the colour grid relative to the trainer's (density) lr"
@@ -202,31 +191,37 @@ def sh_colour(coefficients: Tensor, directions: Tensor, degree: int) -> Tensor:
 
 def total_variation(grid: Tensor) -> Tensor:
     """Mean squared difference of neighbouring voxels along the three axes of a (1,C,X,Y,Z) grid."""
-    return (
-        (grid[:, :, 1:] - grid[:, :, :-1]).square().mean()
-        + (grid[:, :, :, 1:] - grid[:, :, :, :-1]).square().mean()
-        + (grid[:, :, :, :, 1:] - grid[:, :, :, :, :-1]).square().mean()
-    )
+    return _TotalVariation.apply(grid)
 
 
-def sampled_total_variation(
-    grid: Tensor, fraction: float, generator: torch.Generator | None = None
-) -> Tensor:
-    """`total_variation` of a random sub-box of a (1,C,X,Y,Z) grid holding about `fraction` of its voxels.
+class _TotalVariation(torch.autograd.Function):
+    """`total_variation` with its gradient written directly: d/dv of mean_k (v_k+1 - v_k)^2 along an axis adds
+    2 (v_k - v_k-1) / n to v_k and subtracts 2 (v_k+1 - v_k) / n from it. Autograd's version allocates and
+    sums a zero gradient of the whole grid for each of the six shifted slices: on fountain-P11's 2M-voxel
+    grids that cost more than the rest of a training step."""
 
-    The full term reads and writes the whole grid several times per step (each shifted slice's backward
-    pass allocates a gradient of the grid's size); a sub-box costs its own size plus one such gradient,
-    and a random one regularises the whole grid over the steps.
-    """
-    sizes = grid.shape[2:]
-    side = fraction ** (1.0 / 3.0)
-    lengths = [min(n, max(2, round(n * side))) for n in sizes]
-    starts = [
-        int(torch.randint(n - length + 1, (1,), generator=generator, device=grid.device))
-        for n, length in zip(sizes, lengths, strict=True)
-    ]
-    box = tuple(slice(start, start + length) for start, length in zip(starts, lengths, strict=True))
-    return total_variation(grid[(slice(None), slice(None), *box)])
+    @staticmethod
+    def forward(ctx: Any, grid: Tensor) -> Tensor:
+        ctx.save_for_backward(grid)
+        return sum(_neighbour_differences(grid, axis).square().mean() for axis in (2, 3, 4))
+
+    @staticmethod
+    def backward(ctx: Any, grad_output: Tensor) -> Tensor:
+        (grid,) = ctx.saved_tensors
+        grad = torch.zeros_like(grid)
+        for axis in (2, 3, 4):
+            difference = _neighbour_differences(grid, axis)
+            difference *= 2.0 * grad_output / difference.numel()
+            length = grid.shape[axis] - 1
+            grad.narrow(axis, 1, length).add_(difference)
+            grad.narrow(axis, 0, length).sub_(difference)
+        return grad
+
+
+def _neighbour_differences(grid: Tensor, axis: int) -> Tensor:
+    """v_k+1 - v_k along one axis of the grid."""
+    length = grid.shape[axis] - 1
+    return grid.narrow(axis, 1, length) - grid.narrow(axis, 0, length)
 
 
 class FastModel(GridSchedule, RadianceModel):
@@ -385,7 +380,7 @@ class FastModel(GridSchedule, RadianceModel):
         )  # fmt: skip
         if train and not self.config.occupancy_seen_occluded:
             self.occupancy.mark_seen(self.to_grid_space(samples.positions))
-        extra_loss = self._regularizer(generator) if train else None
+        extra_loss = self._regularizer() if train else None
         if train and self.config.distortion_weight > 0:
             distortion = self.config.distortion_weight * packed_distortion(
                 out.weights, samples.t, samples.deltas, samples.ray_indices, origins.shape[0]
@@ -427,19 +422,12 @@ class FastModel(GridSchedule, RadianceModel):
         world = origins[in_grid.ray_indices] + directions[in_grid.ray_indices] * in_grid.t[:, None]
         return in_grid._replace(positions=world)
 
-    def _regularizer(self, generator: torch.Generator | None) -> Tensor | None:
-        fraction = self.config.tv_fraction
-
-        def variation(grid: Tensor) -> Tensor:
-            if fraction == 1:
-                return total_variation(grid)
-            return sampled_total_variation(grid, fraction, generator)
-
+    def _regularizer(self) -> Tensor | None:
         terms = []
         if self.config.tv_density_weight > 0:
-            terms.append(self.config.tv_density_weight * variation(self.density))
+            terms.append(self.config.tv_density_weight * total_variation(self.density))
         if self.config.tv_color_weight > 0:
-            terms.append(self.config.tv_color_weight * variation(self.color))
+            terms.append(self.config.tv_color_weight * total_variation(self.color))
         return torch.stack(terms).sum() if terms else None
 
     # -------------------------------------------------------------------------------------- training

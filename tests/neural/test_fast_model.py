@@ -475,24 +475,21 @@ def test_an_occupancy_query_that_marks_seen_counts_only_the_occupied_cells_once(
     assert torch.equal(grid.query(points), occupied)
 
 
-def test_sampled_total_variation_is_the_total_variation_of_a_random_sub_box():
-    from neural.models.fast import sampled_total_variation, total_variation
+def test_total_variation_gradient_is_autograds_of_the_squared_differences():
+    from neural.models.fast import total_variation
 
-    grid = torch.zeros(1, 2, 20, 10, 10)
-    grid[:, :, ::2] = 1.0  # alternating planes: every x-difference is 1, the others 0
-    assert float(sampled_total_variation(grid, 0.1)) == pytest.approx(float(total_variation(grid)))
-    assert float(sampled_total_variation(grid, 1.0)) == pytest.approx(float(total_variation(grid)))
-    grid.requires_grad_(True)
-    sampled_total_variation(grid, 0.1, torch.Generator().manual_seed(0)).backward()
-    touched = grid.grad.abs().sum(dim=(0, 1)) > 0
-    assert 0.05 * touched.numel() < int(touched.sum()) < 0.3 * touched.numel()
-    # the touched voxels form one box
-    box = [touched.any(dim=tuple(k for k in range(3) if k != axis)).nonzero() for axis in range(3)]
-    assert int(touched.sum()) == math.prod(int(b.max() - b.min() + 1) for b in box)
-    # a random box: another seed, another place
-    other = grid.detach().clone().requires_grad_(True)
-    sampled_total_variation(other, 0.1, torch.Generator().manual_seed(5)).backward()
-    assert not torch.equal(other.grad.abs().sum(dim=(0, 1)) > 0, touched)
+    grid = torch.randn(1, 2, 7, 5, 4, dtype=torch.float64, requires_grad=True)
+    reference = grid.detach().clone().requires_grad_(True)
+    expected = sum(
+        (reference.narrow(axis, 1, n - 1) - reference.narrow(axis, 0, n - 1)).square().mean()
+        for axis, n in zip((2, 3, 4), reference.shape[2:], strict=True)
+    )
+    value = total_variation(grid)
+    torch.testing.assert_close(value, expected)
+    (3.0 * value).backward()
+    (3.0 * expected).backward()
+    torch.testing.assert_close(grid.grad, reference.grad)
+    assert torch.autograd.gradcheck(total_variation, (grid.detach().clone().requires_grad_(True),))
 
 
 @pytest.mark.parametrize("first_samples", [1, 3, 8])
