@@ -14,7 +14,8 @@ negligible weight. Everything is learned from RGB images alone; no masks, no ass
 Unbounded scenes (`Bounds.unbounded`): the grids cover contracted space (neural.contraction: the scene
 box is kept as it is, everything beyond is squeezed into a shell of thickness `shell_thickness`), points are
 contracted before every grid lookup, and rays are sampled at equal steps in contracted space
-(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it).
+(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it), shell_step_factor
+times coarser in the shell, whose far backdrop a photo sees at a few pixels per voxel.
 """
 
 from __future__ import annotations
