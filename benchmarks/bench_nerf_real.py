@@ -31,9 +31,9 @@ and the ratio to Lego's at the same colour rays per step (the photos add their d
 
     python benchmarks/bench_nerf_real.py --step-time --steps 600 --max-side 400 --threads 1 --out /tmp/st
 
-The ablation of the sampling options (for --step-time, and for held-out PSNR at the same wall-clock with
---side-by-side): `--variant 'coarse-shell={"model_options": {"shell_step_factor": 4}}'
---variant 'rendered-seen={"model_options": {"occupancy_seen_occluded": false}}'`.
+The ablation of the occupancy rule for occluded cells (for --step-time, and for held-out PSNR at the same
+wall-clock with --side-by-side): `--variant 'rendered-seen={"model_options": {"occupancy_seen_occluded":
+false}}'`.
 """
 
 from __future__ import annotations

@@ -96,11 +96,9 @@ def contracted_space_samples(
     """Samples at equal steps of `contraction_spacing` between near and far, packed; grid units.
 
     origins (R,3) in grid units around the inner box [-extent, extent] (default: the unit cube), unit
-    directions (R,3); near/far and the returned t and deltas are grid-unit distances; shell: the spacing's
-    scale beyond the box, the contracted shell's thickness for steps there as long (in contracted space) as
-    in the box, k times less for k times coarser steps. The spacing switches from uniform to
-    disparity-linear where the ray leaves the box (for a ray that misses it: at its closest approach to the
-    centre). A sample sits at
+    directions (R,3); near/far and the returned t and deltas are grid-unit distances; shell: the contracted
+    shell's thickness. The spacing switches from uniform to disparity-linear where the ray leaves the box
+    (for a ray that misses it: at its closest approach to the centre). A sample sits at
     s_i = s(near) + (i + j) step (j: jitter (R,) in [0,1), else 1/2) and stands for the ray length
     t(s_i + step/2) - t(s_i - step/2) of its bin, so the deltas tile [near, far] exactly.
     """

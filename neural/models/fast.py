@@ -14,8 +14,7 @@ negligible weight. Everything is learned from RGB images alone; no masks, no ass
 Unbounded scenes (`Bounds.unbounded`): the grids cover contracted space (neural.contraction: the scene
 box is kept as it is, everything beyond is squeezed into a shell of thickness `shell_thickness`), points are
 contracted before every grid lookup, and rays are sampled at equal steps in contracted space
-(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it; shell_step_factor
-times coarser in the shell if asked).
+(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it).
 """
 
 from __future__ import annotations
@@ -49,9 +48,7 @@ MAX_LOG_DENSITY = 15.0
 
 
 #: Fields added after the first stored configs, with the behaviour a stored config without them had.
-LEGACY_VALUES: dict[str, Any] = {
-    "view_grid_stride": 1, "inner_region": "cube", "shell_thickness": 1.0, "shell_step_factor": 1.0,
-}  # fmt: skip
+LEGACY_VALUES: dict[str, Any] = {"view_grid_stride": 1, "inner_region": "cube", "shell_thickness": 1.0}
 #: Every later field (those without a legacy value change training only, not a trained model).
 LATER_FIELDS = {*LEGACY_VALUES, "shell_initial_alpha", "occupancy_min_seen_steps", "occupancy_seen_occluded"}
 
@@ -93,8 +90,7 @@ class FastModelConfig(BaseModel):
         1e-2,
         gt=0,
         lt=1,
-        description="unbounded scenes: opacity at initialization of a step in the contracted shell as long "
-        "(in contracted space) as the inner box's steps (shell_step_factor times that per shell sample)",
+        description="unbounded scenes: opacity of one sample step in the contracted shell at initialization",
     )
     # A flat region of interest (a facade and its square) fills a fraction of its enclosing cube; a thin
     # shell leaves the inner box most voxels (1 / (1 + w)^3 of them; a half with w = 0.25).
@@ -105,15 +101,6 @@ class FastModelConfig(BaseModel):
     )
     shell_thickness: float = Field(
         0.25, gt=0, description="unbounded scenes: thickness of the contracted shell, in inner half-sides"
-    )
-    # 4x coarser steps in the shell cut a fountain-P11 ray's candidate samples from ~180 to ~140 and gave 11 %
-    # more steps in the same time, but 0.18 dB less on its held-out photos (8 min, 400 px,
-    # bench_nerf_real.py --side-by-side): off by default.
-    shell_step_factor: float = Field(
-        1.0,
-        ge=1,
-        description="unbounded scenes: samples in the contracted shell are this many times farther apart (in "
-        "contracted space) than in the inner box",
     )
     occupancy_warmup_steps: int = Field(40, ge=0, description="steps during which every cell counts occupied")
     occupancy_update_every: int = Field(16, gt=0, description="steps between occupancy-grid updates")
@@ -410,7 +397,7 @@ class FastModel(GridSchedule, RadianceModel):
         scale = box.scale
         unit = contracted_space_samples(
             box.to_scaled(origins), directions, near / scale, far / scale, self.step_size, jitter,
-            box.extent(origins.device), box.shell / self.config.shell_step_factor,
+            box.extent(origins.device), box.shell,
         )  # fmt: skip
         positions = origins[unit.ray_indices] + directions[unit.ray_indices] * (unit.t * scale)[:, None]
         grid_positions = box.contract(positions)
@@ -457,8 +444,7 @@ class FastModel(GridSchedule, RadianceModel):
         """The longest world length a sample stands for in each cell (X-1,Y-1,Z-1), or one number.
 
         Contracted space: a step ds at contracted max norm rho > 1 is about r^2 ds / w long in the world
-        (`_shell_stretch`); taken at each cell's outer corner, and capped at the far end; the shell's steps
-        are shell_step_factor times longer in contracted space.
+        (`_shell_stretch`); taken at each cell's outer corner, and capped at the far end.
         """
         if self.inner_box is None:
             return self.step_size
@@ -471,8 +457,7 @@ class FastModel(GridSchedule, RadianceModel):
         outer = [torch.maximum(axis[:-1].abs(), axis[1:].abs()) for axis in axes]
         rho = torch.maximum(outer[0][:, None, None], outer[1][None, :, None])
         rho = torch.maximum(rho, outer[2][None, None, :])
-        shell_steps = torch.where(rho > 1.0, self.config.shell_step_factor, 1.0)
-        return self.step_size * self.unit_length * self._shell_stretch(rho) * shell_steps
+        return self.step_size * self.unit_length * self._shell_stretch(rho)
 
     def _dense_box(self) -> tuple[Tensor, Tensor] | None:
         """World box of the occupied cells at least box_alpha_threshold opaque (None: none is, or warm-up)."""

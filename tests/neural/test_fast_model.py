@@ -515,21 +515,3 @@ def test_early_termination_in_two_passes_keeps_exactly_the_samples_of_one_pass(f
         assert torch.equal(field_once, field_twice)
     assert 0 < once.t.numel() < t.numel()
     assert sum(looked_up) < every_lookup or first_samples == 1  # (after one sample every ray is visible)
-
-
-def test_a_coarser_shell_step_samples_the_shell_sparser_and_bounds_its_cells_with_the_longer_step():
-    origins, directions, _ = ring_views(2, 8, half_fov_deg=40.0)
-    near, far = UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far
-    counts, steps = {}, {}
-    for factor in (1.0, 4.0):
-        config = small_config(shell_step_factor=factor, transmittance_threshold=0.0)
-        model = FastModel(UNBOUNDED_SCENE, config)
-        with torch.no_grad():
-            samples = model._occupied_samples(origins, directions, near, far, None, train=False)
-        rho = model.inner_box.contracted_norm(model.inner_box.contract(samples.positions))
-        counts[factor] = (int((rho <= 1.0).sum()), int((rho > 1.0).sum()))
-        steps[factor] = model._cell_world_steps()
-    assert counts[4.0][0] == counts[1.0][0]  # the inner box as it was
-    assert 2.5 < counts[1.0][1] / counts[4.0][1] < 5.0  # (less than 4: each ray rounds its steps up)
-    shell = steps[4.0] > 1.01 * steps[1.0]
-    assert shell.any() and torch.allclose(steps[4.0][shell], 4.0 * steps[1.0][shell])
