@@ -23,6 +23,17 @@ conditions (load from others included) and a scene takes --minutes of wall-clock
     python benchmarks/bench_nerf_real.py --side-by-side --threads 1 --out /tmp/r
     python benchmarks/bench_nerf_real.py --scenes fountain-P11 --configurations unbounded --steps 300 \
         --max-side 400 --threads 1 --variant 'tv={"model_options": {"tv_density_weight": 1e-4}}'
+
+--step-time compares the cost of a training step instead: Lego (200 px, its defaults) and each scene in each
+configuration train in one process, one step of each in turn, so every one meets the same load; it prints
+their mean seconds per step (over all --steps, and over the last quarter, after the grids' last upsampling)
+and the ratio to Lego's at the same colour rays per step (the photos add their depth rays).
+
+    python benchmarks/bench_nerf_real.py --step-time --steps 600 --max-side 400 --threads 1 --out /tmp/st
+
+The ablation of the occupancy rule for occluded cells (for --step-time, and for held-out PSNR at the same
+wall-clock with --side-by-side): `--variant 'rendered-seen={"model_options": {"occupancy_seen_occluded":
+false}}'`.
 """
 
 from __future__ import annotations
@@ -34,12 +45,15 @@ import resource
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from bench_nerf import load_average, with_variants
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
+#: The reference of --step-time, under --data-root: Lego's 200 px views (bench_nerf.py's), its defaults.
+LEGO = "lego_200"
 SCENES = ("fountain-P11", "Herz-Jesus-P8")
 #: TrainConfig settings of each configuration (the rest: the fast model's defaults).
 CONFIGURATIONS: dict[str, dict] = {
@@ -47,6 +61,8 @@ CONFIGURATIONS: dict[str, dict] = {
     "box": {"unbounded": False, "background": "white"},
 }
 RENDER_SIZE = (800, 600)
+#: --step-time without --steps: past the fast model's last grid upsampling (step 400).
+STEP_TIME_STEPS = 600
 #: `sfmnerf` of this checkout (the installed script may import another one).
 CLI = "import sys; from service.cli import main; sys.argv[0] = 'sfmnerf'; main()"
 
@@ -148,6 +164,73 @@ def run_one(
     }
 
 
+def interleaved_step_seconds(step_fns: dict[str, Callable[[], object]], steps: int) -> dict[str, list[float]]:
+    """Seconds of each of `steps` calls of every step function, the functions called in turn (one call of
+    each, then the next round), so that all of them meet the same machine load."""
+    seconds: dict[str, list[float]] = {name: [] for name in step_fns}
+    for _ in range(steps):
+        for name, step in step_fns.items():
+            start = time.perf_counter()
+            step()
+            seconds[name].append(time.perf_counter() - start)
+    return seconds
+
+
+def step_time_summary(seconds: dict[str, list[float]], rays: dict[str, int], reference: str) -> list[dict]:
+    """Per run: mean seconds per step over all steps and over the last quarter, rays per step, and both
+    ratios to the reference's mean (per step, and per ray)."""
+    rows = []
+    for name, times in seconds.items():
+        last = times[-max(1, len(times) // 4) :]
+        rows.append({
+            "run": name, "steps": len(times), "rays_per_step": rays[name],
+            "seconds_per_step": sum(times) / len(times), "last_quarter_seconds": sum(last) / len(last),
+        })  # fmt: skip
+    base = next(row for row in rows if row["run"] == reference)
+    for row in rows:
+        row["ratio"] = row["seconds_per_step"] / base["seconds_per_step"]
+        row["ratio_per_ray"] = row["ratio"] * base["rays_per_step"] / row["rays_per_step"]
+    return rows
+
+
+def step_time_comparison(
+    scenes: list[str], configurations: dict[str, dict], out: Path, max_side: int, steps: int, device: str,
+    lego: Path,
+) -> list[dict]:
+    """Lego and every (scene, configuration) trained `steps` steps in this process, steps interleaved."""
+    from neural import TrainConfig
+    from neural.training import Trainer
+
+    logging = {"val_every": 10**9, "checkpoint_every": 10**9, "log_every": 10**9, "device": device}
+    runs = {"lego": (lego, TrainConfig(model="fast", steps=steps, **logging))}
+    for scene in scenes:
+        for name, settings in configurations.items():
+            config = TrainConfig(**{"model": "fast", **settings}, steps=steps, max_side=max_side, **logging)
+            runs[f"{scene} {name}"] = (out / "sfm" / scene, config)
+    trainers = {
+        name: Trainer(data, out / "step_time" / name.replace(" ", "_"), config, False, None, None, None)
+        for name, (data, config) in runs.items()
+    }
+    rays = {
+        name: trainer.config.batch_rays + (trainer.config.depth_rays if trainer.depth_sampler else 0)
+        for name, trainer in trainers.items()
+    }
+    seconds = interleaved_step_seconds({name: t.train_step for name, t in trainers.items()}, steps)
+    return step_time_summary(seconds, rays, "lego")
+
+
+def print_step_times(rows: list[dict]) -> None:
+    header = (f"{'run':28} {'steps':>6} {'rays/step':>9} {'s/step':>8} {'last 1/4':>8} {'x lego':>7} "
+              f"{'x lego per ray':>14}")  # fmt: skip
+    print(header)
+    print("-" * len(header))
+    for row in rows:
+        print(
+            f"{row['run']:28} {row['steps']:>6} {row['rays_per_step']:>9} {row['seconds_per_step']:>8.3f} "
+            f"{row['last_quarter_seconds']:>8.3f} {row['ratio']:>7.2f} {row['ratio_per_ray']:>14.2f}"
+        )
+
+
 def print_table(sfm: list[dict], results: list[dict]) -> None:
     for entry in sfm:
         took = "reused" if entry["seconds"] is None else f"{entry['seconds']:.0f} s"
@@ -202,6 +285,10 @@ def main() -> None:
         "cores): the same conditions for each, and one scene takes --minutes instead of twice that",
     )
     parser.add_argument("--no-frame", action="store_true", help="skip the timed 800x600 frame (ablations)")
+    parser.add_argument(
+        "--step-time", action="store_true",
+        help="compare seconds per training step with Lego's instead (--steps steps each, interleaved)",
+    )  # fmt: skip
     parser.add_argument("--single", nargs=2, metavar=("SCENE", "CONFIGURATION"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     configurations = with_variants({name: CONFIGURATIONS[name] for name in args.configurations}, args.variant)
@@ -221,6 +308,19 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     print(f"== reconstructing (load average {load_average()})", flush=True)
     sfm = [reconstruct(scene, args.out, args.data_root) for scene in args.scenes]
+    if args.step_time:
+        import torch
+
+        torch.set_num_threads(args.threads)
+        steps = args.steps or STEP_TIME_STEPS
+        print(f"== step time, {steps} steps (load average {load_average()})", flush=True)
+        rows = step_time_comparison(
+            args.scenes, configurations, args.out, args.max_side, steps, args.device, args.data_root / LEGO
+        )
+        (args.out / "step_time.json").write_text(json.dumps(rows, indent=2))
+        print_step_times(rows)
+        print(f"load average after: {load_average()}")
+        return
     results = []
     for scene in args.scenes:
         for configuration in configurations:

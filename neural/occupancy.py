@@ -3,9 +3,9 @@
 The grid covers an axis-aligned box with `resolution` cells per axis. A cell is occupied when the density
 inside it may make a sample's opacity exceed a threshold. It starts fully occupied (warm-up) and is then
 recomputed from the model's density during training, so it is learned from the images alone (no masks).
-A cell may be emptied only once training has rendered samples in it on enough steps (`seen_steps`): a cell
-the photos have not yet reached (the far shell of an unbounded scene, whose density starts transparent)
-keeps its chance to become dense.
+A cell may be emptied only once training has evaluated the density of samples in it on enough steps
+(`seen_steps`; samples behind an opaque surface count: their density is evaluated for early ray termination):
+a cell that no training ray has yet reached keeps its chance to become dense.
 Samples are taken at a fixed spacing along each ray inside the box and kept only in occupied cells; the
 result is *packed*: one flat list of samples, sorted by ray and then by distance.
 
@@ -16,6 +16,7 @@ the samples with `render_packed_samples`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -33,6 +34,9 @@ ColorFn = Callable[[Tensor, Tensor], Tensor]
 UPDATE_CHUNK = 2**18
 #: Cells per side of the blocks that the first level of ray marching strides through.
 COARSE_FACTOR = 4
+#: Early ray termination looks the density up at this many first samples of every ray, then only on the rays
+#: still visible behind them (a photo's rays mostly end at a surface early; those behind it cost nothing).
+TERMINATION_FIRST_SAMPLES = 32
 
 
 class RayBoxHits(NamedTuple):
@@ -88,7 +92,7 @@ class OccupancyGrid(torch.nn.Module):
     """A boolean grid of cells over [box_min, box_max]; all cells start occupied.
 
     Buffers (saved in state_dict): `occupied` (X,Y,Z) bool, `seen_steps` (X,Y,Z) int32 (training steps that
-    rendered a sample in the cell, see `mark_seen`), `box_min` (3,), `box_max` (3,).
+    evaluated the density of a sample in the cell, see `mark_seen`), `box_min` (3,), `box_max` (3,).
     """
 
     def __init__(self, box_min: Tensor, box_max: Tensor, resolution: tuple[int, int, int]) -> None:
@@ -147,8 +151,12 @@ class OccupancyGrid(torch.nn.Module):
     def mark_seen(self, positions: Tensor) -> None:
         """One more seen step for every cell holding one of this training step's samples (N,3)."""
         cell, inside = _cell_indices(self.seen_steps.shape, positions, self.box_min, self.box_max)
-        hit = torch.zeros(self.seen_steps.numel(), dtype=torch.bool, device=cell.device)
-        hit[cell[inside]] = True
+        self._mark_cells(cell[inside])
+
+    def _mark_cells(self, cells: Tensor) -> None:
+        """One more seen step for each cell (flat indices, repeats counted once)."""
+        hit = torch.zeros(self.seen_steps.numel(), dtype=torch.bool, device=cells.device)
+        hit[cells] = True
         self.seen_steps += hit.reshape(self.seen_steps.shape)
 
     def set_occupied(self, occupied: Tensor) -> None:
@@ -208,9 +216,18 @@ class OccupancyGrid(torch.nn.Module):
         self.set_occupied((occupied[0, 0] > 0) | (self.seen_steps < min_seen_steps))
         return alpha
 
-    def query(self, positions: Tensor) -> Tensor:
-        """Occupied (N,) bool for world points (N,3); points outside the box are never occupied."""
-        return _lookup(self.occupied, positions, self.box_min, self.box_max, inside_only=True)
+    def query(self, positions: Tensor, mark_seen: bool = False) -> Tensor:
+        """Occupied (N,) bool for world points (N,3); points outside the box are never occupied.
+
+        mark_seen: the occupied cells among them count one more seen step (`mark_seen`), in the same lookup.
+        """
+        if not mark_seen:
+            return _lookup(self.occupied, positions, self.box_min, self.box_max, inside_only=True)
+        cell, inside = _cell_indices(self.occupied.shape, positions, self.box_min, self.box_max)
+        occupied = self.occupied.reshape(-1)[cell] & inside
+        with torch.no_grad():
+            self._mark_cells(cell[occupied])
+        return occupied
 
     def coarse_occupied(self) -> Tensor:
         """Occupancy of blocks of f^3 cells (f = COARSE_FACTOR) dilated by a block; (X,Y,Z)/f rounded up."""
@@ -272,7 +289,6 @@ class OccupancyGrid(torch.nn.Module):
         ray_index, t, positions = ray_index[keep], t[keep], positions[keep]
         return PackedSamples(ray_index, t, torch.full_like(t, step_size), positions)
 
-
     def sample(
         self,
         origins: Tensor,
@@ -290,14 +306,39 @@ class OccupancyGrid(torch.nn.Module):
 
 
 def drop_occluded(
-    samples: PackedSamples, num_rays: int, density_fn: DensityFn, transmittance_threshold: float
+    samples: PackedSamples,
+    num_rays: int,
+    density_fn: DensityFn,
+    transmittance_threshold: float,
+    first_samples: int = TERMINATION_FIRST_SAMPLES,
 ) -> PackedSamples:
-    """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold."""
+    """Early ray termination: keep the samples whose transmittance (no grad) is above the threshold.
+
+    The density is looked up at the `first_samples` first samples of every ray, then only at the later
+    samples of the rays still visible behind them (T_i = T_head exp(-sum of the later optical depths)): the
+    same samples are kept as with every lookup, without paying for those behind early surfaces.
+    """
     if transmittance_threshold <= 0 or samples.t.numel() == 0:
         return samples
     with torch.no_grad():
-        optical_depth = density_fn(samples.positions) * samples.deltas
-        transmittance = packed_transmittance(optical_depth, samples.ray_indices, num_rays)
+        ray_indices = samples.ray_indices
+        counts = torch.bincount(ray_indices, minlength=num_rays)
+        ray_start = counts.cumsum(0) - counts
+        rank = torch.arange(ray_indices.numel(), device=ray_indices.device) - ray_start[ray_indices]
+        head = (rank < first_samples).nonzero(as_tuple=True)[0]
+        head_depth = density_fn(samples.positions[head]) * samples.deltas[head]
+        transmittance = torch.zeros_like(samples.t)
+        transmittance[head] = packed_transmittance(head_depth, ray_indices[head], num_rays)
+        ray_depth = torch.zeros(num_rays, dtype=head_depth.dtype, device=head_depth.device)
+        ray_depth.index_add_(0, ray_indices[head], head_depth)
+        visible_after = ray_depth < -math.log(transmittance_threshold)
+        tail = ((rank >= first_samples) & visible_after[ray_indices]).nonzero(as_tuple=True)[0]
+        if tail.numel():
+            tail_depth = density_fn(samples.positions[tail]) * samples.deltas[tail]
+            tail_rays = ray_indices[tail]
+            transmittance[tail] = torch.exp(-ray_depth[tail_rays]) * packed_transmittance(
+                tail_depth, tail_rays, num_rays
+            )
         keep = (transmittance > transmittance_threshold).nonzero(as_tuple=True)[0]
     return PackedSamples(*(field[keep] for field in samples))
 

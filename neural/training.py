@@ -412,8 +412,7 @@ class Trainer:
         metrics_file = (self.run_dir / METRICS_FILE).open("a")
         try:
             while stopped_by is None:
-                loss_value, psnr_value, lr = self._train_step()
-                self.step += 1
+                loss_value, psnr_value, lr = self.train_step()
                 seconds = self.elapsed_before + time.perf_counter() - start
                 stopped_by = self._stop_reason(seconds)
                 if self.step % config.log_every == 0 or stopped_by:
@@ -449,6 +448,12 @@ class Trainer:
             latest_checkpoint=latest or resolve_checkpoint(self.run_dir, "latest"),
             stopped_by=stopped_by,
         )
+
+    def train_step(self) -> tuple[float, float, float]:
+        """One optimisation step (the step count advances); its loss, PSNR and learning rate."""
+        result = self._train_step()
+        self.step += 1
+        return result
 
     def _train_step(self) -> tuple[float, float, float]:
         config = self.config

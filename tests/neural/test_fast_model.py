@@ -103,7 +103,7 @@ def test_a_fresh_unbounded_model_gives_each_sample_step_its_initial_opacity_out_
     origins, directions, _ = ring_views(2, 8, half_fov_deg=40.0)
     near, far = UNBOUNDED_SCENE.near, UNBOUNDED_SCENE.far
     with torch.no_grad():
-        samples = model._occupied_samples(origins, directions, near, far, None)
+        samples = model._occupied_samples(origins, directions, near, far, None, train=False)
         alpha = -torch.expm1(-model.density_at(samples.positions) * samples.deltas)
         out = model.render_rays(origins, directions, near, far, WHITE, False)
     rho = model.inner_box.contracted_norm(model.inner_box.contract(samples.positions))
@@ -435,3 +435,83 @@ def test_packed_rendering_of_rays_without_samples_gives_the_background_and_a_sla
     assert torch.allclose(out.rgb[0], WHITE) and torch.allclose(out.rgb[2], WHITE)
     assert out.opacity[1] == pytest.approx(1 - math.exp(-2.0 * 1.0), abs=1e-6)
     assert torch.allclose(out.rgb[1], WHITE * math.exp(-2.0), atol=1e-6)
+
+
+@pytest.mark.parametrize("seen_occluded", [True, False])
+def test_cells_behind_an_opaque_wall_empty_once_their_density_was_evaluated(seen_occluded):
+    """Early ray termination drops the samples behind a wall, but their density was looked up: with
+    occupancy_seen_occluded those cells count as seen and the empty ones are emptied; without, only rendered
+    samples count and the cells behind the wall stay occupied (each step pays for their lookups)."""
+    model = FastModel(
+        SCENE, small_config(occupancy_min_seen_steps=1, occupancy_seen_occluded=seen_occluded)
+    )
+    x_axis = torch.linspace(-1.0, 1.0, model.grid_shape[0])
+    with torch.no_grad():
+        model.density.fill_(-30.0)
+        model.density[0, 0, x_axis.abs() < 0.15] = 20.0  # an opaque wall across x = 0
+    side = torch.linspace(-0.5, 0.5, 12)
+    y, z = torch.meshgrid(side, side, indexing="ij")
+    origins = torch.stack([torch.full_like(y, -3.0), y, z], dim=-1).reshape(-1, 3)
+    directions = torch.tensor([1.0, 0.0, 0.0]).expand_as(origins)
+    model.train()
+    model.render_rays(origins, directions, SCENE.near, SCENE.far, WHITE, train=True)
+    model.update_occupancy()
+    behind = torch.tensor([[0.6, 0.0, 0.0], [0.8, 0.3, -0.3]])
+    in_front = torch.tensor([[-0.6, 0.0, 0.0]])
+    assert not model.occupancy.query(in_front).any()  # rendered, empty: emptied either way
+    assert model.occupancy.query(torch.zeros(1, 3)).all()  # the wall stays
+    assert model.occupancy.query(behind).any() != seen_occluded
+
+
+def test_an_occupancy_query_that_marks_seen_counts_only_the_occupied_cells_once():
+    grid = OccupancyGrid(torch.full((3,), -1.0), torch.ones(3), (4, 4, 4))
+    grid.set_occupied(torch.arange(64).reshape(4, 4, 4) % 2 == 0)
+    points = torch.tensor([[-0.9, -0.9, -0.9], [-0.8, -0.8, -0.8], [-0.9, -0.9, -0.4], [5.0, 0.0, 0.0]])
+    occupied = grid.query(points, mark_seen=True)
+    assert occupied.tolist() == [True, True, False, False]  # cells (0,0,0) twice, (0,0,1) empty, outside
+    assert int(grid.seen_steps[0, 0, 0]) == 1 and int(grid.seen_steps.sum()) == 1
+    assert torch.equal(grid.query(points), occupied)
+
+
+def test_total_variation_gradient_is_autograds_of_the_squared_differences():
+    from neural.models.fast import total_variation
+
+    grid = torch.randn(1, 2, 7, 5, 4, dtype=torch.float64, requires_grad=True)
+    reference = grid.detach().clone().requires_grad_(True)
+    expected = sum(
+        (reference.narrow(axis, 1, n - 1) - reference.narrow(axis, 0, n - 1)).square().mean()
+        for axis, n in zip((2, 3, 4), reference.shape[2:], strict=True)
+    )
+    value = total_variation(grid)
+    torch.testing.assert_close(value, expected)
+    (3.0 * value).backward()
+    (3.0 * expected).backward()
+    torch.testing.assert_close(grid.grad, reference.grad)
+    assert torch.autograd.gradcheck(total_variation, (grid.detach().clone().requires_grad_(True),))
+
+
+@pytest.mark.parametrize("first_samples", [1, 3, 8])
+def test_early_termination_in_two_passes_keeps_exactly_the_samples_of_one_pass(first_samples):
+    """The later samples of a ray are looked up only while it is still visible behind its first ones; the
+    kept samples are those a lookup of every sample keeps."""
+    from neural.occupancy import PackedSamples, drop_occluded
+
+    generator = torch.Generator().manual_seed(4)
+    counts = torch.randint(0, 12, (40,), generator=generator)
+    ray_indices = torch.repeat_interleave(torch.arange(40), counts)
+    t = torch.rand(ray_indices.numel(), generator=generator)
+    positions = torch.rand(t.numel(), 3, generator=generator)
+    samples = PackedSamples(ray_indices, t, torch.full_like(t, 0.1), positions)
+    looked_up = []
+
+    def density(points):
+        looked_up.append(points.shape[0])
+        return 40.0 * points[:, 0] ** 4  # some rays end after a few samples, others never
+
+    once = drop_occluded(samples, 40, density, 1e-2, first_samples=10**6)
+    every_lookup = looked_up.pop()
+    twice = drop_occluded(samples, 40, density, 1e-2, first_samples=first_samples)
+    for field_once, field_twice in zip(once, twice, strict=True):
+        assert torch.equal(field_once, field_twice)
+    assert 0 < once.t.numel() < t.numel()
+    assert sum(looked_up) < every_lookup or first_samples == 1  # (after one sample every ray is visible)

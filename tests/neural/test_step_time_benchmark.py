@@ -1,0 +1,44 @@
+"""bench_nerf_real.py --step-time: the interleaved timing and the ratios it prints."""
+
+from __future__ import annotations
+
+import importlib
+import time
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+@pytest.fixture
+def bench(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    return importlib.import_module("bench_nerf_real")
+
+
+def test_step_functions_are_called_in_turn_and_each_call_is_timed(bench):
+    calls = []
+
+    def step(name, seconds):
+        def call():
+            calls.append(name)
+            time.sleep(seconds)
+
+        return call
+
+    seconds = bench.interleaved_step_seconds({"slow": step("slow", 0.02), "fast": step("fast", 0.0)}, 3)
+    assert calls == ["slow", "fast"] * 3
+    assert len(seconds["slow"]) == len(seconds["fast"]) == 3
+    assert min(seconds["slow"]) >= 0.02 > max(seconds["fast"])
+
+
+def test_summary_gives_ratios_to_the_reference_per_step_and_per_ray(bench):
+    seconds = {"lego": [0.1, 0.1, 0.1, 0.1], "photos": [0.4, 0.2, 0.2, 0.2]}
+    summary = bench.step_time_summary(seconds, {"lego": 4096, "photos": 4608}, "lego")
+    rows = {row["run"]: row for row in summary}
+    assert rows["lego"]["ratio"] == pytest.approx(1.0)
+    assert rows["photos"]["seconds_per_step"] == pytest.approx(0.25)
+    assert rows["photos"]["last_quarter_seconds"] == pytest.approx(0.2)
+    assert rows["photos"]["ratio"] == pytest.approx(2.5)
+    assert rows["photos"]["ratio_per_ray"] == pytest.approx(2.5 * 4096 / 4608)
