@@ -222,7 +222,13 @@ def rng_states(generator: torch.Generator) -> dict[str, Any]:
 
 
 def restore_rng_states(states: dict[str, Any], generator: torch.Generator) -> None:
-    generator.set_state(states["generator"].cpu())
+    """The random states of a checkpoint. A run resumed on another kind of device (a GPU run on a CPU) cannot
+    continue its ray draws' sequence, whose state has another form there: the generator is seeded from it."""
+    saved = states["generator"].cpu()
+    if saved.numel() == generator.get_state().numel():
+        generator.set_state(saved)
+    else:
+        generator.manual_seed(int.from_bytes(bytes(saved[:8].tolist()), "little"))
     torch.set_rng_state(states["torch"].cpu())
     np.random.set_state(states["numpy"])
     random.setstate(states["python"])

@@ -328,3 +328,19 @@ def test_synthetic_data_trains_without_depth_supervision_by_default(tiny_npz, tm
     assert stored["train"]["depth_supervision"] is False
     assert "tv_density_weight" not in stored["train"]["model_options"]
     assert stored["depth_supervision"] == {"used": False, "reason": "off"}
+
+
+def test_random_states_of_a_gpu_run_restore_on_a_cpu_generator():
+    """A CUDA generator's state (16 bytes: seed and offset) cannot be set on a CPU generator; a GPU run resumed
+    on a CPU seeds its ray draws from it instead, the same way each time, and the other states still load."""
+    from neural.training import restore_rng_states, rng_states
+
+    states = rng_states(torch.Generator().manual_seed(3))
+    states["generator"] = torch.tensor(list(range(16)), dtype=torch.uint8)  # as torch.cuda's generator saves
+    draws = []
+    for _ in range(2):
+        generator = torch.Generator()
+        restore_rng_states(states, generator)
+        draws.append(torch.rand(4, generator=generator))
+    assert torch.equal(draws[0], draws[1])
+    assert not torch.equal(draws[0], torch.rand(4, generator=torch.Generator().manual_seed(3)))
