@@ -331,8 +331,8 @@ def test_synthetic_data_trains_without_depth_supervision_by_default(tiny_npz, tm
 
 
 def test_random_states_of_a_gpu_run_restore_on_a_cpu_generator():
-    """A CUDA generator's state (16 bytes: seed and offset) cannot be set on a CPU generator; a GPU run resumed
-    on a CPU seeds its ray draws from it instead, the same way each time, and the other states still load."""
+    """A CUDA generator's state (16 bytes: seed and offset) cannot be set on a CPU generator; a GPU run
+    resumed on a CPU seeds its ray draws from it instead, the same way each time."""
     from neural.training import restore_rng_states, rng_states
 
     states = rng_states(torch.Generator().manual_seed(3))
