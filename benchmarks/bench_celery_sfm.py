@@ -10,9 +10,11 @@ reconstruction calls it (the known K, planarity tests deferred). Every run must 
 verified matches. With --repeats, the worker counts take turns and the fastest run of each is compared.
 
     python benchmarks/bench_celery_sfm.py [--views 90] [--workers 1 2] [--images-per-chunk 8]
-        [--pairs-per-block 300] [--repeats 1]
+        [--pairs-per-block 300] [--repeats 1] [--cores-per-worker 1]
 
-Each worker is one process on one core: on a machine shared with other work the ratio of wall times says
+Each worker is pinned to cores of its own (`--cores-per-worker`, 1 by default), as workers on machines of
+their own would be: unpinned, one worker's OpenCV threads already use every core of this machine, and the
+second worker only competes for them. On a machine shared with other work the ratio of wall times says
 less than on idle cores; each run also prints the CPU seconds the busiest worker process spent on chunks
 against those of all (the share of the work on the longest path, whatever the load).
 """
@@ -23,6 +25,7 @@ import argparse
 import itertools
 import json
 import math
+import os
 import sys
 import tempfile
 import time
@@ -37,6 +40,7 @@ sys.path.insert(0, str(ROOT))  # run as a script from anywhere: the tests' serve
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig  # noqa: E402
 from estimation.features.sift import sift_tracks  # noqa: E402
 from estimation.io.images import list_images  # noqa: E402
+from estimation.parallel import blas_threads  # noqa: E402
 from service.layout import input_dir  # noqa: E402
 from service.spread import CeleryStages  # noqa: E402
 from tests.service.conftest import make_settings  # noqa: E402
@@ -70,11 +74,36 @@ def write_images(folder: Path, views: int) -> tuple[list[Path], np.ndarray]:
     return written, np.array([[focal, 0, (side - 1) / 2], [0, focal, (side - 1) / 2], [0, 0, 1]])
 
 
-def run(settings, workers: int, K: np.ndarray) -> tuple[float, dict, object]:
+def worker_cores(workers: int, cores_per_worker: int) -> list[set[int]]:
+    """The cores each worker is pinned to (this process first), `cores_per_worker` each, none shared."""
+    cores = sorted(os.sched_getaffinity(0))
+    if workers * cores_per_worker > len(cores):
+        raise SystemExit(f"{workers} workers of {cores_per_worker} core(s) need {workers * cores_per_worker} "
+                         f"cores; this process may use {len(cores)}")
+    return [set(cores[number * cores_per_worker:(number + 1) * cores_per_worker])
+            for number in range(workers)]
+
+
+def pin(cores: set[int]) -> None:
+    """Pins every thread of this process (OpenCV's pool included) to `cores`, with a thread per core for
+    OpenCV; threads and processes started later inherit the cores (a process importing OpenCV then sizes
+    its pool to them)."""
+    for thread in os.listdir("/proc/self/task"):  # sched_setaffinity(0) would pin the calling thread only
+        os.sched_setaffinity(int(thread), cores)
+    cv2.setNumThreads(len(cores))  # more threads than cores wait on each other
+
+
+def run(settings, workers: int, K: np.ndarray, cores_per_worker: int) -> tuple[float, dict, object]:
     """Seconds of extraction and matching with `workers` workers (this process and workers - 1 Celery
-    workers), the seconds per stage, and the result."""
+    workers, each on cores of its own), the seconds per stage, and the result."""
     queues = [f"bench-{workers}-{number}" for number in range(workers - 1)]
-    celery_workers = [start_worker(worker_env(settings), queues=f"celery,{queue}") for queue in queues]
+    all_cores = os.sched_getaffinity(0)
+    own_cores, *celery_cores = worker_cores(workers, cores_per_worker)
+    celery_workers = []
+    for queue, cores in zip(queues, celery_cores, strict=True):
+        pin(cores)  # the worker and its pool's processes inherit the cores
+        celery_workers.append(start_worker(worker_env(settings), queues=f"celery,{queue}"))
+    pin(own_cores)
     try:
         if queues:
             wait_until_every_worker_works(settings, queues, LEGO / "train" / "r_0.png")
@@ -82,8 +111,9 @@ def run(settings, workers: int, K: np.ndarray) -> tuple[float, dict, object]:
         stages = CeleryStages(settings, JOB_ID, workers, log=lambda line: print("   ", line))
         started = time.perf_counter()
         try:
-            result = sift_tracks(images, SiftConfig(workers=1), TwoViewConfig(), RansacConfig(), K=K,
-                                 defer_planarity=True, stages=stages)
+            with blas_threads(len(own_cores)):  # numpy's BLAS started a thread per core of the machine
+                result = sift_tracks(images, SiftConfig(workers=1), TwoViewConfig(), RansacConfig(), K=K,
+                                     defer_planarity=True, stages=stages)
         finally:
             stages.close()
         busiest = sum(max(seconds) for seconds in stages.cpu_seconds.values())
@@ -91,6 +121,7 @@ def run(settings, workers: int, K: np.ndarray) -> tuple[float, dict, object]:
               f"{sum(map(sum, stages.cpu_seconds.values())):.1f}")
         return time.perf_counter() - started, result.seconds_per_stage, result
     finally:
+        pin(all_cores)
         for worker in celery_workers:
             stop_worker(worker)
 
@@ -104,6 +135,8 @@ def main() -> None:
     parser.add_argument("--pairs-per-block", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=1,
                         help="runs of each worker count, interleaved; the fastest of each is compared")
+    parser.add_argument("--cores-per-worker", type=int, default=1,
+                        help="cores each worker is pinned to, none shared")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as temporary:
         folder = Path(temporary)
@@ -120,7 +153,7 @@ def main() -> None:
                                          spread_pairs_per_block=args.pairs_per_block)
                 paths, K = write_images(input_dir(settings, JOB_ID), args.views)
                 print(f"{workers} worker(s), {len(paths)} images:")
-                wall, stages, result = run(settings, workers, K)
+                wall, stages, result = run(settings, workers, K, args.cores_per_worker)
                 seconds[workers] = min(wall, seconds.get(workers, math.inf))
                 print(f"  {wall:.1f} s (detection {stages['detection']:.1f} s, matching and "
                       f"verification {stages['matching_and_verification']:.1f} s), "
