@@ -28,6 +28,9 @@ VIEWS_SHARE = 0.2
 #: Smaller views are cut no further: below this long side, and this many frames, a video shows nothing.
 MIN_VIEW_SIDE = 64
 MIN_VIDEO_FRAMES = 8
+#: Views over their share shrink to this long side before they lose frames: smaller, a frame is not
+#: recognisable (a loaded CPU once cut a 36-frame video to 76x50 px).
+WATCHABLE_VIEW_SIDE = 160
 
 
 @dataclass(frozen=True)
@@ -111,8 +114,8 @@ def plan_views(
     video_side: int, held_out: int, held_out_side: int, share: float = VIEWS_SHARE,
 ) -> ViewsPlan:  # fmt: skip
     """The asked-for views when they fit share x train_seconds; else smaller (both sides by one factor, to
-    MIN_VIEW_SIDE), then fewer video frames (to MIN_VIDEO_FRAMES); never more or larger than asked.
-    Unknown rate or share 0: as asked."""
+    WATCHABLE_VIEW_SIDE), then fewer video frames (to MIN_VIDEO_FRAMES), then smaller again (to
+    MIN_VIEW_SIDE); never more or larger than asked. Unknown rate or share 0: as asked."""
     if not render_seconds_per_ray or share <= 0:
         return ViewsPlan(frames, video_side, held_out_side, math.nan)
 
@@ -121,16 +124,23 @@ def plan_views(
         return views_seconds(rate, width, height, frame_count, video, held_out, evaluation)
 
     allowed = share * train_seconds
-    needed = cost(frames, video_side, held_out_side)
-    if needed > allowed:
-        shrink = math.sqrt(allowed / needed)
-        video_side = min(video_side, max(MIN_VIEW_SIDE, round(video_side * shrink)))
-        held_out_side = min(held_out_side, max(MIN_VIEW_SIDE, round(held_out_side * shrink)))
-        per_frame = cost(1, video_side, held_out_side) - cost(0, video_side, held_out_side)
-        fixed = cost(0, video_side, held_out_side)
-        if fixed + frames * per_frame > allowed:
-            frames = min(frames, max(MIN_VIDEO_FRAMES, int((allowed - fixed) / per_frame)))
-    return ViewsPlan(frames, video_side, held_out_side, cost(frames, video_side, held_out_side))
+
+    def shrunk(frame_count: int, floor: int) -> tuple[int, int]:
+        """Both asked sides by the factor that fits frame_count frames (cost grows with the pixels), each
+        kept at least at floor or at its asked size if smaller."""
+        shrink = math.sqrt(allowed / cost(frame_count, video_side, held_out_side))
+        return tuple(min(side, max(floor, round(side * shrink))) for side in (video_side, held_out_side))
+
+    if cost(frames, video_side, held_out_side) <= allowed:
+        return ViewsPlan(frames, video_side, held_out_side, cost(frames, video_side, held_out_side))
+    video, evaluation = shrunk(frames, WATCHABLE_VIEW_SIDE)
+    per_frame = cost(1, video, evaluation) - cost(0, video, evaluation)
+    fixed = cost(0, video, evaluation)
+    if fixed + frames * per_frame > allowed:
+        frames = min(frames, max(MIN_VIDEO_FRAMES, int((allowed - fixed) / per_frame)))
+        if cost(frames, video, evaluation) > allowed:
+            video, evaluation = shrunk(frames, MIN_VIEW_SIDE)
+    return ViewsPlan(frames, video, evaluation, cost(frames, video, evaluation))
 
 
 #: Reconstruction seconds per photo of about 6 megapixels on the 2-core CPU (Herz-Jesus-P8: 8 photos in

@@ -11,6 +11,7 @@ from neural.budget import (
     MIN_VIDEO_FRAMES,
     MIN_VIEW_SIDE,
     PIXEL_PASSES,
+    WATCHABLE_VIEW_SIDE,
     budget_steps,
     expected_seconds,
     plan_views,
@@ -58,6 +59,17 @@ def test_views_over_their_share_get_smaller_then_fewer_and_fit_it():
     assert plan.seconds == pytest.approx(
         views_seconds(rate, 800, 600, plan.frames, plan.video_max_side, 2, plan.held_out_max_side)
     )
+
+
+def test_views_lose_frames_before_they_shrink_below_a_watchable_size():
+    rate = 1 / 1600  # seconds per ray of a 2-core CPU under load: 36 frames would fit at 90 px only
+    plan = plan_views(600.0, rate, 3072, 2048, 36, 200, 1, 200, share=0.2)
+    assert plan.video_max_side == WATCHABLE_VIEW_SIDE and MIN_VIDEO_FRAMES < plan.frames < 36
+    assert plan.seconds <= 120.0
+    slower = plan_views(600.0, 2 * rate, 3072, 2048, 36, 200, 1, 200, share=0.2)
+    assert slower.frames == MIN_VIDEO_FRAMES and slower.video_max_side < WATCHABLE_VIEW_SIDE
+    idle = plan_views(600.0, rate / 10, 3072, 2048, 36, 200, 1, 200, share=0.2)
+    assert (idle.frames, idle.video_max_side) == (36, 200)
 
 
 def test_views_are_never_cut_below_their_floors_nor_without_a_rate():
