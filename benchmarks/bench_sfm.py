@@ -20,6 +20,11 @@ Sets (../shared/data):
 - ring: lego_ring_400 (50 views of lego's validation ring at 400 px, about 7 deg apart) with its
   calibration.txt and ground_truth.json: a sparse ring around a symmetric object, where a flipped camera
   (registered on the far side of the ring) is the failure to watch for (rot max).
+- ring16, darkring: 16 of lego_ring_400's views, every 50/16-th in the order of their azimuth (a sparse
+  capture all around the object, at 8-79 deg elevation), as they are (ring16) and made dark and flat
+  (darkring): the object at a quarter of its brightness on a near-black background (the white background
+  blended to grey level 8), with sensor noise (sigma 1 grey level): a dark, low-texture object, where few
+  features pass SIFT's contrast threshold and the background must produce no matches.
 - unity: Unity Hall with the course's match files (ours only; no ground truth: RMS and Ceres left).
 
     python benchmarks/bench_sfm.py                 # every set
@@ -137,6 +142,34 @@ def ground_truth_set(folder: Path, name: str) -> BenchSet:
     return BenchSet(name, folder, np.loadtxt(folder / "calibration.txt"), truth)
 
 
+SPARSE_RING_VIEWS = 16
+DARK_RING_GAIN = 0.25
+DARK_RING_BACKGROUND = 8.0
+DARK_RING_NOISE_SIGMA = 1.0
+
+
+def sparse_ring_set(work: Path, dark: bool) -> BenchSet:
+    """SPARSE_RING_VIEWS lego_ring_400 views spread in azimuth, copied (or darkened) into `work` (see the
+    module docstring)."""
+    ring = ground_truth_set(DATA / "lego_ring_400", "lego_ring_400")
+    centres = {name: -pose.R.T @ pose.t for name, pose in ring.truth.items()}
+    by_azimuth = sorted(centres, key=lambda name: np.arctan2(centres[name][1], centres[name][0]))
+    chosen = [by_azimuth[round(k * len(by_azimuth) / SPARSE_RING_VIEWS)] for k in range(SPARSE_RING_VIEWS)]
+    folder = work / ("dark_ring" if dark else "sparse_ring")
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for name in chosen:
+        rgb = np.asarray(Image.open(ring.images / name).convert("RGB"), float)
+        if dark:
+            white = np.clip((rgb.min(axis=2, keepdims=True) - 235.0) / 20.0, 0.0, 1.0)  # background and edges
+            rgb = DARK_RING_GAIN * rgb * (1.0 - white) + DARK_RING_BACKGROUND * white
+            rgb += rng.normal(0.0, DARK_RING_NOISE_SIGMA, rgb.shape)
+        Image.fromarray(np.clip(np.rint(rgb), 0, 255).astype(np.uint8)).save(folder / name)
+    np.savetxt(folder / "calibration.txt", ring.K)
+    truth = {name: ring.truth[name] for name in chosen}
+    return BenchSet(f"lego_ring_400 {'dark ' if dark else ''}({SPARSE_RING_VIEWS})", folder, ring.K, truth)
+
+
 def strecha_set(name: str) -> BenchSet:
     return ground_truth_set(DATA / "strecha" / name, name)
 
@@ -251,7 +284,7 @@ def pose_error_cells(outcome: Outcome, truth: dict[str, CameraPose] | None) -> l
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", default="lego,fountain,herzjesu,unity",
-                        help="comma-separated: lego, ring, fountain, herzjesu, unity")
+                        help="comma-separated: lego, ring, ring16, darkring, fountain, herzjesu, unity")
     parser.add_argument("--no-pycolmap", action="store_true", help="ours only")
     parser.add_argument("--max-reprojection-sigmas", type=float, default=None,
                         help="ours: the filter's noise-following limit in sigmas (0: the fixed 4 px limit)")
@@ -283,6 +316,8 @@ def main() -> None:
                 bench = lego_set(work)
             elif key == "ring":
                 bench = ground_truth_set(DATA / "lego_ring_400", "lego_ring_400 (50)")
+            elif key in ("ring16", "darkring"):
+                bench = sparse_ring_set(work, dark=key == "darkring")
             elif key == "fountain":
                 bench = strecha_set("fountain-P11")
             elif key == "herzjesu":
