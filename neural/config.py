@@ -58,8 +58,15 @@ class TrainConfig(BaseModel):
     background: Literal["white", "black", "random"] | None = Field(
         None,
         description="Colour behind the scene: white or black (RGBA data composited on it, renders on it), or "
-        "random (a random colour per training ray, so the scene must be opaque; renders on black). "
+        "random (a random colour per training ray, so the scene must be opaque; renders on the photos' "
+        "environment, see render_environment). "
         "None: the data's default (white for Blender/npz, random for photographs).",
+    )
+    render_environment: bool = Field(
+        True,
+        description="Renders of a run trained on random colours (photographs) show, where the field is "
+        "empty, the training photos' colours by direction (a first-degree fit, neural.environment); "
+        "false: black.",
     )
     unbounded: bool | None = Field(
         None,

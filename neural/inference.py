@@ -31,6 +31,7 @@ from neural.camera_path import (
 )
 from neural.checkpoints import load_model_state, load_named_checkpoint
 from neural.config import TrainConfig
+from neural.environment import Background, Environment, background_for
 from neural.errors import CheckpointError
 from neural.models import RadianceModel, build_model
 from neural.rays import generate_rays
@@ -94,7 +95,7 @@ class LoadedRun:
     orbit: dict[str, Any]
     step: int
     device: torch.device
-    background: Tensor
+    background: Background
     cameras: np.ndarray | None = None
     """(N,4,4) the registered cameras' camera-to-world poses in the scene frame (None: an older run)."""
     photos: bool = False
@@ -136,25 +137,36 @@ def background_colour(background: str | None, device: torch.device) -> Tensor:
     return torch.full((3,), 1.0 if background in (None, "white") else 0.0, device=device)
 
 
+def render_background(
+    config: TrainConfig, environment: list[list[float]] | None, device: torch.device
+) -> Background:
+    """What a run's renders show behind the field: the photos' environment (neural.environment) for a run
+    trained on random colours that fitted one and renders it, else its background colour."""
+    if config.background == "random" and config.render_environment and environment is not None:
+        return Environment.from_list(environment)
+    return background_colour(config.background, device)
+
+
 @torch.no_grad()
 def render_rays_chunked(
     model: RadianceModel,
     origins: Tensor,
     directions: Tensor,
     scene: Bounds,
-    background: Tensor,
+    background: Background,
     chunk_rays: int,
 ) -> RenderedImage:
     """Render rays chunk_rays at a time (bounds memory: lower chunk_rays if you run out); flat outputs."""
     model.eval()
     rgb, depth, opacity = [], [], []
     for start in range(0, origins.shape[0], chunk_rays):
+        chunk_directions = directions[start : start + chunk_rays]
         out = model.render_rays(
             origins[start : start + chunk_rays],
-            directions[start : start + chunk_rays],
+            chunk_directions,
             scene.near,
             scene.far,
-            background,
+            background_for(background, chunk_directions),
             train=False,
             generator=None,
         )
@@ -169,7 +181,7 @@ def render_image(
     c2w_scene: Tensor,
     camera: PinholeIntrinsics,
     scene: Bounds,
-    background: Tensor,
+    background: Background,
     chunk_rays: int,
 ) -> RenderedImage:
     """The (H,W) image of a camera with pose c2w_scene (OpenGL, the model's scene frame)."""
@@ -230,7 +242,7 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
         orbit=info["orbit"],
         step=int(payload["step"]),
         device=target,
-        background=background_colour(config.background, target),
+        background=render_background(config, payload.get("environment"), target),
         cameras=np.asarray(info["cameras"]["c2w"], dtype=np.float64) if "cameras" in info else None,
         photos=bool(info.get("cameras", {}).get("photos", False)),
     )

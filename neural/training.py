@@ -44,6 +44,7 @@ from neural.checkpoints import (
 )
 from neural.config import TrainConfig
 from neural.data import FORMAT_DEFAULTS, Dataset, dataset_format, load_dataset_for
+from neural.environment import ENVIRONMENT_RAYS, Environment, fit_environment
 from neural.errors import CheckpointError
 from neural.inference import (
     PinholeIntrinsics,
@@ -51,6 +52,7 @@ from neural.inference import (
     depth_to_uint8,
     orbit_parameters,
     read_run_config,
+    render_background,
     render_image,
     render_rays_chunked,
     resolve_device,
@@ -316,6 +318,10 @@ class Trainer:
         self.device = resolve_device(self.config.device)
         self.background = background_colour(self.config.background, self.device)
         self.sampler = RayBatchSampler(self.dataset, self.dataset.split("train"), self.device)
+        self.environment = self._fit_environment() if self.config.background == "random" else None
+        self.render_background = render_background(
+            self.config, None if self.environment is None else self.environment.to_list(), self.device
+        )
         self.val_index = self._first_val_index()
         camera = PinholeIntrinsics(
             self.dataset.width, self.dataset.height, self.dataset.fx, self.dataset.fy, self.dataset.cx,
@@ -382,6 +388,13 @@ class Trainer:
         self.elapsed_before = float(payload["elapsed_seconds"])
         self.best_val_psnr = payload.get("best_val_psnr")
 
+    def _fit_environment(self) -> Environment:
+        """The training photos' colours by direction (neural.environment), from ENVIRONMENT_RAYS random
+        pixels drawn by a generator of their own (the training's random sequence stays as it was)."""
+        generator = torch.Generator(device=self.device).manual_seed(self.config.seed)
+        _, directions, colours, _ = self.sampler.sample(ENVIRONMENT_RAYS, generator)
+        return fit_environment(directions, colours)
+
     def measure_rates(self) -> MeasuredRates:
         """Seconds per training step and per rendered ray, timed here (the steps train this model)."""
         seconds_per_step = time_calls(self._train_step, PROBE_WARMUP_STEPS, PROBE_STEPS)
@@ -391,7 +404,7 @@ class Trainer:
         """Seconds per rendered ray (no gradients) of the model as it is now, timed on training rays."""
         generator = torch.Generator(device=self.device).manual_seed(self.config.seed)
         origins, directions, _, _ = self.sampler.sample(PROBE_RENDER_RAYS, generator)
-        scene, background, chunk = self.dataset.scene, self.background, self.config.chunk_rays
+        scene, background, chunk = self.dataset.scene, self.render_background, self.config.chunk_rays
         seconds = time_calls(
             lambda: render_rays_chunked(self.model, origins, directions, scene, background, chunk), 0, 1
         )
@@ -527,7 +540,8 @@ class Trainer:
         """Render the first validation view, save ground truth | render | depth as val/step_N.png; PSNR."""
         pose = torch.as_tensor(self.dataset.poses[self.val_index], device=self.device)
         rendered = render_image(
-            self.model, pose, self.val_camera, self.dataset.scene, self.background, self.config.chunk_rays
+            self.model, pose, self.val_camera, self.dataset.scene, self.render_background,
+            self.config.chunk_rays,
         )
         truth = torch.as_tensor(
             downscale(self.dataset.images[self.val_index], self.val_factor), device=self.device
@@ -550,6 +564,7 @@ class Trainer:
             "model_config": self.model.config.model_dump(mode="json"),
             "model_state": self.model.state_dict(),
             **({} if self.appearance is None else {"appearance_state": self.appearance.state_dict()}),
+            **({} if self.environment is None else {"environment": self.environment.to_list()}),
             "optimizer_state": self.optimizer.state_dict(),
             "train_config": self.config.model_dump(mode="json"),
             "scene": self.dataset.scene.to_dict(),
