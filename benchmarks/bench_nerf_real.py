@@ -3,7 +3,8 @@ fast model trained at <= --max-side px in two configurations, scored on held-out
 
 Configurations (both the fast model with its default settings otherwise):
 - `unbounded`: what `sfmnerf nerf train` chooses for reconstructions: contracted unbounded scene, random
-  background during training (renders on black);
+  background during training (renders on the photos' environment, neural.environment; the same field is
+  also scored on black, the environment's ablation);
 - `box`: the configuration before it: the sparse points' box with a white background.
 Both train the depth loss on the reconstruction's depths.npz (the default for reconstructions); the ablation
 of it is `--variant 'constant={"depth_uncertainty": "constant"}' --variant 'no-depth={"depth_supervision":
@@ -46,6 +47,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 from bench_nerf import load_average, with_variants
@@ -103,7 +105,9 @@ def run_one(
     from neural import TrainConfig, evaluate, load_run, train
     from neural.artefacts import IMAGE_CACHE_DIR
     from neural.data import load_dataset_for
-    from neural.inference import render_frame, to_uint8, view_camera
+    from neural.environment import Environment
+    from neural.evaluation import evaluate_run
+    from neural.inference import background_colour, render_frame, to_uint8, view_camera
 
     data = out / "sfm" / scene
     run_dir = out / scene / configuration
@@ -122,6 +126,9 @@ def run_one(
     metrics = evaluate(run_dir, data, split="val", out_dir=heldout, device=device)
     run = load_run(run_dir, device=device)
     dataset = load_dataset_for(data, run.config, run_dir / IMAGE_CACHE_DIR)
+    on_black = None  # the same field rendered without the photos' environment: its ablation, exact
+    if isinstance(run.background, Environment):
+        on_black = evaluate_run(replace(run, background=background_colour("black", run.device)), dataset)
     for index in dataset.split("val"):
         name = Path(dataset.image_names[index]).stem
         Image.fromarray(to_uint8(dataset.images[index])).save(heldout / f"{name}_truth.png")
@@ -151,6 +158,8 @@ def run_one(
         "heldout_images": [m.name for m in metrics.per_image],
         "psnr": metrics.mean_psnr,
         "ssim": metrics.mean_ssim,
+        "psnr_on_black": None if on_black is None else on_black.mean_psnr,
+        "ssim_on_black": None if on_black is None else on_black.mean_ssim,
         "per_image": [{"name": m.name, "psnr": m.psnr, "ssim": m.ssim} for m in metrics.per_image],
         "render_800x600_seconds": render_seconds,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
@@ -255,6 +264,9 @@ def print_table(sfm: list[dict], results: list[dict]) -> None:
         depth_note = f"depth on {depth.get('rays')} rays" if depth.get("used") else "no depth"
         print(f"{r['scene']} {r['configuration']}: held-out {images}; {r['num_train_images']} train images; "
               f"{depth_note}")
+        if r.get("psnr_on_black") is not None:
+            print(f"{r['scene']} {r['configuration']} on black (without the photos' environment): held-out "
+                  f"{r['psnr_on_black']:.2f} dB, SSIM {r['ssim_on_black']:.3f}")
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ import torch
 
 from neural.artefacts import IMAGE_CACHE_DIR
 from neural.data import Dataset, load_dataset_for
-from neural.inference import PinholeIntrinsics, load_run, render_frame, to_uint8
+from neural.inference import LoadedRun, PinholeIntrinsics, load_run, render_frame, to_uint8
 
 
 @dataclass(frozen=True)
@@ -73,14 +73,21 @@ def evaluate(
     A data path is loaded as the run trained on it (its background and image size, so the views are
     rendered and compared at the training size).
     """
-    import time
-
     run = load_run(run_dir, checkpoint, device=device)
     dataset = (
         data
         if isinstance(data, Dataset)
         else load_dataset_for(data, run.config, Path(run_dir) / IMAGE_CACHE_DIR)
     )
+    return evaluate_run(run, dataset, split, out_dir)
+
+
+def evaluate_run(
+    run: LoadedRun, dataset: Dataset, split: str = "val", out_dir: Path | str | None = None
+) -> EvalResult:
+    """Render every view of `split` of `dataset` with a loaded run and compare (see `evaluate`)."""
+    import time
+
     camera = PinholeIntrinsics(dataset.width, dataset.height, dataset.fx, dataset.fy, dataset.cx, dataset.cy)
     if out_dir is not None:
         Path(out_dir).mkdir(parents=True, exist_ok=True)
