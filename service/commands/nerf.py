@@ -44,6 +44,9 @@ def nerf() -> None:
 @click.option("--precrop-steps", type=int, default=None, help="First steps drawing rays from image centres.")
 @click.option("--background", type=click.Choice(["white", "black", "random"]), default=None,
               help="Behind the scene (default: white for Blender/npz, random for photographs).")  # fmt: skip
+@click.option("--render-environment/--no-render-environment", default=None,
+              help="Renders of a random-background run show the photos' colours by direction where the "
+              "field is empty (default: on; off: black).")  # fmt: skip
 @click.option("--unbounded/--bounded", default=None,
               help="Content beyond the scene box, contracted (default: unbounded for photos).")  # fmt: skip
 @click.option("--max-side", type=int, default=None, help="Train on images shrunk to this longer side (px).")
