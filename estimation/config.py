@@ -402,6 +402,15 @@ class MapperConfig(StrictConfig):
         8.0, gt=0, description="A keypoint is compared with the points the failed pose projects within this "
         "many pixels of it.",
     )
+    final_ba_keypoint_size_px: float = Field(
+        2.5, ge=0, description="In the final global BA an observation's pixel std-dev is "
+        "measurement_sigma_px x max(1, its SIFT keypoint's size / this) (size: the keypoint's diameter in "
+        "full-resolution pixels): a keypoint found at a coarse scale is localised less well (on lego the "
+        "final residual RMS is 0.28 px at sizes under 3 px, 0.42 px from 5 px on), and a few hundred of "
+        "them on one side of the object bend what the fine ones say. 0: every observation alike (match "
+        "files have no sizes). On lego (mapper only, RANSAC seeds 0-7) 0.364 against 0.402 deg mean "
+        "rotation error; see benchmarks/RESULTS.md for the end-to-end figures.",
+    )
     deregister_min_kept_ratio: float = Field(
         0.5, ge=0, le=1, description="After each global refinement, an image whose observations fell below "
         "this fraction of the inliers it was registered with is removed and tried again later.",

@@ -443,11 +443,13 @@ class Reconstruction:
 
     def bundle_adjust(
         self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None,
-        intrinsics_covariance: bool = False,
+        intrinsics_covariance: bool = False, relative_sigma: np.ndarray | None = None,
     ) -> BundleAdjustmentResult:
         """Global BA (variable_images None: first image fixed, scale by the second) or local BA of the
         points seen by `variable_images`, with the other images that see them held fixed; both refine the
         intrinsics as `refine` says (as COLMAP's local BA does) and the scene adopts them.
+        `relative_sigma` (one per track observation): each observation's pixel std-dev as a multiple of
+        measurement_sigma_px (None: all alike).
 
         Returns the adjustment's result (costs, RMS, iterations); the scene holds the adjusted values.
         """
@@ -477,6 +479,7 @@ class Reconstruction:
             self.point_xyz.take(point_ids, axis=0), position.take(self.tracks.image_index.take(used)),
             point_index, self.observed_uv.take(used, axis=0), config, fixed_cameras=fixed,
             scale_reference=scale_reference, refine=refine, intrinsics_covariance=intrinsics_covariance,
+            relative_sigma=None if relative_sigma is None else relative_sigma.take(used),
         )
         # All rows in one assignment each (89 per-image row writes cost ~0.1 ms a BA).
         self.R[cameras] = np.stack([pose.R for pose in result.poses])
