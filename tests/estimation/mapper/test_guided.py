@@ -102,7 +102,7 @@ def test_a_registration_that_guided_matching_barely_adds_to_is_refused_with_the_
     resting on 2 new matches is little more than a second RANSAC draw (guided_min_inliers)."""
     scene, tracks, keypoints = scene_with_a_weakly_tracked_image(image=4, kept=10)
     few = keypoints.images[4]
-    keypoints.images[4] = type(few)(few.uv[:12], few.sift[:12])
+    keypoints.images[4] = type(few)(few.uv[:12], few.sift[:12], few.size[:12])
 
     model = reconstruct_models(tracks, scene.K, ReconstructionConfig(), keypoints=keypoints)[0]
 
