@@ -534,6 +534,12 @@ class VideoConfig(StrictConfig):
         0.25, gt=0, le=1, description="The spacing never shrinks below this fraction of the thresholds: a "
         "still camera gives few keyframes, not near-duplicates.",
     )
+    bridge_share: float = Field(
+        0.5, ge=0, le=1, description="A keyframe reached by a jump (the novelty of the step from the frame "
+        "before it alone a keyframe's worth: a fast pan, a cut in the walk) keeps that frame too when it is "
+        "at least this share of the spacing from the previous keyframe (0: never): the two keyframes would "
+        "share little, and a view matched weakly with both registers through it.",
+    )
     jpeg_quality: int = Field(95, ge=50, le=100, description="Quality of the keyframes written as JPEG.")
     max_frames: int = Field(
         200_000, ge=2, description="Decoding stops with an error beyond this many frames (about 1.9 hours at "
