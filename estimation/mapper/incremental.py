@@ -713,7 +713,10 @@ class _ModelBuilder:
             noise = self.measure_noise() / ba.measurement_sigma_px
             covariance = result.intrinsics_covariance and result.intrinsics_covariance.scaled(noise)
             observations = len(self.reconstruction.used_observations())
-            removed = self.reconstruction.filter_points(self.max_error, self.min_angle)
+            # The weighted BA fits a coarse keypoint to its own std-dev: so does the filter.
+            removed = self.reconstruction.filter_points(self.max_error, self.min_angle,
+                                                        relative_sigma=self.final_sigma,
+                                                        ceiling_px=self.config.filter.max_reprojection_px)
             if removed <= self.mapper.final_min_change * observations:
                 break
         return decrease, iterations, covariance

@@ -88,7 +88,7 @@ def test_an_observations_relative_sigma_grows_with_its_keypoints_size_above_the_
 
 
 def keypoints_with_sizes(tracks: Tracks, sizes: np.ndarray) -> TrackFeatures:
-    """Each track observation its own keypoint, of the given size (distinct random descriptors)."""
+    """Each track observation its own keypoint, of the given size (random descriptors)."""
     rng = np.random.default_rng(0)
     images, rank = [], np.zeros(len(tracks.track_index), np.int64)
     for m in range(len(tracks.image_names)):
@@ -99,23 +99,27 @@ def keypoints_with_sizes(tracks: Tracks, sizes: np.ndarray) -> TrackFeatures:
     return TrackFeatures(images, rank)
 
 
-def test_the_final_bundle_adjustment_weighs_coarse_keypoints_less():
-    """Every third observation is a coarse keypoint (size 8x the reference) with 8x the pixel noise: the
-    final BA that weighs it by its size ends nearer the truth than one that weighs all alike."""
-    scene = make_scene(num_cameras=6, num_points=400, noise_px=0.3, seed=21)
-    tracks = scene.tracks
-    coarse = np.arange(len(tracks.uv)) % 3 == 0
-    rng = np.random.default_rng(21)
-    noisier = tracks.uv + coarse[:, None] * rng.normal(0.0, 0.3 * np.sqrt(8.0**2 - 1), tracks.uv.shape)
-    tracks = dataclasses.replace(tracks, uv=noisier)
-    reference = CONFIG.mapper.final_ba_keypoint_size_px
-    keypoints = keypoints_with_sizes(tracks, np.where(coarse, 8 * reference, reference))
-    alike = CONFIG.model_copy(update={"mapper": CONFIG.mapper.model_copy(
+def test_only_the_final_bundle_adjustment_weighs_each_observation_by_its_keypoints_size(monkeypatch):
+    scene = make_scene(num_cameras=6, num_points=300, noise_px=0.3, seed=21)
+    sizes = np.random.default_rng(0).uniform(1.0, 12.0, len(scene.tracks.uv))
+    keypoints = keypoints_with_sizes(scene.tracks, sizes)
+    adjust, weights = Reconstruction.bundle_adjust, {}
+
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
+        kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
+        weights.setdefault(kind, []).append(relative_sigma)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
+
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
+    reconstruct_models(scene.tracks, scene.K, CONFIG, keypoints=keypoints)
+    expected = keypoint_sigma(sizes, CONFIG.mapper.final_ba_keypoint_size_px)
+    assert all(np.array_equal(sigma, expected) for sigma in weights.pop("final"))
+    assert all(sigma is None for calls in weights.values() for sigma in calls)
+    weights.clear()
+    unweighted = CONFIG.model_copy(update={"mapper": CONFIG.mapper.model_copy(
         update={"final_ba_keypoint_size_px": 0.0})})
-    weighed_errors = pose_errors(reconstruct_models(tracks, scene.K, CONFIG, keypoints=keypoints)[0], scene)
-    alike_errors = pose_errors(reconstruct_models(tracks, scene.K, alike, keypoints=keypoints)[0], scene)
-    assert len(weighed_errors.rotation_deg) == len(alike_errors.rotation_deg) == 6
-    assert weighed_errors.rotation_deg.mean() < 0.85 * alike_errors.rotation_deg.mean()   # 0.76 measured
+    reconstruct_models(scene.tracks, scene.K, unweighted, keypoints=keypoints)
+    assert all(sigma is None for calls in weights.values() for sigma in calls)
 
 
 def test_reprojection_statistics_are_recorded_before_and_after_bundle_adjustment(noisy_model):
@@ -546,7 +550,8 @@ def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_m
     calls = record_bundle_adjustments(monkeypatch)
     filter_points = Reconstruction.filter_points
     # Every filter reports one observation more than it removed: a few, out of thousands.
-    monkeypatch.setattr(Reconstruction, "filter_points", lambda scene, *args: filter_points(scene, *args) + 1)
+    monkeypatch.setattr(Reconstruction, "filter_points",
+                        lambda scene, *args, **kwargs: filter_points(scene, *args, **kwargs) + 1)
 
     def final_adjustments(final_min_change: float) -> int:
         calls.clear()
