@@ -697,8 +697,8 @@ class _ModelBuilder:
     def final_bundle_adjustment(self) -> tuple[float, int, IntrinsicsCovariance | None]:
         """Converged global BA (tight tolerance; each observation weighed by its keypoint's size,
         `final_sigma`), filtering and adjusting again while the filter removes more than final_min_change
-        of the observations. Returns (relative cost decrease of the last BA,
-        its iterations, the covariance of the refined shared intrinsics at the measured pixel noise)."""
+        of the observations. Returns (relative cost decrease of the last BA, its iterations, the
+        covariance of the refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
         final = self.mapper_ba_config(min(ba.relative_error_tol, self.mapper.final_relative_error_tol),
                                       ba.max_iterations)
