@@ -1,7 +1,8 @@
 """Bundle adjustment with GTSAM: cameras, points and (on request) intrinsics that best explain the pixels.
 
-Solves  argmin_{R_c, t_c, X_p[, intrinsics]}  sum_o huber_k( ||pi(camera_c, R_c X_p + t_c) - uv_o|| / sigma )
-with huber_k(x) = x^2 / 2 for |x| <= k, k |x| - k^2 / 2 beyond (k = huber_threshold_px / sigma), as a
+Solves  argmin_{R_c, t_c, X_p[, intrinsics]}  sum_o huber_k( ||pi(camera_c, R_c X_p + t_c) - uv_o|| / s_o )
+with huber_k(x) = x^2 / 2 for |x| <= k, k |x| - k^2 / 2 beyond (k = huber_threshold_px / sigma), s_o =
+sigma (measurement_sigma_px) times the observation's relative std-dev (1 unless given), as a
 GTSAM NonlinearFactorGraph solved by Levenberg-Marquardt, or by Gauss-Newton falling back to it when a
 step raises the cost (`BundleAdjustmentConfig.optimizer`); pi is `geometry.projection`'s camera model.
 - Intrinsics fixed: the observations are first mapped to the ideal pixels of each camera's pinhole K
@@ -116,6 +117,7 @@ class _ErrorInputs(NamedTuple):
     point_index: np.ndarray
     uv: np.ndarray
     config: BundleAdjustmentConfig  # its huber_threshold_px and measurement_sigma_px
+    relative_sigma: np.ndarray | None  # (O,) each observation's std-dev / measurement_sigma_px (None: 1)
 
 
 @dataclass(frozen=True)
@@ -169,15 +171,19 @@ class BundleAdjustmentResult:
 
     @property
     def initial_cost(self) -> float:
-        """Robust cost sum_o huber_k(||r_o|| / sigma), priors excluded."""
-        config = self.error_inputs.config
-        return huber_cost(self.initial_residuals, config.huber_threshold_px, config.measurement_sigma_px)
+        """Robust cost sum_o huber_k(||r_o|| / sigma_o), priors excluded."""
+        return self._cost(self.initial_residuals)
 
     @property
     def final_cost(self) -> float:
         """The same after the adjustment."""
-        config = self.error_inputs.config
-        return huber_cost(self.final_residuals, config.huber_threshold_px, config.measurement_sigma_px)
+        return self._cost(self.final_residuals)
+
+    def _cost(self, residuals: np.ndarray) -> float:
+        inputs = self.error_inputs
+        if inputs.relative_sigma is not None:
+            residuals = residuals / inputs.relative_sigma[:, None]   # the whitened residual the loss sees
+        return huber_cost(residuals, inputs.config.huber_threshold_px, inputs.config.measurement_sigma_px)
 
 
 def along_ray_sigmas(points: np.ndarray, centres: np.ndarray, covariances: np.ndarray) -> np.ndarray:
@@ -307,11 +313,40 @@ def _marked(size: int, *indices: np.ndarray | Sequence[int]) -> np.ndarray:
     return marked
 
 
-def _pixel_noise(config: BundleAdjustmentConfig) -> gtsam.noiseModel.Base:
+def _pixel_noise(config: BundleAdjustmentConfig, relative_sigma: float = 1.0) -> gtsam.noiseModel.Base:
+    """Huber-robust isotropic pixel noise of std-dev relative_sigma x measurement_sigma_px (the Huber
+    threshold acts on the whitened residual, so it scales alike)."""
     return gtsam.noiseModel.Robust.Create(
         gtsam.noiseModel.mEstimator.Huber.Create(config.huber_threshold_px / config.measurement_sigma_px),
-        gtsam.noiseModel.Isotropic.Sigma(2, config.measurement_sigma_px),
+        gtsam.noiseModel.Isotropic.Sigma(2, relative_sigma * config.measurement_sigma_px),
     )
+
+
+SIGMA_LEVELS_PER_OCTAVE = 4
+"""Relative std-devs are rounded to 2^(k / 4): one noise model per level, and the per-camera vectorized
+factor insertion stays one call per camera and level (a 19 % step between levels: a weight, not a
+measurement)."""
+
+
+class NoiseLevels(NamedTuple):
+    """The observations' relative std-devs as a few shared levels."""
+
+    level: np.ndarray     # (O,) index into sigmas
+    sigmas: np.ndarray    # (L,) relative std-dev of each level
+
+
+def noise_levels(relative_sigma: np.ndarray | None, num_observations: int) -> NoiseLevels:
+    """s_o rounded to 2^(round(L log2 s_o) / L), L = SIGMA_LEVELS_PER_OCTAVE; None: one level of 1."""
+    if relative_sigma is None:
+        return NoiseLevels(np.zeros(num_observations, np.int64), np.ones(1))
+    relative_sigma = np.asarray(relative_sigma, float)
+    valid = relative_sigma.shape == (num_observations,) and np.all(np.isfinite(relative_sigma))
+    if not (valid and np.all(relative_sigma > 0)):
+        raise InputError(f"bundle_adjust: relative_sigma must hold one positive finite std-dev per "
+                         f"observation ({num_observations}), got shape {relative_sigma.shape}")
+    exponents = np.round(np.log2(relative_sigma) * SIGMA_LEVELS_PER_OCTAVE)
+    values, level = np.unique(exponents, return_inverse=True)
+    return NoiseLevels(level.reshape(-1), 2.0 ** (values / SIGMA_LEVELS_PER_OCTAVE))
 
 
 def _projection_factors(
@@ -321,17 +356,19 @@ def _projection_factors(
     ideal: np.ndarray,
     config: BundleAdjustmentConfig,
     constant_poses: dict[int, gtsam.Pose3],
+    levels: NoiseLevels,
 ) -> gtsam.NonlinearFactorGraph:
     """Fixed intrinsics: one GenericProjectionFactorCal3_S2 per observation on its ideal pixel
-    (`projection.ideal_pixels`: K_c undistorted), Huber-robust, keys camera c and point N_c + p;
-    observations of a camera in `constant_poses` are TriangulationFactorCal3_S2 on the point alone (the
-    pose is no variable)."""
+    (`projection.ideal_pixels`: K_c undistorted), Huber-robust at its noise level, keys camera c and point
+    N_c + p; observations of a camera in `constant_poses` are TriangulationFactorCal3_S2 on the point
+    alone (the pose is no variable)."""
     graph = gtsam.NonlinearFactorGraph()
-    num_cameras = len(cameras)
-    pixel_noise = _pixel_noise(config)
-    # One vectorized call per variable camera instead of one Python call per observation.
-    by_camera = np.argsort(camera_index, kind="stable")
-    bounds = np.searchsorted(camera_index.take(by_camera), np.arange(num_cameras + 1))
+    num_cameras, num_levels = len(cameras), len(levels.sigmas)
+    noise = [_pixel_noise(config, sigma) for sigma in levels.sigmas.tolist()]
+    # One vectorized call per variable camera (and noise level) instead of one Python call per observation.
+    group_of = camera_index * num_levels + levels.level
+    by_camera = np.argsort(group_of, kind="stable")
+    bounds = np.searchsorted(group_of.take(by_camera), np.arange(num_cameras * num_levels + 1))
     keys = num_cameras + point_index.take(by_camera)
     point_keys, key_list = keys.astype(float), keys.tolist()
     rows = ideal.take(by_camera, axis=0)   # a contiguous pixel per factor converts faster
@@ -339,8 +376,9 @@ def _projection_factors(
     calibrations: dict[int, gtsam.Cal3_S2] = {}   # by Camera object: a shared camera's is built once
     # Bound once: the per-observation loop below is the BA's largest Python cost (~1 us per factor).
     add, triangulation_factor = graph.add, gtsam.TriangulationFactorCal3_S2
-    for camera in np.flatnonzero(np.diff(bounds)).tolist():
-        begin, end = bounds[camera], bounds[camera + 1]
+    for group in np.flatnonzero(np.diff(bounds)).tolist():
+        camera, pixel_noise = group // num_levels, noise[group % num_levels]
+        begin, end = bounds[group], bounds[group + 1]
         calibration = calibrations.get(id(cameras[camera]))
         if calibration is None:
             calibration = calibrations[id(cameras[camera])] = _pinhole_calibration(cameras[camera])
@@ -533,22 +571,24 @@ def _calibrated_factors(
     uv: np.ndarray,
     refine: IntrinsicsRefinement,
     config: BundleAdjustmentConfig,
+    levels: NoiseLevels,
 ) -> gtsam.NonlinearFactorGraph:
     """Refined intrinsics: a GeneralSFMFactor2 per observation on (pose c, point N_c + p, calibration
-    key calibration_offset + calibration_of_camera[c]), and per calibration a prior holding exactly the
-    components that `refine` and the model keep fixed."""
+    key calibration_offset + calibration_of_camera[c]) at its noise level, and per calibration a prior
+    holding exactly the components that `refine` and the model keep fixed."""
     graph = gtsam.NonlinearFactorGraph()
     model = cameras[0].model
     bundler = _uses_bundler(model, refine.principal_point)
     factor = gtsam.GeneralSFMFactor2Cal3Bundler if bundler else gtsam.GeneralSFMFactor2Cal3DS2
     prior = gtsam.PriorFactorCal3Bundler if bundler else gtsam.PriorFactorCal3DS2
-    pixel_noise = _pixel_noise(config)
+    noise = [_pixel_noise(config, sigma) for sigma in levels.sigmas.tolist()]
     point_keys = len(cameras) + point_index
     observation_calibration = calibration_offset + calibration_of_camera[camera_index]
-    for measured, pose_key, point_key, calibration_key in zip(
-        uv, camera_index.tolist(), point_keys.tolist(), observation_calibration.tolist(), strict=True
+    for measured, level, pose_key, point_key, calibration_key in zip(
+        uv, levels.level.tolist(), camera_index.tolist(), point_keys.tolist(),
+        observation_calibration.tolist(), strict=True,
     ):
-        graph.add(factor(measured, pixel_noise, pose_key, point_key, calibration_key))
+        graph.add(factor(measured, noise[level], pose_key, point_key, calibration_key))
     held = ~_free_components(model, refine)
     hold_noise = gtsam.noiseModel.Diagonal.Precisions(held / config.fixed_intrinsics_sigma**2)
     for key in np.unique(observation_calibration).tolist():
@@ -683,6 +723,7 @@ def bundle_adjust(
     refine: IntrinsicsRefinement = IntrinsicsRefinement(),
     intrinsics_covariance: bool = False,
     point_covariances: bool = False,
+    relative_sigma: np.ndarray | None = None,
 ) -> BundleAdjustmentResult:
     """Minimize the Huber-robust reprojection error over all observed cameras and points (config.optimizer).
 
@@ -699,6 +740,8 @@ def bundle_adjust(
     (how well the views determine them; one more elimination of the graph).
     `point_covariances`: also each point's marginal covariance (the cameras marginalized out, the
     intrinsics held; `_point_covariances`); refused with refined intrinsics.
+    `relative_sigma` (O,) > 0: each observation's pixel std-dev as a multiple of measurement_sigma_px
+    (e.g. from its keypoint's scale), rounded to `noise_levels`; None: every observation alike.
     """
     start = time.perf_counter()
     cameras = per_pose_cameras(camera, len(poses))
@@ -728,13 +771,14 @@ def bundle_adjust(
     calibration_keys = (calibration_offset + np.unique(calibration_of_camera[camera_index])
                         if refines else np.zeros(0, np.int64))
 
+    levels = noise_levels(relative_sigma, len(uv))
     if refines:
         graph = _calibrated_factors(cameras, calibration_of_camera, calibration_offset, camera_index,
-                                    point_index, uv, refine, config)
+                                    point_index, uv, refine, config, levels)
     else:
         constant_poses = {c: camera_pose_to_gtsam(poses[c]) for c in constant_cameras}
         ideal = ideal_pixels(observed, uv) if len(uv) else uv
-        graph = _projection_factors(cameras, camera_index, point_index, ideal, config, constant_poses)
+        graph = _projection_factors(cameras, camera_index, point_index, ideal, config, constant_poses, levels)
     gtsam_poses = {c: camera_pose_to_gtsam(poses[c]) for c in camera_keys.tolist()}
     graph.push_back(_gauge_factors(gtsam_poses, [c for c in fixed_cameras if c not in constant_cameras],
                                    scale_reference if use_scale_prior else None, config))
@@ -781,7 +825,8 @@ def bundle_adjust(
     adjusted_observed = observation_cameras(adjusted_cameras, camera_index) if refines else observed
     # Copies of what the caller may change before reading the error figures.
     error_inputs = _ErrorInputs(observed, adjusted_observed, list(poses), points.copy(), camera_index.copy(),
-                                point_index.copy(), uv.copy(), config)
+                                point_index.copy(), uv.copy(), config,
+                                None if relative_sigma is None else levels.sigmas[levels.level])
     return BundleAdjustmentResult(
         poses=adjusted_poses,
         points=adjusted_points,

@@ -59,11 +59,14 @@ WORKER_MODULES = ("estimation.features.sift",)
 
 
 class ImageFeatures(NamedTuple):
-    """Keypoints (N, 2) full-resolution pixel uv and their SIFT descriptors (N, 128) uint8, as OpenCV makes
-    them (its float descriptors are these whole numbers)."""
+    """Keypoints (N, 2) full-resolution pixel uv, their SIFT descriptors (N, 128) uint8, as OpenCV makes
+    them (its float descriptors are these whole numbers), and their sizes (N,): the diameter of each
+    keypoint's neighbourhood in full-resolution pixels (OpenCV's size; it grows with the keypoint's scale,
+    and so does the error of its position)."""
 
     uv: np.ndarray
     sift: np.ndarray
+    size: np.ndarray
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -78,6 +81,15 @@ class TrackFeatures:
 
     images: list[ImageFeatures]       # image index -> its keypoints (full-resolution pixels) and SIFT
     observation_keypoint: np.ndarray  # (O,) keypoint index of each track observation in its image
+
+    def observation_sizes(self, obs_images: np.ndarray) -> np.ndarray:
+        """(O,) the keypoint size (full-resolution pixels) behind each track observation, seen in
+        obs_images (the tracks' image_index)."""
+        sizes = np.empty(len(self.observation_keypoint))
+        for image in np.unique(obs_images):
+            chosen = obs_images == image
+            sizes[chosen] = self.images[image].size[self.observation_keypoint[chosen]]
+        return sizes
 
     def observation_descriptors(self, obs_ids: np.ndarray, obs_images: np.ndarray) -> np.ndarray:
         """RootSIFT descriptors (len(obs_ids), 128) of the given track observations, seen in obs_images."""
@@ -170,14 +182,15 @@ def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
     sift = cv2.SIFT_create(nfeatures=config.max_features, contrastThreshold=threshold)
     keypoints, descriptors = sift.detectAndCompute(gray, mask)
     if descriptors is None:
-        return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
+        return ImageFeatures(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), np.zeros(0))
     # OpenCV's nfeatures keeps ties (and extra orientations) at the cut: enforce the budget exactly.
     strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[: config.max_features]
     keypoints, descriptors = [keypoints[k] for k in strongest], descriptors[strongest]
     uv_small = np.array([kp.pt for kp in keypoints], float).reshape(-1, 2)
     to_full = np.array([width / gray.shape[1], height / gray.shape[0]])
     # OpenCV rounds its float descriptors to whole numbers 0-255 (saturate_cast<uchar>): uint8 keeps them.
-    return ImageFeatures((uv_small + 0.5) * to_full - 0.5, descriptors.astype(np.uint8))
+    size = np.array([kp.size for kp in keypoints], float) * float(np.mean(to_full))
+    return ImageFeatures((uv_small + 0.5) * to_full - 0.5, descriptors.astype(np.uint8), size)
 
 
 DetectedImage = tuple[ImageFeatures, np.ndarray]

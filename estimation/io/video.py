@@ -245,16 +245,26 @@ def frame_novelty(flow: np.ndarray, survival: np.ndarray, config: VideoConfig) -
     return np.maximum(np.asarray(flow, float) / config.keyframe_motion, lost)
 
 
-def greedy_keyframes(novelty: np.ndarray, usable: np.ndarray, spacing: float) -> list[int]:
+def greedy_keyframes(novelty: np.ndarray, usable: np.ndarray, spacing: float, bridge_share: float = 0.0
+                     ) -> list[int]:
     """The first usable frame, then each usable frame at which the novelty summed since the last keyframe
-    reaches `spacing` (novelty keeps adding up over unusable frames)."""
+    reaches `spacing` (novelty keeps adding up over unusable frames). A keyframe reached by a jump (the
+    novelty from the last usable frame before it alone reaches `spacing`) is preceded by that frame when
+    it lies bridge_share x spacing or more from the last keyframe (0: never): the keyframes on either side
+    of the jump would share little, the frame before it shares more with each (a bridge)."""
     keyframes: list[int] = []
     accumulated = 0.0
+    before, before_accumulated = None, 0.0     # the last usable frame since the last keyframe
     for index, (step, ok) in enumerate(zip(novelty, usable, strict=True)):
         accumulated += step
         if ok and (not keyframes or accumulated >= spacing):
-            keyframes.append(index)
-            accumulated = 0.0
+            bridges = (bridge_share > 0 and before is not None
+                       and before_accumulated >= bridge_share * spacing
+                       and accumulated - before_accumulated >= spacing)
+            keyframes.extend([before, index] if bridges else [index])
+            accumulated, before = 0.0, None
+        elif ok:
+            before, before_accumulated = index, accumulated
     return keyframes
 
 
@@ -274,7 +284,7 @@ def select_keyframes(novelty: np.ndarray, blurred: np.ndarray, duration_s: float
     fewest, most = keyframe_bounds(duration_s, config)
 
     def count(spacing: float) -> int:
-        return len(greedy_keyframes(novelty, usable, spacing))
+        return len(greedy_keyframes(novelty, usable, spacing, config.bridge_share))
 
     spacing = 1.0
     if count(spacing) > most:
@@ -292,7 +302,7 @@ def select_keyframes(novelty: np.ndarray, blurred: np.ndarray, duration_s: float
                 middle = 0.5 * (low + high)
                 low, high = (middle, high) if count(middle) >= fewest else (low, middle)
             spacing = low
-    return KeyframeSelection(greedy_keyframes(novelty, usable, spacing), spacing)
+    return KeyframeSelection(greedy_keyframes(novelty, usable, spacing, config.bridge_share), spacing)
 
 
 def _analysis_size(info: VideoInfo, max_side: int) -> tuple[int, int]:

@@ -221,6 +221,12 @@ def track_observation_pairs(tracks: Tracks) -> ObservationPairs:
                             np.minimum(image_a, image_b) * num_images + np.maximum(image_a, image_b))
 
 
+def keypoint_sigma(sizes: np.ndarray, reference_px: float) -> np.ndarray:
+    """s_o = max(1, size_o / reference_px): the relative pixel std-dev of an observation whose keypoint has
+    size_o (its position error grows with the scale it was found at)."""
+    return np.maximum(1.0, np.asarray(sizes, float) / reference_px)
+
+
 @dataclass
 class _Thresholds:
     """Registration thresholds of one model; `relax` lowers the inlier minimums once when registration
@@ -272,6 +278,10 @@ class _ModelBuilder:
         self.refinement_rounds = 0
         self.error_limit = config.filter.max_reprojection_px
         self.observation_pairs = track_observation_pairs(tracks)
+        # Each track observation's pixel std-dev in the final BA, relative (None: all alike).
+        reference = self.mapper.final_ba_keypoint_size_px
+        self.final_sigma = (None if keypoints is None or reference <= 0 else
+                            keypoint_sigma(keypoints.observation_sizes(tracks.image_index), reference))
         # Width and height only bound the visibility pyramid's grid: the principal point is near the centre.
         self.image_size = (2.0 * self.reconstruction.K[0, 2], 2.0 * self.reconstruction.K[1, 2])
         self._cells: PyramidCells | None = None
@@ -685,15 +695,17 @@ class _ModelBuilder:
         return decrease
 
     def final_bundle_adjustment(self) -> tuple[float, int, IntrinsicsCovariance | None]:
-        """Converged global BA (tight tolerance), filtering and adjusting again while the filter removes
-        more than final_min_change of the observations. Returns (relative cost decrease of the last BA,
-        its iterations, the covariance of the refined shared intrinsics at the measured pixel noise)."""
+        """Converged global BA (tight tolerance; each observation weighed by its keypoint's size,
+        `final_sigma`), filtering and adjusting again while the filter removes more than final_min_change
+        of the observations. Returns (relative cost decrease of the last BA, its iterations, the
+        covariance of the refined shared intrinsics at the measured pixel noise)."""
         ba = self.config.bundle_adjustment
         final = self.mapper_ba_config(min(ba.relative_error_tol, self.mapper.final_relative_error_tol),
                                       ba.max_iterations)
         decrease, iterations, covariance = 0.0, 0, None
         for _ in range(FINAL_BA_ROUNDS):
-            result = self.reconstruction.bundle_adjust(final, intrinsics_covariance=True)
+            result = self.reconstruction.bundle_adjust(final, intrinsics_covariance=True,
+                                                       relative_sigma=self.final_sigma)
             decrease = (result.initial_cost - result.final_cost) / max(result.initial_cost, 1e-300)
             iterations = result.iterations
             # The filter's limit follows the measured noise; so does the BA's covariance, which is for
@@ -701,7 +713,10 @@ class _ModelBuilder:
             noise = self.measure_noise() / ba.measurement_sigma_px
             covariance = result.intrinsics_covariance and result.intrinsics_covariance.scaled(noise)
             observations = len(self.reconstruction.used_observations())
-            removed = self.reconstruction.filter_points(self.max_error, self.min_angle)
+            # The weighted BA fits a coarse keypoint to its own std-dev: so does the filter.
+            removed = self.reconstruction.filter_points(self.max_error, self.min_angle,
+                                                        relative_sigma=self.final_sigma,
+                                                        ceiling_px=self.config.filter.max_reprojection_px)
             if removed <= self.mapper.final_min_change * observations:
                 break
         return decrease, iterations, covariance

@@ -423,10 +423,12 @@ class Reconstruction:
         return merged
 
     def filter_points(
-        self, max_error_px: float, min_angle_deg: float, point_ids: np.ndarray | None = None
+        self, max_error_px: float, min_angle_deg: float, point_ids: np.ndarray | None = None,
+        relative_sigma: np.ndarray | None = None, ceiling_px: float = np.inf,
     ) -> int:
         """Drop observations reprojecting beyond max_error_px (two-view points: TWO_VIEW_ERROR_FACTOR times
-        that) or behind their camera, then points with fewer than two observations or a triangulation
+        that; with `relative_sigma`, one per track observation, that times its relative std-dev, at most
+        ceiling_px) or behind their camera, then points with fewer than two observations or a triangulation
         angle below min_angle_deg. Returns the number of observations removed."""
         selected = self._live_points(point_ids)
         used = self.used_observations()
@@ -434,6 +436,8 @@ class Reconstruction:
         used = used[selected[self.obs_point[used]]]
         two_view = self.point_observation_counts()[self.obs_point[used]] == 2
         limit = np.where(two_view, TWO_VIEW_ERROR_FACTOR * max_error_px, max_error_px)
+        if relative_sigma is not None:
+            limit = np.minimum(limit * relative_sigma.take(used), np.maximum(limit, ceiling_px))
         self.remove_observations(used[self.errors(used) > limit])
         candidates = np.flatnonzero(selected & self.point_alive)
         self.delete_points(candidates[~self.seen_wide(candidates, min_angle_deg)])
@@ -443,11 +447,13 @@ class Reconstruction:
 
     def bundle_adjust(
         self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None,
-        intrinsics_covariance: bool = False,
+        intrinsics_covariance: bool = False, relative_sigma: np.ndarray | None = None,
     ) -> BundleAdjustmentResult:
         """Global BA (variable_images None: first image fixed, scale by the second) or local BA of the
         points seen by `variable_images`, with the other images that see them held fixed; both refine the
         intrinsics as `refine` says (as COLMAP's local BA does) and the scene adopts them.
+        `relative_sigma` (one per track observation): each observation's pixel std-dev as a multiple of
+        measurement_sigma_px (None: all alike).
 
         Returns the adjustment's result (costs, RMS, iterations); the scene holds the adjusted values.
         """
@@ -477,6 +483,7 @@ class Reconstruction:
             self.point_xyz.take(point_ids, axis=0), position.take(self.tracks.image_index.take(used)),
             point_index, self.observed_uv.take(used, axis=0), config, fixed_cameras=fixed,
             scale_reference=scale_reference, refine=refine, intrinsics_covariance=intrinsics_covariance,
+            relative_sigma=None if relative_sigma is None else relative_sigma.take(used),
         )
         # All rows in one assignment each (89 per-image row writes cost ~0.1 ms a BA).
         self.R[cameras] = np.stack([pose.R for pose in result.poses])

@@ -15,6 +15,7 @@ from estimation.bundle_adjustment.factor_graph import (
     camera_pose_to_gtsam,
     camera_to_gtsam,
     huber_cost,
+    noise_levels,
     reprojection_residuals,
     rms,
 )
@@ -288,6 +289,8 @@ def test_unobserved_points_and_cameras_are_returned_unchanged():
         (lambda a: {**a, "scale_reference": 0}, "scale_reference"),
         (lambda a: {**a, "camera": [a["camera"]] * 2}, "2 cameras for 3 poses"),
         (lambda a: {**a, "camera": np.full((3, 3), np.nan)}, "intrinsics must be finite"),
+        (lambda a: {**a, "relative_sigma": np.ones(len(a["uv"]) - 1)}, "relative_sigma"),
+        (lambda a: {**a, "relative_sigma": np.zeros(len(a["uv"]))}, "relative_sigma"),
     ],
 )
 def test_bad_input_raises_input_error_naming_the_argument(change, message):
@@ -305,6 +308,42 @@ def test_bad_input_raises_input_error_naming_the_argument(change, message):
     }
     with pytest.raises(InputError, match=message):
         bundle_adjust(**change(arguments))
+
+
+def test_relative_sigmas_are_rounded_to_quarter_octaves():
+    levels = noise_levels(np.array([1.0, 1.1, 2.0, 3.0, 1.0]), 5)
+    np.testing.assert_allclose(levels.sigmas[levels.level], [1.0, 2**0.25, 2.0, 2**1.5, 1.0])
+    assert len(levels.sigmas) == 4                       # one noise model per level
+    unweighted = noise_levels(None, 3)
+    np.testing.assert_array_equal(unweighted.sigmas[unweighted.level], [1.0, 1.0, 1.0])
+
+
+def scene_with_coarse_observations(seed=11, noise_px=0.3, coarse_sigma=8.0):
+    """A scene with noise_px of pixel noise in which every third observation has coarse_sigma times as much
+    (a keypoint found at a coarse scale), and the relative std-dev of each."""
+    scene = make_scene(num_cameras=6, num_points=300, noise_px=noise_px, seed=seed)
+    image_index, track_index, uv = observations(scene)
+    coarse = np.arange(len(uv)) % 3 == 0
+    rng = np.random.default_rng(seed)
+    noisier = uv + coarse[:, None] * rng.normal(0.0, noise_px * np.sqrt(coarse_sigma**2 - 1), uv.shape)
+    return scene, image_index, track_index, noisier, np.where(coarse, coarse_sigma, 1.0)
+
+
+@pytest.mark.parametrize("refine", [IntrinsicsRefinement(), IntrinsicsRefinement(focal=True)])
+def test_observations_with_a_larger_relative_sigma_pull_less(refine):
+    scene, image_index, track_index, uv, relative_sigma = scene_with_coarse_observations()
+    poses, points = perturbed(scene.poses, scene.points, np.random.default_rng(3))
+    arguments = (scene.K, poses, points, image_index, track_index, uv, BundleAdjustmentConfig())
+    alike = bundle_adjust(*arguments, refine=refine)
+    weighed = bundle_adjust(*arguments, refine=refine, relative_sigma=relative_sigma)
+
+    error_alike = aligned_pose_errors(alike.poses, scene.poses).rotation_deg.mean()
+    error_weighed = aligned_pose_errors(weighed.poses, scene.poses).rotation_deg.mean()
+    assert error_weighed < 0.7 * error_alike
+    # The cost is of the whitened residuals, the one the optimizer lowered.
+    residuals = weighed.final_residuals / relative_sigma[:, None]
+    assert weighed.final_cost == pytest.approx(huber_cost(residuals, 2.0))
+    assert weighed.final_cost < weighed.initial_cost
 
 
 # --- intrinsics -----------------------------------------------------------------------------------

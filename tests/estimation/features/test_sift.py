@@ -67,6 +67,26 @@ def test_keypoints_detected_downscaled_are_mapped_back_to_full_resolution_pixels
     assert np.median(naive) > np.median(distance) + 0.5
 
 
+def test_keypoint_sizes_are_opencvs_in_full_resolution_pixels():
+    """Each keypoint carries its size (the diameter OpenCV gives its neighbourhood, which grows with the
+    scale it was found at), mapped to full-resolution pixels like its position."""
+    small = textured_image(240, 180, seed=3)
+    large = cv2.resize(small, (720, 540), interpolation=cv2.INTER_CUBIC)
+    reference = detect_features(small, SiftConfig(max_features=400))
+    mapped = detect_features(large, SiftConfig(max_features=400, max_image_side=240))
+    opencv = cv2.SIFT_create(contrastThreshold=SiftConfig().contrast_threshold).detect(
+        cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), None)
+    sizes_at = {}
+    for keypoint in opencv:
+        sizes_at.setdefault(keypoint.pt, set()).add(keypoint.size)
+    assert reference.size.shape == (len(reference.uv),)
+    assert all(size in sizes_at[tuple(uv)] for uv, size in zip(reference.uv.astype(np.float32).tolist(),
+                                                                 reference.size.tolist(), strict=True))
+    assert reference.size.min() > 1.0 and reference.size.max() > 4 * reference.size.min()  # several octaves
+    nearest = cKDTree((reference.uv + 0.5) * 3 - 0.5).query(mapped.uv)[1]
+    np.testing.assert_allclose(np.median(mapped.size / reference.size[nearest]), 3.0, rtol=0.05)
+
+
 def test_a_large_photo_detected_at_half_size_gives_full_size_keypoints_that_match_full_size_detection(
         shared_data):
     """OpenCV's SIFT doubles the image before its first octave, so the image halved samples its finest

@@ -98,6 +98,23 @@ def test_greedy_keyframes_wait_for_enough_novelty_and_skip_unusable_frames():
     assert greedy_keyframes(novelty, usable, 1.0) == [0, 2, 5]
 
 
+
+def test_a_keyframe_reached_by_a_jump_keeps_the_frame_before_the_jump_as_a_bridge():
+    # Frame 3 lies 0.6 of a spacing from keyframe 0; the jump 3 -> 4 alone is 2.5 spacings: frame 3 shares
+    # more with each side than keyframes 0 and 4 share with each other.
+    novelty = np.array([0, 0.3, 0.2, 0.1, 2.5, 0.1, 0.1])
+    usable = np.ones(len(novelty), bool)
+    assert greedy_keyframes(novelty, usable, 1.0) == [0, 4]
+    assert greedy_keyframes(novelty, usable, 1.0, bridge_share=0.5) == [0, 3, 4]
+    # Too near the last keyframe (0.2 of a spacing), the frame before the jump is a near-duplicate of it.
+    assert greedy_keyframes(np.array([0, 0.1, 0.1, 2.5]), np.ones(4, bool), 1.0, bridge_share=0.5) == [0, 3]
+    # A keyframe reached gradually (no single step of a spacing) needs no bridge.
+    assert greedy_keyframes(np.array([0, 0.4, 0.4, 0.4]), np.ones(4, bool), 1.0, bridge_share=0.5) == [0, 3]
+    # An unusable frame before the jump is never a bridge: the last usable one is.
+    usable = np.array([True, True, True, False, True])
+    assert greedy_keyframes(np.array([0, 0.3, 0.4, 0.1, 2.5]), usable, 1.0, bridge_share=0.5) == [0, 2, 4]
+
+
 @pytest.mark.parametrize(("per_frame_novelty", "expected"), [
     (0.5, "most"),        # fast camera: 900 keyframes at spacing 1, thinned to the maximum
     (0.06, "natural"),    # 108 keyframes at spacing 1: within the bounds, kept

@@ -12,6 +12,9 @@ from estimation.mapper.guided import guided_matches
 from estimation.mapper.incremental import reconstruct_models
 from estimation.synthetic import make_scene
 
+KEYPOINT_SIZE_PX = 2.0
+"""Every synthetic keypoint at the finest scale (the final BA weighs its observations alike)."""
+
 RADIUS, RATIO, MAX_DISTANCE = 8.0, 0.8, 0.7
 
 
@@ -66,7 +69,7 @@ def scene_with_a_weakly_tracked_image(image: int, kept: int, seed: int = 3):
         noise = rng.integers(-3, 4, (len(in_image), 128))
         images.append(ImageFeatures(tracks.uv[in_image],
                                     np.clip(point_sift[tracks.track_index[in_image]] + noise, 0, 255)
-                                    .astype(np.uint8)))
+                                    .astype(np.uint8), np.full(len(in_image), KEYPOINT_SIZE_PX)))
     in_weak = np.flatnonzero(tracks.image_index == image)
     keep = np.ones(len(tracks.track_index), bool)
     keep[in_weak[kept:]] = False
@@ -99,7 +102,7 @@ def test_a_registration_that_guided_matching_barely_adds_to_is_refused_with_the_
     resting on 2 new matches is little more than a second RANSAC draw (guided_min_inliers)."""
     scene, tracks, keypoints = scene_with_a_weakly_tracked_image(image=4, kept=10)
     few = keypoints.images[4]
-    keypoints.images[4] = type(few)(few.uv[:12], few.sift[:12])
+    keypoints.images[4] = type(few)(few.uv[:12], few.sift[:12], few.size[:12])
 
     model = reconstruct_models(tracks, scene.K, ReconstructionConfig(), keypoints=keypoints)[0]
 

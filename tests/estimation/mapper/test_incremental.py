@@ -9,6 +9,7 @@ import pytest
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
+from estimation.features.sift import ImageFeatures, TrackFeatures
 from estimation.geometry.alignment import align_similarity, aligned_pose_errors, rotation_angle_deg
 from estimation.geometry.projection import Camera
 from estimation.mapper.incremental import (
@@ -16,6 +17,7 @@ from estimation.mapper.incremental import (
     SparseModel,
     _ModelBuilder,
     _Timer,
+    keypoint_sigma,
     reconstruct_models,
     run_incremental,
     track_observation_pairs,
@@ -79,6 +81,45 @@ def test_noise_and_30_percent_outliers_give_poses_within_half_a_degree_and_one_p
     outlier_pairs = set(zip(tracks.track_index[~noisy_scene.inlier_mask].tolist(),
                             tracks.image_index[~noisy_scene.inlier_mask].tolist(), strict=True))
     assert len(kept_pairs & outlier_pairs) < 0.02 * len(kept_pairs)
+
+
+def test_an_observations_relative_sigma_grows_with_its_keypoints_size_above_the_reference():
+    np.testing.assert_allclose(keypoint_sigma(np.array([1.0, 2.5, 5.0, 20.0]), 2.5), [1.0, 1.0, 2.0, 8.0])
+
+
+def keypoints_with_sizes(tracks: Tracks, sizes: np.ndarray) -> TrackFeatures:
+    """Each track observation its own keypoint, of the given size (random descriptors)."""
+    rng = np.random.default_rng(0)
+    images, rank = [], np.zeros(len(tracks.track_index), np.int64)
+    for m in range(len(tracks.image_names)):
+        in_image = np.flatnonzero(tracks.image_index == m)
+        rank[in_image] = np.arange(len(in_image))
+        images.append(ImageFeatures(tracks.uv[in_image], rng.integers(0, 255, (len(in_image), 128), np.uint8),
+                                    sizes[in_image]))
+    return TrackFeatures(images, rank)
+
+
+def test_only_the_final_bundle_adjustment_weighs_each_observation_by_its_keypoints_size(monkeypatch):
+    scene = make_scene(num_cameras=6, num_points=300, noise_px=0.3, seed=21)
+    sizes = np.random.default_rng(0).uniform(1.0, 12.0, len(scene.tracks.uv))
+    keypoints = keypoints_with_sizes(scene.tracks, sizes)
+    adjust, weights = Reconstruction.bundle_adjust, {}
+
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
+        kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
+        weights.setdefault(kind, []).append(relative_sigma)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
+
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
+    reconstruct_models(scene.tracks, scene.K, CONFIG, keypoints=keypoints)
+    expected = keypoint_sigma(sizes, CONFIG.mapper.final_ba_keypoint_size_px)
+    assert all(np.array_equal(sigma, expected) for sigma in weights.pop("final"))
+    assert all(sigma is None for calls in weights.values() for sigma in calls)
+    weights.clear()
+    unweighted = CONFIG.model_copy(update={"mapper": CONFIG.mapper.model_copy(
+        update={"final_ba_keypoint_size_px": 0.0})})
+    reconstruct_models(scene.tracks, scene.K, unweighted, keypoints=keypoints)
+    assert all(sigma is None for calls in weights.values() for sigma in calls)
 
 
 def test_reprojection_statistics_are_recorded_before_and_after_bundle_adjustment(noisy_model):
@@ -483,11 +524,11 @@ def record_bundle_adjustments(monkeypatch) -> list[tuple[str, float]]:
     calls = []
     adjust = Reconstruction.bundle_adjust
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
         kind = ("final" if intrinsics_covariance else "local" if variable_images is not None
                 else "initial" if len(scene.order) == 2 and not calls else "global")
         calls.append((kind, config.relative_error_tol))
-        return adjust(scene, config, variable_images, intrinsics_covariance)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     return calls
@@ -509,7 +550,8 @@ def test_the_final_ba_is_repeated_only_when_its_filter_removed_more_than_final_m
     calls = record_bundle_adjustments(monkeypatch)
     filter_points = Reconstruction.filter_points
     # Every filter reports one observation more than it removed: a few, out of thousands.
-    monkeypatch.setattr(Reconstruction, "filter_points", lambda scene, *args: filter_points(scene, *args) + 1)
+    monkeypatch.setattr(Reconstruction, "filter_points",
+                        lambda scene, *args, **kwargs: filter_points(scene, *args, **kwargs) + 1)
 
     def final_adjustments(final_min_change: float) -> int:
         calls.clear()
@@ -526,10 +568,10 @@ def test_every_mapper_ba_runs_the_mapper_optimizer_and_the_global_ones_the_mappe
     kinds = {}
     adjust = Reconstruction.bundle_adjust
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
         kinds.setdefault(kind, set()).add((config.optimizer, config.ordering))
-        return adjust(scene, config, variable_images, intrinsics_covariance)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     reconstruct(noisy_scene.tracks, noisy_scene, ReconstructionConfig(bundle_adjustment={
@@ -568,10 +610,10 @@ def record_iteration_caps(monkeypatch) -> dict[str, set[int]]:
     caps = {}
     adjust = Reconstruction.bundle_adjust
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
         caps.setdefault(kind, set()).add(config.max_iterations)
-        return adjust(scene, config, variable_images, intrinsics_covariance)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     return caps

@@ -88,6 +88,26 @@ def test_filter_points_drops_far_observations_and_narrow_points(posed):
     assert scene.filter_points(max_error_px=1.0, min_angle_deg=179.0) == 5    # no two rays that wide
 
 
+def test_filter_points_holds_each_observation_to_the_limit_times_its_relative_sigma_under_a_ceiling():
+    truth = make_scene(num_points=50, seed=21)
+    obs = observations_of_track(truth, 5)
+    shifted = truth.tracks.uv.copy()
+    shifted[obs] += [1.5, 0.0]                                  # every observation of track 5 1.5 px off
+    relative_sigma = np.ones(len(shifted))
+
+    def filtered(sigma_of_track: float, ceiling_px: float = np.inf) -> int:
+        scene = Reconstruction(dataclasses.replace(truth.tracks, uv=shifted), truth.K)
+        for m, pose in enumerate(truth.poses):
+            scene.register_image(m, pose)
+        scene.add_points(truth.points[[5]], obs, np.zeros(len(obs), int))
+        relative_sigma[obs] = sigma_of_track
+        return scene.filter_points(1.0, 1.0, relative_sigma=relative_sigma, ceiling_px=ceiling_px)
+
+    assert filtered(1.0) == len(obs)                            # beyond 1 px
+    assert filtered(2.0) == 0                                   # within 2 x 1 px
+    assert filtered(8.0, ceiling_px=1.2) == len(obs)            # never beyond the ceiling
+
+
 def test_triangulate_tracks_keeps_the_consistent_observations_of_tracks_with_outliers():
     truth = make_scene(num_points=200, noise_px=0.3, outlier_fraction=0.2, seed=22)
     scene = Reconstruction(truth.tracks, truth.K)
