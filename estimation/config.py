@@ -483,6 +483,21 @@ class CameraConfig(StrictConfig):
         1.2, gt=0, description="Focal length = this * max(width, height) when neither calibration nor EXIF "
         "gives one (COLMAP's prior)."
     )
+    focal_from_pairs: bool = Field(
+        True, description="Without calibration file and EXIF, a shared camera starts from the focal length "
+        "that makes the verified pairs' E = K^T F K most nearly essential (`calibration.self_calibration`) "
+        "instead of the prior, when they determine one: the BA refines it from there instead of crawling "
+        "from the prior (fountain-P11: 2655 px against the prior's 3686 and the truth's 2762; mapping 23 -> "
+        "14 s). On object rings F does not determine it, and the prior stays."
+    )
+    focal_search_factor: float = Field(
+        3.0, gt=1, description="focal_from_pairs searches [prior / this, prior * this]."
+    )
+    focal_min_contrast: float = Field(
+        1.3, ge=1, description="focal_from_pairs keeps its minimum only when the pairs' cost 25 % away on "
+        "either side is this many times higher (fountain-P11 2.19, Herz-Jesus-P8 1.64; lego rings: no "
+        "minimum inside the range)."
+    )
     min_field_of_view_deg: float = Field(
         2.0, gt=0, lt=180, description="EXIF focal lengths giving a narrower field of view are ignored."
     )
