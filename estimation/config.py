@@ -89,7 +89,7 @@ class BundleAdjustmentConfig(StrictConfig):
         "points_first", description="elimination order of the mapper's global BAs that refine intrinsics "
         "(without calibration.txt): the calibration variable is linked to every point, and COLAMD's order "
         "made each iteration several times slower (fountain-P11 without calibration.txt: the 7 global BAs "
-        "after the first two took 20.0 s with COLAMD, 3.1 s points first: the same 15 iterations and model).",
+        "after the first two took 20.0 s with COLAMD, 3.3 s points first: the same 15 iterations and model).",
     )
     linear_solver: Literal[
         "multifrontal_cholesky", "multifrontal_qr", "sequential_cholesky", "sequential_qr", "pcg_block_jacobi"
