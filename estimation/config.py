@@ -85,6 +85,12 @@ class BundleAdjustmentConfig(StrictConfig):
         "refinement, final; the local BAs keep `ordering`, where COLAMD was slower): on lego, RANSAC seeds "
         "0-2, the 18 global BAs took 0.53 -> 0.49 CPU s with COLAMD's order, the same iterations and models.",
     )
+    mapper_refining_global_ordering: Literal["points_first", "colamd", "metis", "natural"] = Field(
+        "points_first", description="elimination order of the mapper's global BAs that refine intrinsics "
+        "(without calibration.txt): the calibration variable is linked to every point, and COLAMD's order "
+        "made each iteration several times slower (fountain-P11 without calibration.txt: the 7 global BAs "
+        "after the first two took 20.0 s with COLAMD, 3.3 s points first: the same 15 iterations and model).",
+    )
     linear_solver: Literal[
         "multifrontal_cholesky", "multifrontal_qr", "sequential_cholesky", "sequential_qr", "pcg_block_jacobi"
     ] = Field(
@@ -488,6 +494,21 @@ class CameraConfig(StrictConfig):
     focal_prior_factor: float = Field(
         1.2, gt=0, description="Focal length = this * max(width, height) when neither calibration nor EXIF "
         "gives one (COLMAP's prior)."
+    )
+    focal_from_pairs: bool = Field(
+        True, description="Without calibration file and EXIF, a shared camera starts from the focal length "
+        "that makes the verified pairs' E = K^T F K most nearly essential (`calibration.self_calibration`) "
+        "instead of the prior, when they determine one: the BA refines it from there instead of crawling "
+        "from the prior (fountain-P11: 2655 px against the prior's 3686 and the truth's 2762; mapping 23 -> "
+        "14 s). On object rings F does not determine it, and the prior stays."
+    )
+    focal_search_factor: float = Field(
+        3.0, gt=1, description="focal_from_pairs searches [prior / this, prior * this]."
+    )
+    focal_min_contrast: float = Field(
+        1.3, ge=1, description="focal_from_pairs keeps its minimum only when the pairs' cost 25 % away on "
+        "either side is this many times higher (fountain-P11 2.19, Herz-Jesus-P8 1.64; lego rings: no "
+        "minimum inside the range)."
     )
     min_field_of_view_deg: float = Field(
         2.0, gt=0, lt=180, description="EXIF focal lengths giving a narrower field of view are ignored."

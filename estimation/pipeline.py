@@ -27,6 +27,7 @@ from estimation.artefacts import (
     TRANSFORMS_NAME,
 )
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement, along_ray_sigmas, bundle_adjust
+from estimation.calibration.self_calibration import focal_from_fundamentals
 from estimation.config import BundleAdjustmentConfig, CameraConfig, ReconstructionConfig
 from estimation.errors import InputError
 from estimation.geometry.projection import Camera
@@ -55,6 +56,7 @@ from estimation.types import ProgressCallback, Tracks
 if TYPE_CHECKING:
     from estimation.features.planarity import PairTypes
     from estimation.features.sift import FeatureStages, TrackFeatures
+    from estimation.two_view.geometry import TwoViewGeometry
 
 FIGURE_NAMES = {
     "initial_pair_matches": "initial_pair_matches.png",
@@ -70,6 +72,8 @@ PROGRESS_PIPELINE_END = 0.93
 
 logger = logging.getLogger(__name__)
 NO_EXIF = ExifFocal(None, "none", "no EXIF focal length")
+FOCAL_FROM_PAIRS = "fundamental matrices"
+"""The source of a focal length that `self_calibrated` found (report.json's intrinsics.source)."""
 
 
 @dataclass(frozen=True)
@@ -77,8 +81,10 @@ class InitialIntrinsics:
     """Every image's camera before the reconstruction, where it came from, and what the BA refines."""
 
     cameras: list[Camera]            # image index -> camera (the same object when shared)
-    source: str                      # "calibration file", "exif", "exif and prior" or "prior"
-    focal_sources: list[str]         # image index -> "calibration file", an EXIF tag, or "prior"
+    source: str                      # "calibration file", "exif", "exif and prior", "prior" or
+                                     # FOCAL_FROM_PAIRS (`self_calibrated`)
+    focal_sources: list[str]         # image index -> "calibration file", an EXIF tag, "prior" or
+                                     # FOCAL_FROM_PAIRS
     refine: IntrinsicsRefinement
     warnings: list[str]
 
@@ -254,6 +260,32 @@ def initial_intrinsics(images: ImageSet, K: np.ndarray | None, config: CameraCon
                              refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=per_image,
                                                          principal_point=principal_point),
                              warnings=warnings)
+
+
+def self_calibrated(initial: InitialIntrinsics, geometries: dict[tuple[int, int], TwoViewGeometry],
+                    config: ReconstructionConfig) -> InitialIntrinsics:
+    """`initial` with the focal length of the verified pairs' F (`self_calibration.focal_from_fundamentals`,
+    pairs with verify_pair_min_inliers or more) when it came from the prior alone for a shared camera and
+    the pairs determine one (focal_from_pairs); else `initial` as it is."""
+    camera = config.camera
+    if initial.source != "prior" or initial.refine.per_image or not camera.focal_from_pairs:
+        return initial
+    pairs = [geometry for geometry in geometries.values()
+             if geometry.F is not None and geometry.num_inliers >= config.mapper.verify_pair_min_inliers]
+    start = initial.cameras[0]
+    found = focal_from_fundamentals(np.array([geometry.F for geometry in pairs]),
+                                    np.array([geometry.num_inliers for geometry in pairs]),
+                                    (start.cx, start.cy), start.fx, camera.focal_search_factor,
+                                    camera.focal_min_contrast)
+    if found.focal_px is None:
+        logger.info("focal length prior kept: %s", found.reason)
+        return initial
+    note = (f"starting from {found.focal_px:.1f} px instead of the prior: the focal length that makes the "
+            f"{found.pairs} strongest verified pairs' fundamental matrices most nearly essential")
+    logger.warning(note)
+    cameras = [replace(start, fx=found.focal_px, fy=found.focal_px)] * len(initial.cameras)
+    return replace(initial, cameras=cameras, source=FOCAL_FROM_PAIRS,
+                   focal_sources=[FOCAL_FROM_PAIRS] * len(cameras), warnings=[*initial.warnings, note])
 
 
 def _error_summary(summary: ReprojectionSummary) -> dict:
@@ -485,6 +517,8 @@ def reconstruct(
         features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end),
                                   K=calibration_K, defer_planarity=True, stages=stages)
 
+    with _timed(seconds, "self-calibration"):
+        initial = self_calibrated(initial, features.epipolar_geometries(), config)
     camera = initial.cameras if initial.refine.per_image else initial.cameras[0]
     try:
         models = tuple(reconstruct_models(features.tracks, camera, config,

@@ -330,13 +330,14 @@ class _ModelBuilder:
                          local: bool = False) -> BundleAdjustmentConfig:
         """The settings of one of the mapper's BAs: mapper_optimizer (mapper_refining_optimizer when it
         refines intrinsics), stopping at relative_error_tol or after max_iterations; a global one
-        eliminates in mapper_global_ordering."""
+        eliminates in mapper_global_ordering (mapper_refining_global_ordering when it refines intrinsics)."""
         ba = self.config.bundle_adjustment
-        optimizer = ba.mapper_refining_optimizer if self.refines_intrinsics() else ba.mapper_optimizer
+        refining = self.refines_intrinsics()
+        optimizer = ba.mapper_refining_optimizer if refining else ba.mapper_optimizer
         update = {"relative_error_tol": relative_error_tol, "optimizer": optimizer,
                   "max_iterations": max_iterations}
         if not local:
-            update["ordering"] = ba.mapper_global_ordering
+            update["ordering"] = ba.mapper_refining_global_ordering if refining else ba.mapper_global_ordering
         return ba.model_copy(update=update)
 
     def refines_intrinsics(self) -> bool:

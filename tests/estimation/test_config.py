@@ -29,6 +29,7 @@ def test_an_out_of_range_mapper_or_ba_setting_is_refused_naming_its_field(sectio
     ("mapper_optimizer", "newton"),
     ("mapper_refining_optimizer", "dogleg"),
     ("mapper_global_ordering", "amd"),
+    ("mapper_refining_global_ordering", "colamd_fast"),
 ])
 def test_an_unknown_optimizer_or_ordering_of_the_bundle_adjustment_is_refused_naming_its_field(field, value):
     with pytest.raises(pydantic.ValidationError) as refused:

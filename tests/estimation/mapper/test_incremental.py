@@ -581,6 +581,24 @@ def test_every_mapper_ba_runs_the_mapper_optimizer_and_the_global_ones_the_mappe
                      "final": {("gauss_newton", "colamd")}}
 
 
+def test_the_global_bas_that_refine_intrinsics_eliminate_in_the_mapper_refining_global_ordering(monkeypatch):
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
+    scene = make_scene(num_cameras=5, num_points=200, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
+    orderings = {}
+    adjust = Reconstruction.bundle_adjust
+
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+        orderings.setdefault("local" if variable_images is not None else "global", set()).add(config.ordering)
+        return adjust(scene, config, variable_images, intrinsics_covariance)
+
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
+    config = ReconstructionConfig(bundle_adjustment={
+        "ordering": "points_first", "mapper_global_ordering": "colamd",
+        "mapper_refining_global_ordering": "metis"})
+    run_incremental(scene.tracks, truth, config, refine=IntrinsicsRefinement(focal=True))
+    assert orderings == {"local": {"points_first"}, "global": {"metis"}}
+
+
 def test_the_initial_pair_ba_stops_at_the_refinement_tolerance(monkeypatch, noisy_scene):
     config = ReconstructionConfig(mapper={"refinement_relative_error_tol": 3e-4})
     calls = record_bundle_adjustments(monkeypatch)
