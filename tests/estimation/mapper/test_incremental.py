@@ -587,9 +587,9 @@ def test_the_global_bas_that_refine_intrinsics_eliminate_in_the_mapper_refining_
     orderings = {}
     adjust = Reconstruction.bundle_adjust
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False):
+    def recording(scene, config, variable_images=None, *args, **kwargs):
         orderings.setdefault("local" if variable_images is not None else "global", set()).add(config.ordering)
-        return adjust(scene, config, variable_images, intrinsics_covariance)
+        return adjust(scene, config, variable_images, *args, **kwargs)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     config = ReconstructionConfig(bundle_adjustment={
