@@ -34,10 +34,12 @@ from neural.occupancy import (
     PackedSamples,
     cell_alpha_bound,
     drop_occluded,
+    drop_occluded_after,
+    opaque_depth,
     render_packed_samples,
 )
 from neural.rendering import SampleWeights, packed_distortion
-from neural.sampling import contracted_space_samples
+from neural.sampling import ContractedRays, contracted_rays, contracted_steps
 from neural.trilinear import trilinear
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
@@ -394,22 +396,84 @@ class FastModel(GridSchedule, RadianceModel):
             if mark_seen:
                 self.occupancy.mark_seen(samples.positions)
             return drop_occluded(samples, origins.shape[0], self.density_at, threshold)
-        scale = box.scale
-        unit = contracted_space_samples(
-            box.to_scaled(origins), directions, near / scale, far / scale, self.step_size, jitter,
-            box.extent(origins.device), box.shell,
-        )  # fmt: skip
-        positions = origins[unit.ray_indices] + directions[unit.ray_indices] * (unit.t * scale)[:, None]
-        grid_positions = box.contract(positions)
+        return self._contracted_samples(origins, directions, near, far, jitter, mark_seen)
+
+    def _contracted_samples(
+        self, origins: Tensor, directions: Tensor, near: float, far: float, jitter: Tensor | None,
+        mark_seen: bool,
+    ) -> PackedSamples:
+        """`_occupied_samples` of an unbounded scene: the samples spaced for contraction, in two parts.
+
+        First those before each ray leaves the inner box, where grid coordinates are the scaled world and a
+        ray is straight: strides through blocks of empty cells are skipped unseen, as the bounded march does.
+        Then, only for the rays still visible behind the first part, those in the contracted shell beyond
+        it: a photo's rays mostly end at a surface inside the box, and the shell behind it costs nothing.
+        The samples kept are those of sampling every step, testing its cell and terminating in one pass.
+        """
+        box, step, grid = self.inner_box, self.step_size, self.occupancy
+        scale, num_rays, device = box.scale, origins.shape[0], origins.device
+        scaled = box.to_scaled(origins)
+        rays = contracted_rays(scaled, directions, near / scale, far / scale, box.extent(device), box.shell)
+        if jitter is None:
+            jitter = torch.full((num_rays,), 0.5, device=device, dtype=origins.dtype)
+        num_steps, inside_steps = rays.num_steps(step), rays.steps_before_exit(step)
+
+        # Part 1, one test per stride of steps_per_block steps, then the steps of the strides kept. A stride
+        # wholly inside the box is tested at its start; one reaching outside it is kept.
+        per_block = grid.steps_per_block(step)
+        num_blocks = (inside_steps + per_block - 1) // per_block
+        block = torch.arange(int(num_blocks.max()) if num_rays else 0, device=device)
+        ray_index, block_index = (block[None, :] < num_blocks[:, None]).nonzero(as_tuple=True)
+        block_s = rays.s_near[ray_index] + (block_index * per_block).to(scaled.dtype) * step
+        inside = (block_s >= 0) & (block_s + per_block * step <= (rays.t_exit - rays.t_enter)[ray_index])
+        block_t = (rays.t_enter[ray_index] + block_s)[:, None]
+        keep = ~inside
+        keep[inside] = grid.block_may_be_occupied(
+            scaled[ray_index[inside]] + directions[ray_index[inside]] * block_t[inside]
+        )
+        ray_index, block_index = ray_index[keep], block_index[keep]
+        step_index = block_index[:, None] * per_block + torch.arange(per_block, device=device)
+        ray_index = ray_index[:, None].expand_as(step_index)
+        valid = step_index < inside_steps[ray_index]
+        front, front_depth = self._terminated(
+            rays, scaled, directions, ray_index[valid], step_index[valid], jitter, mark_seen, None
+        )
+
+        # Part 2: the steps beyond the box of the rays still visible.
+        visible = front_depth < opaque_depth(self.config.transmittance_threshold)
+        beyond = torch.where(visible, num_steps - inside_steps, 0)
+        offset = torch.arange(int(beyond.max()) if num_rays else 0, device=device)
+        ray_index, step_offset = (offset[None, :] < beyond[:, None]).nonzero(as_tuple=True)
+        back, _ = self._terminated(
+            rays, scaled, directions, ray_index, inside_steps[ray_index] + step_offset, jitter, mark_seen,
+            front_depth,
+        )
+
+        # Both parts sorted by ray (a ray's part 1 before its part 2), in world units.
+        order = torch.sort(torch.cat([front.ray_indices, back.ray_indices]), stable=True).indices
+        ray_indices, t, deltas = (torch.cat([a, b])[order] for a, b in zip(front[:3], back[:3], strict=True))
+        world = origins[ray_indices] + directions[ray_indices] * t[:, None]
+        return PackedSamples(ray_indices, t, deltas, world)
+
+    def _terminated(
+        self, rays: ContractedRays, scaled: Tensor, directions: Tensor, ray_index: Tensor, step_index: Tensor,
+        jitter: Tensor, mark_seen: bool, start_depth: Tensor | None,
+    ) -> tuple[PackedSamples, Tensor]:
+        """The samples `step_index` of rays `ray_index` (sorted by ray then step) in occupied cells and in
+        front of the transmittance threshold, behind start_depth (R,); t and deltas in world units, positions
+        in grid coordinates. Also each ray's optical depth after them (see drop_occluded_after)."""
+        box = self.inner_box
+        unit = contracted_steps(
+            rays, scaled, directions, ray_index, step_index, self.step_size, jitter, box.shell
+        )
+        grid_positions = box.contract_scaled(unit.positions)
         keep = self.occupancy.query(grid_positions, mark_seen=mark_seen)
         # Early termination looks the density up at the contracted points it has (no second contraction).
-        in_grid = drop_occluded(
-            PackedSamples(unit.ray_indices[keep], unit.t[keep] * scale, unit.deltas[keep] * scale,
+        return drop_occluded_after(
+            PackedSamples(unit.ray_indices[keep], unit.t[keep] * box.scale, unit.deltas[keep] * box.scale,
                           grid_positions[keep]),
-            origins.shape[0], self.grid_density, threshold,
+            scaled.shape[0], self.grid_density, self.config.transmittance_threshold, start_depth,
         )  # fmt: skip
-        world = origins[in_grid.ray_indices] + directions[in_grid.ray_indices] * in_grid.t[:, None]
-        return in_grid._replace(positions=world)
 
     def _regularizer(self) -> Tensor | None:
         terms = []
