@@ -14,7 +14,9 @@ negligible weight. Everything is learned from RGB images alone; no masks, no ass
 Unbounded scenes (`Bounds.unbounded`): the grids cover contracted space (neural.contraction: the scene
 box is kept as it is, everything beyond is squeezed into a shell of thickness `shell_thickness`), points are
 contracted before every grid lookup, and rays are sampled at equal steps in contracted space
-(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it).
+(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it); the samples in
+the box come first, with strides of empty cells skipped and in rounds that stop at opaque surfaces, and the
+shell is sampled only for the rays still visible behind the box.
 """
 
 from __future__ import annotations
@@ -189,24 +191,28 @@ class _TotalVariation(torch.autograd.Function):
     """`total_variation` with its gradient written directly: d/dv of mean_k (v_k+1 - v_k)^2 along an axis adds
     2 (v_k - v_k-1) / n to v_k and subtracts 2 (v_k+1 - v_k) / n from it. Autograd's version allocates and
     sums a zero gradient of the whole grid for each of the six shifted slices: on fountain-P11's 2M-voxel
-    grids that cost more than the rest of a training step."""
+    grids that cost more than the rest of a training step. The loss is quadratic, so its gradient is formed
+    in the forward pass from the differences the value needs (each difference computed once, its square
+    summed by a dot product), and the backward pass only scales it."""
 
     @staticmethod
     def forward(ctx: Any, grid: Tensor) -> Tensor:
-        ctx.save_for_backward(grid)
-        return sum(_neighbour_differences(grid, axis).square().mean() for axis in (2, 3, 4))
+        gradient = torch.zeros_like(grid)
+        value = grid.new_zeros(())
+        for axis in (2, 3, 4):
+            difference = _neighbour_differences(grid, axis)
+            flat = difference.reshape(-1)
+            value += torch.dot(flat, flat) / flat.numel()
+            difference *= 2.0 / flat.numel()
+            length = grid.shape[axis] - 1
+            gradient.narrow(axis, 1, length).add_(difference)
+            gradient.narrow(axis, 0, length).sub_(difference)
+        ctx.gradient = gradient
+        return value
 
     @staticmethod
     def backward(ctx: Any, grad_output: Tensor) -> Tensor:
-        (grid,) = ctx.saved_tensors
-        grad = torch.zeros_like(grid)
-        for axis in (2, 3, 4):
-            difference = _neighbour_differences(grid, axis)
-            difference *= 2.0 * grad_output / difference.numel()
-            length = grid.shape[axis] - 1
-            grad.narrow(axis, 1, length).add_(difference)
-            grad.narrow(axis, 0, length).sub_(difference)
-        return grad
+        return ctx.gradient * grad_output
 
 
 def _neighbour_differences(grid: Tensor, axis: int) -> Tensor:
@@ -405,9 +411,11 @@ class FastModel(GridSchedule, RadianceModel):
         """`_occupied_samples` of an unbounded scene: the samples spaced for contraction, in two parts.
 
         First those before each ray leaves the inner box, where grid coordinates are the scaled world and a
-        ray is straight: strides through blocks of empty cells are skipped unseen, as the bounded march does.
-        Then, only for the rays still visible behind the first part, those in the contracted shell beyond
-        it: a photo's rays mostly end at a surface inside the box, and the shell behind it costs nothing.
+        ray is straight: strides through blocks of empty cells are skipped unseen, as the bounded march does,
+        and the strides kept are sampled in rounds (each ray's first 2, next 4, next 8, ...), each round only
+        for the rays still visible. Then, for the rays still visible, those in the contracted shell beyond
+        it. A photo's rays mostly end at a surface inside the box: neither the occupied cells behind it
+        (density that total variation spreads where no ray sees) nor the shell behind it cost anything.
         The samples kept are those of sampling every step, testing its cell and terminating in one pass.
         """
         box, step, grid = self.inner_box, self.step_size, self.occupancy
@@ -417,9 +425,10 @@ class FastModel(GridSchedule, RadianceModel):
         if jitter is None:
             jitter = torch.full((num_rays,), 0.5, device=device, dtype=origins.dtype)
         num_steps, inside_steps = rays.num_steps(step), rays.steps_before_exit(step)
+        opaque = opaque_depth(self.config.transmittance_threshold)
 
-        # Part 1, one test per stride of steps_per_block steps, then the steps of the strides kept. A stride
-        # wholly inside the box is tested at its start; one reaching outside it is kept.
+        # Part 1: one test per stride of steps_per_block steps; a stride wholly inside the box is tested at
+        # its start, one reaching outside it is kept.
         per_block = grid.steps_per_block(step)
         num_blocks = (inside_steps + per_block - 1) // per_block
         block = torch.arange(int(num_blocks.max()) if num_rays else 0, device=device)
@@ -432,26 +441,34 @@ class FastModel(GridSchedule, RadianceModel):
             scaled[ray_index[inside]] + directions[ray_index[inside]] * block_t[inside]
         )
         ray_index, block_index = ray_index[keep], block_index[keep]
-        step_index = block_index[:, None] * per_block + torch.arange(per_block, device=device)
-        ray_index = ray_index[:, None].expand_as(step_index)
-        valid = step_index < inside_steps[ray_index]
-        front, front_depth = self._terminated(
-            rays, scaled, directions, ray_index[valid], step_index[valid], jitter, mark_seen, None
-        )
+        counts = torch.bincount(ray_index, minlength=num_rays)
+        rank = torch.arange(ray_index.numel(), device=device) - (counts.cumsum(0) - counts)[ray_index]
+        depth = torch.zeros(num_rays, dtype=scaled.dtype, device=device)
+        parts, low, high = [], 0, 2
+        while ray_index.numel() and low <= int(rank.max()):
+            chosen = (rank >= low) & (rank < high) & (depth < opaque)[ray_index]
+            step_index = block_index[chosen, None] * per_block + torch.arange(per_block, device=device)
+            chosen_rays = ray_index[chosen, None].expand_as(step_index)
+            valid = step_index < inside_steps[chosen_rays]
+            part, depth = self._terminated(
+                rays, scaled, directions, chosen_rays[valid], step_index[valid], jitter, mark_seen, depth
+            )
+            parts.append(part)
+            low, high = high, 2 * high + 2
 
         # Part 2: the steps beyond the box of the rays still visible.
-        visible = front_depth < opaque_depth(self.config.transmittance_threshold)
-        beyond = torch.where(visible, num_steps - inside_steps, 0)
+        beyond = torch.where(depth < opaque, num_steps - inside_steps, 0)
         offset = torch.arange(int(beyond.max()) if num_rays else 0, device=device)
         ray_index, step_offset = (offset[None, :] < beyond[:, None]).nonzero(as_tuple=True)
-        back, _ = self._terminated(
-            rays, scaled, directions, ray_index, inside_steps[ray_index] + step_offset, jitter, mark_seen,
-            front_depth,
+        step_index = inside_steps[ray_index] + step_offset
+        parts.append(
+            self._terminated(rays, scaled, directions, ray_index, step_index, jitter, mark_seen, depth)[0]
         )
 
-        # Both parts sorted by ray (a ray's part 1 before its part 2), in world units.
-        order = torch.sort(torch.cat([front.ray_indices, back.ray_indices]), stable=True).indices
-        ray_indices, t, deltas = (torch.cat([a, b])[order] for a, b in zip(front[:3], back[:3], strict=True))
+        # All parts sorted by ray (a ray's parts come in order along it), in world units.
+        ray_indices, t, deltas = (torch.cat(field) for field in list(zip(*parts, strict=True))[:3])
+        order = torch.sort(ray_indices, stable=True).indices
+        ray_indices, t, deltas = ray_indices[order], t[order], deltas[order]
         world = origins[ray_indices] + directions[ray_indices] * t[:, None]
         return PackedSamples(ray_indices, t, deltas, world)
 

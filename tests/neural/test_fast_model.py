@@ -521,7 +521,7 @@ def test_unbounded_sampling_skips_empty_blocks_and_the_shell_behind_a_wall_and_k
     """Rays from inside a facade-like box: those towards an opaque wall end there, the others go on through
     the contracted shell to a far backdrop. The samples kept are those of sampling every step, testing its
     cell and terminating in one pass, but the cells of far fewer points are looked up: no stride of empty
-    cells in the box, and nothing of the shell behind the wall."""
+    cells in the box, few of the occupied cells that the wall hides, and nothing of the shell behind it."""
     from neural.occupancy import PackedSamples, drop_occluded
     from neural.sampling import contracted_space_samples
 
@@ -533,6 +533,7 @@ def test_unbounded_sampling_skips_empty_blocks_and_the_shell_behind_a_wall_and_k
     with torch.no_grad():
         model.density.fill_(-30.0)
         model.density[0, 0][(grid[..., 0] - 0.5).abs() < 0.04] = 20.0  # a wall across the box at x = 1
+        model.density[0, 0][(grid[..., 0] - 0.8).abs() < 0.15] = 5.0  # and dense space that it hides
         model.density[0, 0][grid[..., 0] > 1.15] = 0.0  # a translucent backdrop far out in the shell
     model.update_occupancy()
     generator = torch.Generator().manual_seed(3)
@@ -572,5 +573,7 @@ def test_unbounded_sampling_skips_empty_blocks_and_the_shell_behind_a_wall_and_k
     every_in_box = box.contracted_norm(grid_positions) <= 1.0
     every_in_front = grid_positions[:, 0] < 0.25
     assert (in_box & in_front).sum() < 0.2 * (every_in_box & every_in_front).sum()
+    hidden, every_hidden = in_box & (queried[:, 0] > 0.6), every_in_box & (grid_positions[:, 0] > 0.6)
+    assert hidden.sum() < 0.2 * every_hidden.sum()
     shell_of_open_rays = (~every_in_box & ~ends_at_wall[every.ray_indices]).sum()
     assert (~in_box).sum() <= 1.05 * shell_of_open_rays < 0.7 * (~every_in_box).sum()
