@@ -444,14 +444,14 @@ class FastModel(GridSchedule, RadianceModel):
         counts = torch.bincount(ray_index, minlength=num_rays)
         rank = torch.arange(ray_index.numel(), device=device) - (counts.cumsum(0) - counts)[ray_index]
         depth = torch.zeros(num_rays, dtype=scaled.dtype, device=device)
-        parts, low, high = [], 0, 2
+        parts, occupied, low, high = [], [], 0, 2
         while ray_index.numel() and low <= int(rank.max()):
             chosen = (rank >= low) & (rank < high) & (depth < opaque)[ray_index]
             step_index = block_index[chosen, None] * per_block + torch.arange(per_block, device=device)
             chosen_rays = ray_index[chosen, None].expand_as(step_index)
             valid = step_index < inside_steps[chosen_rays]
             part, depth = self._terminated(
-                rays, scaled, directions, chosen_rays[valid], step_index[valid], jitter, mark_seen, depth
+                rays, scaled, directions, chosen_rays[valid], step_index[valid], jitter, occupied, depth
             )
             parts.append(part)
             low, high = high, 2 * high + 2
@@ -462,8 +462,10 @@ class FastModel(GridSchedule, RadianceModel):
         ray_index, step_offset = (offset[None, :] < beyond[:, None]).nonzero(as_tuple=True)
         step_index = inside_steps[ray_index] + step_offset
         parts.append(
-            self._terminated(rays, scaled, directions, ray_index, step_index, jitter, mark_seen, depth)[0]
+            self._terminated(rays, scaled, directions, ray_index, step_index, jitter, occupied, depth)[0]
         )
+        if mark_seen:  # once per step, for the cells of all parts
+            self.occupancy.mark_seen(torch.cat(occupied))
 
         # All parts sorted by ray (a ray's parts come in order along it), in world units.
         ray_indices, t, deltas = (torch.cat(field) for field in list(zip(*parts, strict=True))[:3])
@@ -474,21 +476,23 @@ class FastModel(GridSchedule, RadianceModel):
 
     def _terminated(
         self, rays: ContractedRays, scaled: Tensor, directions: Tensor, ray_index: Tensor, step_index: Tensor,
-        jitter: Tensor, mark_seen: bool, start_depth: Tensor | None,
+        jitter: Tensor, occupied: list[Tensor], start_depth: Tensor | None,
     ) -> tuple[PackedSamples, Tensor]:
         """The samples `step_index` of rays `ray_index` (sorted by ray then step) in occupied cells and in
         front of the transmittance threshold, behind start_depth (R,); t and deltas in world units, positions
-        in grid coordinates. Also each ray's optical depth after them (see drop_occluded_after)."""
+        in grid coordinates. Also each ray's optical depth after them (see drop_occluded_after). The grid
+        positions of the samples in occupied cells are appended to `occupied`."""
         box = self.inner_box
         unit = contracted_steps(
             rays, scaled, directions, ray_index, step_index, self.step_size, jitter, box.shell
         )
         grid_positions = box.contract_scaled(unit.positions)
-        keep = self.occupancy.query(grid_positions, mark_seen=mark_seen)
+        keep = self.occupancy.query(grid_positions)
+        occupied.append(grid_positions[keep])
         # Early termination looks the density up at the contracted points it has (no second contraction).
         return drop_occluded_after(
             PackedSamples(unit.ray_indices[keep], unit.t[keep] * box.scale, unit.deltas[keep] * box.scale,
-                          grid_positions[keep]),
+                          occupied[-1]),
             scaled.shape[0], self.grid_density, self.config.transmittance_threshold, start_depth,
         )  # fmt: skip
 

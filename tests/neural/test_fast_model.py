@@ -556,8 +556,9 @@ def test_unbounded_sampling_skips_empty_blocks_and_the_shell_behind_a_wall_and_k
     )  # fmt: skip
     looked_up = []
     query = model.occupancy.query
-    model.occupancy.query = lambda points, mark_seen: looked_up.append(points) or query(points, mark_seen)
+    model.occupancy.query = lambda points, **marking: looked_up.append(points) or query(points, **marking)
     samples = model._occupied_samples(origins, directions, flat.near, flat.far, jitter, train=True)
+    assert int(model.occupancy.seen_steps.max()) == 1  # one training step: each cell seen once at most
 
     assert torch.equal(samples.ray_indices, one_pass.ray_indices)
     torch.testing.assert_close(samples.t, one_pass.t)
