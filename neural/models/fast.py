@@ -49,6 +49,9 @@ SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 #: Upper clamp of log density: exp(15) per unit length is opaque within any voxel.
 MAX_LOG_DENSITY = 15.0
+#: An unbounded scene's samples in the box come in rounds of each ray's first strides (of occupied blocks),
+#: this many, then twice as many each round, each round for the rays still visible.
+FIRST_ROUND_STRIDES = 2
 
 
 #: Fields added after the first stored configs, with the behaviour a stored config without them had.
@@ -444,7 +447,7 @@ class FastModel(GridSchedule, RadianceModel):
         counts = torch.bincount(ray_index, minlength=num_rays)
         rank = torch.arange(ray_index.numel(), device=device) - (counts.cumsum(0) - counts)[ray_index]
         depth = torch.zeros(num_rays, dtype=scaled.dtype, device=device)
-        parts, occupied, low, high = [], [], 0, 2
+        parts, occupied, low, high = [], [], 0, FIRST_ROUND_STRIDES
         while ray_index.numel() and low <= int(rank.max()):
             chosen = (rank >= low) & (rank < high) & (depth < opaque)[ray_index]
             step_index = block_index[chosen, None] * per_block + torch.arange(per_block, device=device)
@@ -454,7 +457,7 @@ class FastModel(GridSchedule, RadianceModel):
                 rays, scaled, directions, chosen_rays[valid], step_index[valid], jitter, occupied, depth
             )
             parts.append(part)
-            low, high = high, 2 * high + 2
+            low, high = high, high + 2 * (high - low)
 
         # Part 2: the steps beyond the box of the rays still visible.
         beyond = torch.where(depth < opaque, num_steps - inside_steps, 0)
