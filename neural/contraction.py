@@ -76,8 +76,12 @@ class InnerBox:
 
     def contract(self, points: Tensor) -> Tensor:
         """World points (N,3) -> grid coordinates contract((x - c) / h) h / max(h)."""
-        extent = self.extent(points.device).to(points.dtype)
-        return contract(self.to_scaled(points) / extent, self.shell) * extent
+        return self.contract_scaled(self.to_scaled(points))
+
+    def contract_scaled(self, scaled_points: Tensor) -> Tensor:
+        """Points in grid units before contraction, (x - c) / max(h) (N,3) -> grid coordinates."""
+        extent = self.extent(scaled_points.device).to(scaled_points.dtype)
+        return contract(scaled_points / extent, self.shell) * extent
 
     def contracted_norm(self, grid_points: Tensor) -> Tensor:
         """The max norm rho of grid points (N,3) in contracted unit coordinates (<= 1: inside the box)."""

@@ -239,6 +239,21 @@ class OccupancyGrid(torch.nn.Module):
             self._coarse = F.max_pool3d(blocks, kernel_size=3, stride=1, padding=1)[0, 0] > 0
         return self._coarse
 
+    def steps_per_block(self, step_size: float) -> int:
+        """Sample steps in one stride of a two-level march: fewer than a block of COARSE_FACTOR cells, so
+        that the samples of a stride lie within one block of its start."""
+        cell_size = (self.box_max - self.box_min) / torch.tensor(self.resolution, device=self.box_min.device)
+        return max(1, int(float(cell_size.min()) * COARSE_FACTOR / step_size) - 1)
+
+    def block_may_be_occupied(self, points: Tensor) -> Tensor:
+        """(N,) bool: False where every cell within one block (COARSE_FACTOR cells) of the point is empty, so
+        the samples of a stride of `steps_per_block` steps from it may be skipped unseen."""
+        coarse = self.coarse_occupied()
+        cell_size = (self.box_max - self.box_min) / torch.tensor(self.resolution, device=points.device)
+        coarse_size = torch.tensor(coarse.shape, device=points.device)
+        coarse_box_max = self.box_min + cell_size * COARSE_FACTOR * coarse_size
+        return _lookup(coarse, points, self.box_min, coarse_box_max, inside_only=False)
+
     def march(
         self,
         origins: Tensor,
@@ -263,8 +278,7 @@ class OccupancyGrid(torch.nn.Module):
         num_steps = ((t_end - t_start) / step_size).ceil().clamp_min(0).long()
         if jitter is None:
             jitter = torch.full((num_rays,), 0.5, device=device)
-        cell_size = (self.box_max - self.box_min) / torch.tensor(self.resolution, device=device)
-        steps_per_block = max(1, int(float(cell_size.min()) * COARSE_FACTOR / step_size) - 1)
+        steps_per_block = self.steps_per_block(step_size)
         num_blocks = (num_steps + steps_per_block - 1) // steps_per_block
         max_blocks = int(num_blocks.max()) if num_rays else 0
 
@@ -273,9 +287,7 @@ class OccupancyGrid(torch.nn.Module):
         ray_index, block_index = (block[None, :] < num_blocks[:, None]).nonzero(as_tuple=True)
         block_t = t_start[ray_index] + (block_index * steps_per_block).to(t_start.dtype) * step_size
         block_points = origins[ray_index] + directions[ray_index] * block_t[:, None]
-        coarse = self.coarse_occupied()
-        coarse_box_max = self.box_min + cell_size * COARSE_FACTOR * torch.tensor(coarse.shape, device=device)
-        keep = _lookup(coarse, block_points, self.box_min, coarse_box_max, inside_only=False)
+        keep = self.block_may_be_occupied(block_points)
         ray_index, block_index = ray_index[keep], block_index[keep]
 
         # Level 2: the samples of the occupied blocks, tested cell by cell.
@@ -318,20 +330,41 @@ def drop_occluded(
     samples of the rays still visible behind them (T_i = T_head exp(-sum of the later optical depths)): the
     same samples are kept as with every lookup, without paying for those behind early surfaces.
     """
-    if transmittance_threshold <= 0 or samples.t.numel() == 0:
-        return samples
+    kept, _ = drop_occluded_after(samples, num_rays, density_fn, transmittance_threshold, None, first_samples)
+    return kept
+
+
+def drop_occluded_after(
+    samples: PackedSamples,
+    num_rays: int,
+    density_fn: DensityFn,
+    transmittance_threshold: float,
+    start_depth: Tensor | None,
+    first_samples: int = TERMINATION_FIRST_SAMPLES,
+) -> tuple[PackedSamples, Tensor]:
+    """`drop_occluded` of samples that lie behind an optical depth start_depth (R,) already on each ray
+    (None: 0); also returns each ray's optical depth after them (R,), exact while below -log(threshold).
+
+    A ray's samples may so be generated and terminated in parts, front to back, with the same result.
+    """
     with torch.no_grad():
         ray_indices = samples.ray_indices
+        ray_depth = torch.zeros(num_rays, dtype=samples.t.dtype, device=samples.t.device)
+        if start_depth is not None:
+            ray_depth += start_depth
+        if transmittance_threshold <= 0 or samples.t.numel() == 0:
+            return samples, ray_depth
         counts = torch.bincount(ray_indices, minlength=num_rays)
         ray_start = counts.cumsum(0) - counts
         rank = torch.arange(ray_indices.numel(), device=ray_indices.device) - ray_start[ray_indices]
         head = (rank < first_samples).nonzero(as_tuple=True)[0]
         head_depth = density_fn(samples.positions[head]) * samples.deltas[head]
         transmittance = torch.zeros_like(samples.t)
-        transmittance[head] = packed_transmittance(head_depth, ray_indices[head], num_rays)
-        ray_depth = torch.zeros(num_rays, dtype=head_depth.dtype, device=head_depth.device)
+        transmittance[head] = torch.exp(-ray_depth[ray_indices[head]]) * packed_transmittance(
+            head_depth, ray_indices[head], num_rays
+        )
         ray_depth.index_add_(0, ray_indices[head], head_depth)
-        visible_after = ray_depth < -math.log(transmittance_threshold)
+        visible_after = ray_depth < opaque_depth(transmittance_threshold)
         tail = ((rank >= first_samples) & visible_after[ray_indices]).nonzero(as_tuple=True)[0]
         if tail.numel():
             tail_depth = density_fn(samples.positions[tail]) * samples.deltas[tail]
@@ -339,8 +372,14 @@ def drop_occluded(
             transmittance[tail] = torch.exp(-ray_depth[tail_rays]) * packed_transmittance(
                 tail_depth, tail_rays, num_rays
             )
+            ray_depth.index_add_(0, tail_rays, tail_depth)
         keep = (transmittance > transmittance_threshold).nonzero(as_tuple=True)[0]
-    return PackedSamples(*(field[keep] for field in samples))
+    return PackedSamples(*(field[keep] for field in samples)), ray_depth
+
+
+def opaque_depth(transmittance_threshold: float) -> float:
+    """-log(threshold): the optical depth behind which early ray termination drops samples (inf at 0)."""
+    return -math.log(transmittance_threshold) if transmittance_threshold > 0 else math.inf
 
 
 class PackedRender(NamedTuple):

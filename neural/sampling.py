@@ -3,6 +3,8 @@ samples spaced for contracted (unbounded) space."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -83,6 +85,68 @@ def contraction_spacing_inverse(s: Tensor, t_enter: Tensor, t_exit: Tensor, shel
     return torch.where(s < 0, before, torch.where(s > length, after, t_enter + s))
 
 
+class ContractedRays(NamedTuple):
+    """Where rays meet the inner box and their spacing coordinate s at near and far; all (R,), grid units.
+
+    t_enter, t_exit: where a ray enters and leaves the box (for a ray that misses it: its closest approach to
+    the centre), clamped to [near, far]; s_near, s_far: `contraction_spacing` at near and far.
+    """
+
+    t_enter: Tensor
+    t_exit: Tensor
+    s_near: Tensor
+    s_far: Tensor
+
+    def num_steps(self, step: float) -> Tensor:
+        """Samples per ray (R,) long: the steps of length `step` in s from s_near to s_far."""
+        return ((self.s_far - self.s_near) / step).ceil().long().clamp_min(0)
+
+    def steps_before_exit(self, step: float) -> Tensor:
+        """Steps per ray (R,) long that start before the ray leaves the box (s < L = t_exit - t_enter)."""
+        before = ((self.t_exit - self.t_enter - self.s_near) / step).ceil().long()
+        return torch.minimum(before.clamp_min(0), self.num_steps(step))
+
+
+def contracted_rays(
+    origins: Tensor, directions: Tensor, near: float, far: float, extent: Tensor | None = None,
+    shell: float = 1.0,
+) -> ContractedRays:
+    """The `ContractedRays` of origins (R,3) in grid units around the inner box [-extent, extent] (default:
+    the unit cube) along unit directions (R,3), between near and far (grid units)."""
+    half = torch.ones(3, device=origins.device, dtype=origins.dtype) if extent is None else extent.to(origins)
+    hits = ray_box_intersection(origins, directions, -half, half)
+    closest = -(origins * directions).sum(dim=-1)
+    missed = hits.t_exit <= hits.t_enter
+    t_enter = torch.where(missed, closest, hits.t_enter).clamp(near, far)
+    t_exit = torch.where(missed, closest, hits.t_exit).clamp(near, far)
+    s_near = contraction_spacing(torch.full_like(t_enter, near), t_enter, t_exit, shell)
+    s_far = contraction_spacing(torch.full_like(t_enter, far), t_enter, t_exit, shell)
+    return ContractedRays(t_enter, t_exit, s_near, s_far)
+
+
+def contracted_steps(
+    rays: ContractedRays,
+    origins: Tensor,
+    directions: Tensor,
+    ray_indices: Tensor,
+    step_index: Tensor,
+    step: float,
+    jitter: Tensor,
+    shell: float = 1.0,
+) -> PackedSamples:
+    """Sample number `step_index` (N,) of ray `ray_indices` (N,): s = s_near + (i + j) step (j: jitter (R,)),
+    standing for the ray length t(s_i + step/2) - t(s_i - step/2) of its bin (the last bin ends at s_far)."""
+    lower = rays.s_near[ray_indices] + step_index.to(origins.dtype) * step
+    upper = torch.minimum(lower + step, rays.s_far[ray_indices])
+    s = lower + (upper - lower) * jitter[ray_indices]
+    enter, exit_ = rays.t_enter[ray_indices], rays.t_exit[ray_indices]
+    t = contraction_spacing_inverse(s, enter, exit_, shell)
+    t_upper = contraction_spacing_inverse(upper, enter, exit_, shell)
+    deltas = t_upper - contraction_spacing_inverse(lower, enter, exit_, shell)
+    positions = origins[ray_indices] + directions[ray_indices] * t[:, None]
+    return PackedSamples(ray_indices, t, deltas, positions)
+
+
 def contracted_space_samples(
     origins: Tensor,
     directions: Tensor,
@@ -102,30 +166,12 @@ def contracted_space_samples(
     s_i = s(near) + (i + j) step (j: jitter (R,) in [0,1), else 1/2) and stands for the ray length
     t(s_i + step/2) - t(s_i - step/2) of its bin, so the deltas tile [near, far] exactly.
     """
-    num_rays = origins.shape[0]
-    device = origins.device
-    half = torch.ones(3, device=device, dtype=origins.dtype) if extent is None else extent.to(origins)
-    hits = ray_box_intersection(origins, directions, -half, half)
-    closest = -(origins * directions).sum(dim=-1)
-    missed = hits.t_exit <= hits.t_enter
-    t_enter = torch.where(missed, closest, hits.t_enter).clamp(near, far)
-    t_exit = torch.where(missed, closest, hits.t_exit).clamp(near, far)
-    near_t = torch.full_like(t_enter, near)
-    s_near = contraction_spacing(near_t, t_enter, t_exit, shell)
-    s_far = contraction_spacing(torch.full_like(t_enter, far), t_enter, t_exit, shell)
-    num_steps = ((s_far - s_near) / step).ceil().long().clamp_min(0)
+    rays = contracted_rays(origins, directions, near, far, extent, shell)
+    num_steps = rays.num_steps(step)
     if jitter is None:
-        jitter = torch.full((num_rays,), 0.5, device=device, dtype=origins.dtype)
-    max_steps = int(num_steps.max()) if num_rays else 0
+        jitter = torch.full((origins.shape[0],), 0.5, device=origins.device, dtype=origins.dtype)
+    max_steps = int(num_steps.max()) if origins.shape[0] else 0
     ray_indices, step_index = (
-        torch.arange(max_steps, device=device)[None, :] < num_steps[:, None]
+        torch.arange(max_steps, device=origins.device)[None, :] < num_steps[:, None]
     ).nonzero(as_tuple=True)
-    lower = s_near[ray_indices] + step_index.to(origins.dtype) * step
-    upper = torch.minimum(lower + step, s_far[ray_indices])
-    s = lower + (upper - lower) * jitter[ray_indices]
-    enter, exit_ = t_enter[ray_indices], t_exit[ray_indices]
-    t = contraction_spacing_inverse(s, enter, exit_, shell)
-    t_upper = contraction_spacing_inverse(upper, enter, exit_, shell)
-    deltas = t_upper - contraction_spacing_inverse(lower, enter, exit_, shell)
-    positions = origins[ray_indices] + directions[ray_indices] * t[:, None]
-    return PackedSamples(ray_indices, t, deltas, positions)
+    return contracted_steps(rays, origins, directions, ray_indices, step_index, step, jitter, shell)

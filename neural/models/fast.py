@@ -14,7 +14,9 @@ negligible weight. Everything is learned from RGB images alone; no masks, no ass
 Unbounded scenes (`Bounds.unbounded`): the grids cover contracted space (neural.contraction: the scene
 box is kept as it is, everything beyond is squeezed into a shell of thickness `shell_thickness`), points are
 contracted before every grid lookup, and rays are sampled at equal steps in contracted space
-(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it).
+(neural.sampling.contracted_space_samples: uniform in the box, disparity-linear beyond it); the samples in
+the box come first, with strides of empty cells skipped and in rounds that stop at opaque surfaces, and the
+shell is sampled only for the rays still visible behind the box.
 """
 
 from __future__ import annotations
@@ -34,10 +36,12 @@ from neural.occupancy import (
     PackedSamples,
     cell_alpha_bound,
     drop_occluded,
+    drop_occluded_after,
+    opaque_depth,
     render_packed_samples,
 )
 from neural.rendering import SampleWeights, packed_distortion
-from neural.sampling import contracted_space_samples
+from neural.sampling import ContractedRays, contracted_rays, contracted_steps
 from neural.trilinear import trilinear
 
 #: Real spherical-harmonic constants, degrees 0 and 1.
@@ -45,6 +49,9 @@ SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 #: Upper clamp of log density: exp(15) per unit length is opaque within any voxel.
 MAX_LOG_DENSITY = 15.0
+#: An unbounded scene's samples in the box come in rounds of each ray's first strides (of occupied blocks),
+#: this many, then twice as many each round, each round for the rays still visible.
+FIRST_ROUND_STRIDES = 2
 
 
 #: Fields added after the first stored configs, with the behaviour a stored config without them had.
@@ -187,24 +194,28 @@ class _TotalVariation(torch.autograd.Function):
     """`total_variation` with its gradient written directly: d/dv of mean_k (v_k+1 - v_k)^2 along an axis adds
     2 (v_k - v_k-1) / n to v_k and subtracts 2 (v_k+1 - v_k) / n from it. Autograd's version allocates and
     sums a zero gradient of the whole grid for each of the six shifted slices: on fountain-P11's 2M-voxel
-    grids that cost more than the rest of a training step."""
+    grids that cost more than the rest of a training step. The loss is quadratic, so its gradient is formed
+    in the forward pass from the differences the value needs (each difference computed once, its square
+    summed by a dot product), and the backward pass only scales it."""
 
     @staticmethod
     def forward(ctx: Any, grid: Tensor) -> Tensor:
-        ctx.save_for_backward(grid)
-        return sum(_neighbour_differences(grid, axis).square().mean() for axis in (2, 3, 4))
+        gradient = torch.zeros_like(grid)
+        value = grid.new_zeros(())
+        for axis in (2, 3, 4):
+            difference = _neighbour_differences(grid, axis)
+            flat = difference.reshape(-1)
+            value += torch.dot(flat, flat) / flat.numel()
+            difference *= 2.0 / flat.numel()
+            length = grid.shape[axis] - 1
+            gradient.narrow(axis, 1, length).add_(difference)
+            gradient.narrow(axis, 0, length).sub_(difference)
+        ctx.gradient = gradient
+        return value
 
     @staticmethod
     def backward(ctx: Any, grad_output: Tensor) -> Tensor:
-        (grid,) = ctx.saved_tensors
-        grad = torch.zeros_like(grid)
-        for axis in (2, 3, 4):
-            difference = _neighbour_differences(grid, axis)
-            difference *= 2.0 * grad_output / difference.numel()
-            length = grid.shape[axis] - 1
-            grad.narrow(axis, 1, length).add_(difference)
-            grad.narrow(axis, 0, length).sub_(difference)
-        return grad
+        return ctx.gradient * grad_output
 
 
 def _neighbour_differences(grid: Tensor, axis: int) -> Tensor:
@@ -394,22 +405,99 @@ class FastModel(GridSchedule, RadianceModel):
             if mark_seen:
                 self.occupancy.mark_seen(samples.positions)
             return drop_occluded(samples, origins.shape[0], self.density_at, threshold)
-        scale = box.scale
-        unit = contracted_space_samples(
-            box.to_scaled(origins), directions, near / scale, far / scale, self.step_size, jitter,
-            box.extent(origins.device), box.shell,
-        )  # fmt: skip
-        positions = origins[unit.ray_indices] + directions[unit.ray_indices] * (unit.t * scale)[:, None]
-        grid_positions = box.contract(positions)
-        keep = self.occupancy.query(grid_positions, mark_seen=mark_seen)
+        return self._contracted_samples(origins, directions, near, far, jitter, mark_seen)
+
+    def _contracted_samples(
+        self, origins: Tensor, directions: Tensor, near: float, far: float, jitter: Tensor | None,
+        mark_seen: bool,
+    ) -> PackedSamples:
+        """`_occupied_samples` of an unbounded scene: the samples spaced for contraction, in two parts.
+
+        First those before each ray leaves the inner box, where grid coordinates are the scaled world and a
+        ray is straight: strides through blocks of empty cells are skipped unseen, as the bounded march does,
+        and the strides kept are sampled in rounds (each ray's first 2, next 4, next 8, ...), each round only
+        for the rays still visible. Then, for the rays still visible, those in the contracted shell beyond
+        it. A photo's rays mostly end at a surface inside the box: neither the occupied cells behind it
+        (density that total variation spreads where no ray sees) nor the shell behind it cost anything.
+        The samples kept are those of sampling every step, testing its cell and terminating in one pass.
+        """
+        box, step, grid = self.inner_box, self.step_size, self.occupancy
+        scale, num_rays, device = box.scale, origins.shape[0], origins.device
+        scaled = box.to_scaled(origins)
+        rays = contracted_rays(scaled, directions, near / scale, far / scale, box.extent(device), box.shell)
+        if jitter is None:
+            jitter = torch.full((num_rays,), 0.5, device=device, dtype=origins.dtype)
+        num_steps, inside_steps = rays.num_steps(step), rays.steps_before_exit(step)
+        opaque = opaque_depth(self.config.transmittance_threshold)
+
+        # Part 1: one test per stride of steps_per_block steps; a stride wholly inside the box is tested at
+        # its start, one reaching outside it is kept.
+        per_block = grid.steps_per_block(step)
+        num_blocks = (inside_steps + per_block - 1) // per_block
+        block = torch.arange(int(num_blocks.max()) if num_rays else 0, device=device)
+        ray_index, block_index = (block[None, :] < num_blocks[:, None]).nonzero(as_tuple=True)
+        block_s = rays.s_near[ray_index] + (block_index * per_block).to(scaled.dtype) * step
+        inside = (block_s >= 0) & (block_s + per_block * step <= (rays.t_exit - rays.t_enter)[ray_index])
+        block_t = (rays.t_enter[ray_index] + block_s)[:, None]
+        keep = ~inside
+        keep[inside] = grid.block_may_be_occupied(
+            scaled[ray_index[inside]] + directions[ray_index[inside]] * block_t[inside]
+        )
+        ray_index, block_index = ray_index[keep], block_index[keep]
+        counts = torch.bincount(ray_index, minlength=num_rays)
+        rank = torch.arange(ray_index.numel(), device=device) - (counts.cumsum(0) - counts)[ray_index]
+        depth = torch.zeros(num_rays, dtype=scaled.dtype, device=device)
+        parts, occupied, low, high = [], [], 0, FIRST_ROUND_STRIDES
+        while ray_index.numel() and low <= int(rank.max()):
+            chosen = (rank >= low) & (rank < high) & (depth < opaque)[ray_index]
+            step_index = block_index[chosen, None] * per_block + torch.arange(per_block, device=device)
+            chosen_rays = ray_index[chosen, None].expand_as(step_index)
+            valid = step_index < inside_steps[chosen_rays]
+            part, depth = self._terminated(
+                rays, scaled, directions, chosen_rays[valid], step_index[valid], jitter, occupied, depth
+            )
+            parts.append(part)
+            low, high = high, high + 2 * (high - low)
+
+        # Part 2: the steps beyond the box of the rays still visible.
+        beyond = torch.where(depth < opaque, num_steps - inside_steps, 0)
+        offset = torch.arange(int(beyond.max()) if num_rays else 0, device=device)
+        ray_index, step_offset = (offset[None, :] < beyond[:, None]).nonzero(as_tuple=True)
+        step_index = inside_steps[ray_index] + step_offset
+        parts.append(
+            self._terminated(rays, scaled, directions, ray_index, step_index, jitter, occupied, depth)[0]
+        )
+        if mark_seen:  # once per step, for the cells of all parts
+            self.occupancy.mark_seen(torch.cat(occupied))
+
+        # All parts sorted by ray (a ray's parts come in order along it), in world units.
+        ray_indices, t, deltas = (torch.cat(field) for field in list(zip(*parts, strict=True))[:3])
+        order = torch.sort(ray_indices, stable=True).indices
+        ray_indices, t, deltas = ray_indices[order], t[order], deltas[order]
+        world = origins[ray_indices] + directions[ray_indices] * t[:, None]
+        return PackedSamples(ray_indices, t, deltas, world)
+
+    def _terminated(
+        self, rays: ContractedRays, scaled: Tensor, directions: Tensor, ray_index: Tensor, step_index: Tensor,
+        jitter: Tensor, occupied: list[Tensor], start_depth: Tensor | None,
+    ) -> tuple[PackedSamples, Tensor]:
+        """The samples `step_index` of rays `ray_index` (sorted by ray then step) in occupied cells and in
+        front of the transmittance threshold, behind start_depth (R,); t and deltas in world units, positions
+        in grid coordinates. Also each ray's optical depth after them (see drop_occluded_after). The grid
+        positions of the samples in occupied cells are appended to `occupied`."""
+        box = self.inner_box
+        unit = contracted_steps(
+            rays, scaled, directions, ray_index, step_index, self.step_size, jitter, box.shell
+        )
+        grid_positions = box.contract_scaled(unit.positions)
+        keep = self.occupancy.query(grid_positions)
+        occupied.append(grid_positions[keep])
         # Early termination looks the density up at the contracted points it has (no second contraction).
-        in_grid = drop_occluded(
-            PackedSamples(unit.ray_indices[keep], unit.t[keep] * scale, unit.deltas[keep] * scale,
-                          grid_positions[keep]),
-            origins.shape[0], self.grid_density, threshold,
+        return drop_occluded_after(
+            PackedSamples(unit.ray_indices[keep], unit.t[keep] * box.scale, unit.deltas[keep] * box.scale,
+                          occupied[-1]),
+            scaled.shape[0], self.grid_density, self.config.transmittance_threshold, start_depth,
         )  # fmt: skip
-        world = origins[in_grid.ray_indices] + directions[in_grid.ray_indices] * in_grid.t[:, None]
-        return in_grid._replace(positions=world)
 
     def _regularizer(self) -> Tensor | None:
         terms = []

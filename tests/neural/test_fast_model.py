@@ -10,7 +10,7 @@ import torch
 from neural.checkpoints import load_model_state
 from neural.models import build_model
 from neural.models.base import Bounds
-from neural.models.fast import FastModel, FastModelConfig
+from neural.models.fast import FastModel, FastModelConfig, grid_vertices
 from neural.occupancy import OccupancyGrid, ray_box_intersection
 from neural.rendering import volume_render, volume_render_packed
 from tests.neural.box_scene import (
@@ -515,3 +515,69 @@ def test_early_termination_in_two_passes_keeps_exactly_the_samples_of_one_pass(f
         assert torch.equal(field_once, field_twice)
     assert 0 < once.t.numel() < t.numel()
     assert sum(looked_up) < every_lookup or first_samples == 1  # (after one sample every ray is visible)
+
+
+def test_unbounded_sampling_skips_empty_blocks_and_the_shell_behind_a_wall_and_keeps_the_same_samples():
+    """Rays from a facade-like box and from the shell in front of it: those towards an opaque wall end there,
+    the others go on through the contracted shell to a far backdrop. The samples kept are those of sampling
+    every step, testing its cell and terminating in one pass, but the cells of far fewer points are looked
+    up: no stride of empty cells in the box, few of the occupied cells that the wall hides, and nothing of
+    the shell behind it."""
+    from neural.occupancy import PackedSamples, drop_occluded
+    from neural.sampling import contracted_space_samples
+
+    flat = Bounds(near=0.1, far=1000.0, scene_box_min=(-2.0, -0.5, -1.0), scene_box_max=(2.0, 0.5, 1.0),
+                  unbounded=True)  # fmt: skip
+    config = small_config(initial_voxels=64**3, final_voxels=64**3, occupancy_min_seen_steps=0)
+    model = FastModel(flat, config)
+    grid = grid_vertices(model.box_min, model.box_max, model.grid_shape).reshape(*model.grid_shape, 3)
+    with torch.no_grad():
+        model.density.fill_(-30.0)
+        model.density[0, 0][(grid[..., 0] - 0.5).abs() < 0.04] = 20.0  # a wall across the box at x = 1
+        model.density[0, 0][(grid[..., 0] - 0.8).abs() < 0.15] = 5.0  # and dense space that it hides
+        model.density[0, 0][grid[..., 0] > 1.15] = 0.0  # a translucent backdrop far out in the shell
+    model.update_occupancy()
+    generator = torch.Generator().manual_seed(3)
+    stray = torch.rand(model.occupancy.resolution, generator=generator) < 3e-5  # stray occupied cells
+    model.occupancy.set_occupied(model.occupancy.occupied | stray)
+    origins = torch.tensor([-1.5, 0.0, 0.0]) + 0.2 * torch.randn(300, 3, generator=generator)
+    origins[:40, 0] -= 4.0  # cameras outside the box: their rays cross the shell before it
+    directions = torch.tensor([1.0, 0.0, 0.0]) + 0.3 * torch.randn(300, 3, generator=generator)
+    directions = directions / directions.norm(dim=-1, keepdim=True)
+    jitter = torch.rand(300, generator=generator)
+
+    box, scale, threshold = model.inner_box, model.inner_box.scale, model.config.transmittance_threshold
+    every = contracted_space_samples(box.to_scaled(origins), directions, flat.near / scale, flat.far / scale,
+                                     model.step_size, jitter, box.extent(), box.shell)  # fmt: skip
+    grid_positions = box.contract_scaled(every.positions)
+    occupied = model.occupancy.query(grid_positions)
+    one_pass = drop_occluded(
+        PackedSamples(every.ray_indices[occupied], every.t[occupied] * scale, every.deltas[occupied] * scale,
+                      grid_positions[occupied]),
+        300, model.grid_density, threshold, first_samples=10**9,
+    )  # fmt: skip
+    looked_up = []
+    query = model.occupancy.query
+    model.occupancy.query = lambda points, **marking: looked_up.append(points) or query(points, **marking)
+    samples = model._occupied_samples(origins, directions, flat.near, flat.far, jitter, train=True)
+    assert int(model.occupancy.seen_steps.max()) == 1  # one training step: each cell seen once at most
+
+    assert torch.equal(samples.ray_indices, one_pass.ray_indices)
+    torch.testing.assert_close(samples.t, one_pass.t)
+    torch.testing.assert_close(samples.deltas, one_pass.deltas)
+    torch.testing.assert_close(box.contract(samples.positions), one_pass.positions, rtol=1e-4, atol=1e-5)
+    counts = torch.bincount(one_pass.ray_indices, minlength=300)
+    last = (counts.cumsum(0) - 1).clamp_min(0)  # each ray's farthest sample
+    ends_at_wall = (counts > 0) & ((one_pass.positions[last, 0] - 0.5).abs() < 0.05)
+    ends_at_wall &= box.contracted_norm(one_pass.positions[last]) < 1.0
+    assert 50 < ends_at_wall.sum() < 250  # rays of both kinds
+    queried = torch.cat(looked_up)
+    in_box, in_front = box.contracted_norm(queried) <= 1.0, queried[:, 0] < 0.25
+    every_in_box = box.contracted_norm(grid_positions) <= 1.0
+    every_in_front = grid_positions[:, 0] < 0.25
+    assert (in_box & in_front).sum() < 0.2 * (every_in_box & every_in_front).sum()
+    hidden, every_hidden = in_box & (queried[:, 0] > 0.6), every_in_box & (grid_positions[:, 0] > 0.6)
+    assert hidden.sum() < 0.2 * every_hidden.sum()
+    every_beyond = ~every_in_box & (grid_positions[:, 0] > 0.0)  # the shell on the wall's far side
+    beyond_of_open_rays = (every_beyond & ~ends_at_wall[every.ray_indices]).sum()
+    assert (~in_box & (queried[:, 0] > 0.0)).sum() <= 1.05 * beyond_of_open_rays < 0.7 * every_beyond.sum()
