@@ -63,7 +63,7 @@ _LINEAR_SOLVERS = {
     "pcg_block_jacobi": "ITERATIVE",
 }
 POINT_COVARIANCE_CHUNK = 4096
-"""Points whose camera-uncertainty term is formed at once (bounds a (chunk, 3, cameras x 6) array)."""
+"""Points whose camera-uncertainty term is formed at once (bounds a dense (3 chunk, cameras x 6) array)."""
 _ORDERING_TYPES = {"colamd": "COLAMD", "metis": "METIS", "natural": "NATURAL"}
 EQUAL_FOCALS_SIGMA_PX = 1e-3
 """Std-dev of fx - fy for a one-focal model on a Cal3DS2. Not fixed_intrinsics_sigma (1e-6): this factor
@@ -524,15 +524,19 @@ def _point_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     coupling = information[points][:, rest].tocsr()   # H_pc, rows three per point
     reduced = coupling.T @ _block_diagonal(block_inverses) @ coupling
     camera_covariance = np.linalg.pinv(information[rest][:, rest].toarray() - reduced.toarray())
+    # Per point, lifted = H_pp^-1 H_pc is nonzero only in the columns of the cameras that see the point:
+    # kept sparse, its product with S^-1 costs its non-zeros, not every camera column of every point.
+    lifted = (_block_diagonal(block_inverses) @ coupling).tocsr()
     covariances = block_inverses.copy()
     for begin in range(0, len(block_inverses), POINT_COVARIANCE_CHUNK):
         end = min(begin + POINT_COVARIANCE_CHUNK, len(block_inverses))
-        lifted = np.einsum("pij,pjr->pir", block_inverses[begin:end],
-                           coupling[3 * begin:3 * end].toarray().reshape(end - begin, 3, -1))
-        # one matrix product with the camera covariance for the chunk's rows (a three-operand einsum
-        # would loop over every (r, s) pair of cameras per point)
-        spread = (lifted.reshape(-1, lifted.shape[-1]) @ camera_covariance).reshape(lifted.shape)
-        covariances[begin:end] += np.einsum("pis,pjs->pij", spread, lifted)
+        rows = lifted[3 * begin:3 * end]
+        spread = rows @ camera_covariance   # dense (3 chunk, C): row 3p + i is lifted_p,i S^-1
+        for i in range(3):
+            for j in range(3):
+                # sum_s spread[3p + i, s] lifted[3p + j, s]: entry (i, j) of lifted_p S^-1 lifted_p^T
+                products = rows[j::3].multiply(spread[i::3])
+                covariances[begin:end, i, j] += np.asarray(products.sum(axis=1)).ravel()
     return covariances
 
 
