@@ -131,8 +131,9 @@ def plan_views(
         shrink = math.sqrt(allowed / cost(frame_count, video_side, held_out_side))
         return tuple(min(side, max(floor, round(side * shrink))) for side in (video_side, held_out_side))
 
-    if cost(frames, video_side, held_out_side) <= allowed:
-        return ViewsPlan(frames, video_side, held_out_side, cost(frames, video_side, held_out_side))
+    asked = cost(frames, video_side, held_out_side)
+    if asked <= allowed:
+        return ViewsPlan(frames, video_side, held_out_side, asked)
     video, evaluation = shrunk(frames, WATCHABLE_VIEW_SIDE)
     per_frame = cost(1, video, evaluation) - cost(0, video, evaluation)
     fixed = cost(0, video, evaluation)

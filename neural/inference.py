@@ -137,13 +137,19 @@ def background_colour(background: str | None, device: torch.device) -> Tensor:
     return torch.full((3,), 1.0 if background in (None, "white") else 0.0, device=device)
 
 
+def stored_environment(payload: dict[str, Any]) -> Environment | None:
+    """The photos' environment a checkpoint holds (None: a run without one, or written before it existed)."""
+    values = payload.get("environment")
+    return None if values is None else Environment.from_list(values)
+
+
 def render_background(
-    config: TrainConfig, environment: list[list[float]] | None, device: torch.device
+    config: TrainConfig, environment: Environment | None, device: torch.device
 ) -> Background:
     """What a run's renders show behind the field: the photos' environment (neural.environment) for a run
     trained on random colours that fitted one and renders it, else its background colour."""
     if config.background == "random" and config.render_environment and environment is not None:
-        return Environment.from_list(environment)
+        return environment
     return background_colour(config.background, device)
 
 
@@ -242,7 +248,7 @@ def load_run(run_dir: Path | str, checkpoint: str = "latest", device: str = "aut
         orbit=info["orbit"],
         step=int(payload["step"]),
         device=target,
-        background=render_background(config, payload.get("environment"), target),
+        background=render_background(config, stored_environment(payload), target),
         cameras=np.asarray(info["cameras"]["c2w"], dtype=np.float64) if "cameras" in info else None,
         photos=bool(info.get("cameras", {}).get("photos", False)),
     )

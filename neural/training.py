@@ -319,9 +319,7 @@ class Trainer:
         self.background = background_colour(self.config.background, self.device)
         self.sampler = RayBatchSampler(self.dataset, self.dataset.split("train"), self.device)
         self.environment = self._fit_environment() if self.config.background == "random" else None
-        self.render_background = render_background(
-            self.config, None if self.environment is None else self.environment.to_list(), self.device
-        )
+        self.render_background = render_background(self.config, self.environment, self.device)
         self.val_index = self._first_val_index()
         camera = PinholeIntrinsics(
             self.dataset.width, self.dataset.height, self.dataset.fx, self.dataset.fy, self.dataset.cx,
