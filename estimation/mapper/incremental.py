@@ -59,7 +59,9 @@ from estimation.mapper.verification import (
     VerifiedPair,
     agreement_problem,
     inlier_spread,
+    pose_rotation_std_deg,
     rotation_agreement,
+    rotation_std_problem,
     support_problem,
     under_intrinsics,
     voting_pairs,
@@ -423,13 +425,19 @@ class _ModelBuilder:
                                                     points, uv)
         return pose, errors < ransac.pnp_threshold_px
 
-    def support_problem(self, uv: np.ndarray, inliers: np.ndarray) -> str | None:
-        """Why a pose with these inliers among the correspondences at uv has too weak a support (the
-        thresholds, relaxed or not, never under the verification's floor), or None."""
+    def support_problem(self, pose: CameraPose, points: np.ndarray, uv: np.ndarray, inliers: np.ndarray
+                        ) -> str | None:
+        """Why a pose with these inliers among the 2D-3D correspondences (points, uv) has too weak a
+        support (the thresholds, relaxed or not, never under the verification's floor; the rotation they
+        determine at the measured pixel noise), or None."""
         min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,
                                                          self.mapper.verify_min_inlier_ratio)
         support = InlierSupport(int(inliers.sum()), len(uv), inlier_spread(uv[inliers], *self.image_size))
-        return support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
+        problem = support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
+        if problem is not None:
+            return problem
+        std = pose_rotation_std_deg(self.reconstruction.K, pose, points[inliers], 1.0)
+        return rotation_std_problem(std, self.mapper.verify_max_rotation_std_deg, support.inliers)
 
     def guided_correspondences(self, image: int, pose: CameraPose, point_ids: np.ndarray
                                ) -> tuple[np.ndarray, np.ndarray]:
@@ -470,17 +478,17 @@ class _ModelBuilder:
             pose, inliers = self.absolute_pose(points, uv)
         except DegenerateConfigurationError as error:
             return str(error)
-        problem = self.support_problem(uv, inliers)
+        problem = self.support_problem(pose, points, uv, inliers)
         if problem is not None and self.keypoints is not None and self.mapper.guided_matching:
             guided_uv, guided_points = self.guided_correspondences(image, pose, point_ids)
             if len(guided_points):
                 all_uv = np.concatenate([uv, guided_uv])
+                all_points = np.concatenate([points, reconstruction.point_xyz[guided_points]])
                 try:
-                    pose, inliers = self.absolute_pose(
-                        np.concatenate([points, reconstruction.point_xyz[guided_points]]), all_uv)
+                    pose, inliers = self.absolute_pose(all_points, all_uv)
                 except DegenerateConfigurationError as error:
                     return f"{problem}; with {len(guided_points)} guided 2D-3D matches: {error}"
-                guided_problem = self.support_problem(all_uv, inliers)
+                guided_problem = self.support_problem(pose, all_points, all_uv, inliers)
                 guided_inliers = int(inliers[len(obs_ids):].sum())
                 if guided_problem is None and guided_inliers < self.mapper.guided_min_inliers:
                     guided_problem = (f"{guided_inliers} of its inliers are guided matches (need "

@@ -3,8 +3,10 @@
 A pose from absolute-pose RANSAC explains its own inliers by construction; on a symmetric object a pose on
 the far side of the ring can explain as many (the features of both sides look alike), with a low
 reprojection error. So each registration is also held against:
-- its support: inliers and inlier ratio (COLMAP keeps >= 30 and >= 25 %), and the inliers' spread over
-  the image (a pose resting on one corner is poorly constrained);
+- its support: inliers and inlier ratio (COLMAP keeps >= 30 and >= 25 %), the inliers' spread over the
+  image (a pose resting on one corner is poorly constrained), and how closely they pin its rotation at 1 px
+  of noise: a dozen inliers on a narrow, shallow patch fit a rotation several degrees off (with a shifted
+  centre) about as well as the true one;
 - the relative rotations that two-view geometry verified for its pairs with registered images, which were
   estimated from the pair's own matches, not from the model's points: a placement on the far side of the
   ring disagrees by ~180 deg with every true neighbour. Without calibration a pair verified only F, and
@@ -24,6 +26,7 @@ import numpy as np
 from estimation.geometry.alignment import rotation_angle_deg
 from estimation.two_view.essential import pose_candidates, project_to_essential
 from estimation.two_view.geometry import TwoViewGeometry
+from estimation.types import CameraPose
 
 NEAR_MIRROR = "a near-mirror placement"
 """The words that end a refusal for disagreeing with the verified pairs (the warnings look for them)."""
@@ -63,6 +66,36 @@ def support_problem(support: InlierSupport, min_inliers: float, min_ratio: float
         return (f"its {support.inliers} inliers lie in {support.spread:.0%} of the image's "
                 f"{SPREAD_GRID}x{SPREAD_GRID} cells (need {min_spread:.0%})")
     return None
+
+
+def pose_rotation_std_deg(K: np.ndarray, pose: CameraPose, points: np.ndarray, pixel_sigma: float) -> float:
+    """sqrt(lambda_max(S_w)) in degrees, S = sigma^2 (J^T J)^-1 over [w, dt] (R <- exp([w]x) R, t <- t + dt),
+    J_k = d pi(K x) / dx [-[R X_k]x | I] at x = R X_k + t: how closely the points' reprojections pin the
+    pose's rotation at pixel_sigma px of noise (inf when they do not determine it)."""
+    rotated = np.asarray(points, float) @ pose.R.T
+    camera = rotated + pose.t
+    depth = camera[:, 2]
+    pixel = camera @ K.T / depth[:, None]
+    # d pi / dx = (K[:2] - pixel[:2] e_3^T) / z, per point (N, 2, 3)
+    d_pi = (K[None, :2, :] - pixel[:, :2, None] * np.array([0.0, 0.0, 1.0])) / depth[:, None, None]
+    skew = np.zeros((len(rotated), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -rotated[:, 2], rotated[:, 1], -rotated[:, 0]
+    skew -= np.swapaxes(skew, 1, 2)
+    jacobian = np.concatenate([d_pi @ -skew, d_pi], axis=2).reshape(-1, 6)
+    information = jacobian.T @ jacobian
+    if np.linalg.cond(information) > 1e12:
+        return float("inf")
+    rotation_covariance = pixel_sigma**2 * np.linalg.inv(information)[:3, :3]
+    return float(np.degrees(np.sqrt(np.linalg.eigvalsh(rotation_covariance).max())))
+
+
+def rotation_std_problem(std_deg: float, max_std_deg: float, inliers: int) -> str | None:
+    """Why a pose's rotation is too loosely determined (`pose_rotation_std_deg` at 1 px above max_std_deg),
+    or None."""
+    if std_deg <= max_std_deg:
+        return None
+    return (f"its {inliers} inliers determine its rotation only to {std_deg:.1f} deg (one std-dev at 1 px "
+            f"of noise; need {max_std_deg:g} deg)")
 
 
 def essential_rotations(E: np.ndarray) -> np.ndarray:

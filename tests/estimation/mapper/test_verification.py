@@ -16,7 +16,9 @@ from estimation.mapper.verification import (
     essential_rotation_deviation_deg,
     essential_rotations,
     inlier_spread,
+    pose_rotation_std_deg,
     rotation_agreement,
+    rotation_std_problem,
     support_problem,
     under_intrinsics,
     voting_pairs,
@@ -45,6 +47,59 @@ def test_support_is_refused_below_each_of_its_three_minimums_and_names_the_numbe
     assert "need 30 and 25%" in support_problem(InlierSupport(40, 200, 0.8), 30, 0.25, 0.25)
     assert "lie in 10% of the image's 8x8 cells" in support_problem(InlierSupport(40, 100, 0.1), 30, 0.25,
                                                                      0.25)
+
+
+def pixels(K: np.ndarray, pose: CameraPose, points: np.ndarray) -> np.ndarray:
+    camera = points @ pose.R.T + pose.t
+    return (camera @ K.T)[:, :2] / camera[:, 2:]
+
+
+@pytest.fixture
+def camera_and_points():
+    """A 400x300 camera 5 units in front of 40 points spread over its view and 1 unit deep, and 12 points
+    on a shallow patch covering a tenth of its width."""
+    K = np.array([[500.0, 0.0, 200.0], [0.0, 500.0, 150.0], [0.0, 0.0, 1.0]])
+    pose = CameraPose(rotation_about_axis(np.array([0.2, 1.0, 0.1]), np.radians(20)),
+                      np.array([0.1, -0.2, 5.0]))
+    rng = np.random.default_rng(0)
+    camera_points = np.column_stack([rng.uniform(-1.5, 1.5, 40), rng.uniform(-1.1, 1.1, 40),
+                                     rng.uniform(-0.5, 0.5, 40)]) + [0.0, 0.0, 5.0]
+    patch_points = np.column_stack([rng.uniform(0.65, 0.95, 12), rng.uniform(0.35, 0.65, 12),
+                                    rng.uniform(-0.05, 0.05, 12)]) + [0.0, 0.0, 5.0]
+    def world(camera: np.ndarray) -> np.ndarray:
+        return (camera - pose.t) @ pose.R     # X = R^T (x - t)
+    return K, pose, world(camera_points), world(patch_points)
+
+
+def test_the_rotation_std_is_the_covariance_of_a_rotation_perturbation_at_the_pixel_noise(camera_and_points):
+    K, pose, points, _ = camera_and_points
+    # J by finite differences of the pixels under R <- exp([w]x) R, t <- t + dt
+    step, columns = 1e-6, []
+    for k in range(6):
+        delta = np.zeros(6)
+        delta[k] = step
+        rotated = rotation_about_axis(delta[:3], step) @ pose.R if k < 3 else pose.R
+        moved = CameraPose(rotated, pose.t + delta[3:])
+        columns.append(((pixels(K, moved, points) - pixels(K, pose, points)) / step).ravel())
+    covariance = 0.5**2 * np.linalg.inv(np.column_stack(columns).T @ np.column_stack(columns))[:3, :3]
+    expected = np.degrees(np.sqrt(np.linalg.eigvalsh(covariance).max()))
+    assert pose_rotation_std_deg(K, pose, points, 0.5) == pytest.approx(expected, rel=1e-4)
+    assert pose_rotation_std_deg(K, pose, points, 1.0) == pytest.approx(
+        2 * pose_rotation_std_deg(K, pose, points, 0.5), rel=1e-9)
+
+
+def test_a_dozen_points_on_one_patch_pin_the_rotation_far_less_than_points_over_the_view(camera_and_points):
+    K, pose, points, patch = camera_and_points
+    spread = pose_rotation_std_deg(K, pose, points[:12], 1.0)
+    clustered = pose_rotation_std_deg(K, pose, patch, 1.0)
+    assert clustered > 4 * spread
+    assert pose_rotation_std_deg(K, pose, patch[:2], 1.0) == np.inf     # two points cannot fix six unknowns
+
+
+def test_a_loosely_pinned_rotation_is_refused_naming_its_std_and_the_limit():
+    assert rotation_std_problem(2.9, 3.0, 13) is None
+    problem = rotation_std_problem(4.4, 3.0, 13)
+    assert "13 inliers determine its rotation only to 4.4 deg" in problem and "need 3 deg" in problem
 
 
 def test_a_relative_rotation_agrees_with_its_own_essential_matrix_and_a_half_turn_does_not():
