@@ -373,7 +373,7 @@ class MapperConfig(StrictConfig):
         "their geometry (the measured noise is smaller, but the points' own errors are not in it). A looser "
         "pose is refused and tried again later, when more points may pin it. On lego_ring_400 (RANSAC seed "
         "7) r_34 registered from 13 inliers at 4.4 deg, 8 deg off the truth, and seven later views built "
-        "on it; lego's registrations stay under 2.1 deg.",
+        "on it; lego's registrations reach 2.0 deg.",
     )
     verify_pair_min_inliers: int = Field(
         30, ge=8, description="Verified pairs with this many inliers vote on a registered image's rotation "
