@@ -259,15 +259,19 @@ def test_the_distortion_json_of_sfmnerf_calibrate_comes_with_its_calibration_and
         find_distortion(folder)
 
 
-def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shared_data, tmp_path):
+@pytest.mark.parametrize(("seed", "max_mean_deg"), [(0, 0.32), (7, 0.5)])   # 0.28 and 0.42 measured
+def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shared_data, tmp_path, seed,
+                                                                            max_mean_deg):
     """lego_ring_400: 50 views around a symmetric object; the weakly supported registrations used to put
     r_12 and r_28 on the far side of the ring (172-176 deg off) and r_34 6 deg off. Refused, they are
-    registered later by guided matching (r_34) or in a second model that the merge moves into the first."""
+    registered later by guided matching (r_34) or in a second model that the merge moves into the first.
+    With RANSAC seed 7, r_34 registered from 13 inliers that pinned its rotation only to 4.4 deg, 8 deg
+    off, and 8 later views followed it 6-9 deg off; refused until more points pin it, it is not."""
     from estimation.geometry.alignment import aligned_pose_errors
     from estimation.types import CameraPose
 
     folder = shared_data / "lego_ring_400"
-    result = reconstruct(folder, tmp_path, ReconstructionConfig(write_figures=False))
+    result = reconstruct(folder, tmp_path, ReconstructionConfig(write_figures=False, ransac={"seed": seed}))
     truth = json.loads((folder / "ground_truth.json").read_text())["cameras"]
     names = result.model.image_names
     registered = sorted(result.model.poses)
@@ -276,7 +280,7 @@ def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shar
                                   for m in registered])
     assert errors.rotation_deg.max() < 5.0
     assert len(registered) >= 48
-    assert errors.rotation_deg.mean() < 0.32    # 0.25 measured; COLMAP: 0.37 over the 35 it registers
+    assert errors.rotation_deg.mean() < max_mean_deg    # COLMAP: 0.37 over the 35 it registers
     report = json.loads((tmp_path / "report.json").read_text())
     model = report["models"][0]
     assert all("images merged" in merge for merge in model["merged_models"])
