@@ -53,6 +53,7 @@ from estimation.mapper.merge import (
 from estimation.mapper.next_image import PyramidCells, pyramid_cells, visibility_pyramid_scores
 from estimation.mapper.reconstruction import Reconstruction
 from estimation.mapper.verification import (
+    LOOSE_ROTATION,
     NEAR_MIRROR,
     InlierSupport,
     RotationAgreement,
@@ -468,6 +469,14 @@ class _ModelBuilder:
         return keypoint_uv[matches.keypoints], candidates[matches.points]
 
     def register(self, image: int) -> str | None:
+        """`try_register`; a refusal for a loosely pinned rotation is also listed in the checks (report.json's
+        registration_checks), as the rotation vote's are: it is where a wrong placement was avoided."""
+        reason = self.try_register(image)
+        if reason is not None and LOOSE_ROTATION in reason:
+            self.checks.append(RegistrationCheck(image, "refused", reason))
+        return reason
+
+    def try_register(self, image: int) -> str | None:
         """Absolute pose of `image` from its 2D-3D correspondences (with guided ones when its tracks' alone
         are too few, `guided_correspondences`), held to the registration checks; adds its inlier
         observations to their points. Returns why it failed, or None."""

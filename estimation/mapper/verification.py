@@ -30,6 +30,8 @@ from estimation.types import CameraPose
 
 NEAR_MIRROR = "a near-mirror placement"
 """The words that end a refusal for disagreeing with the verified pairs (the warnings look for them)."""
+LOOSE_ROTATION = "a loosely pinned rotation"
+"""The words that end a refusal for inliers that pin the rotation too loosely (`rotation_std_problem`)."""
 SPREAD_GRID = 8
 """Cells per side of the grid that measures the inliers' spread over the image (64 cells)."""
 
@@ -95,7 +97,7 @@ def rotation_std_problem(std_deg: float, max_std_deg: float, inliers: int) -> st
     if std_deg <= max_std_deg:
         return None
     return (f"its {inliers} inliers determine its rotation only to {std_deg:.1f} deg (one std-dev at 1 px "
-            f"of noise; need {max_std_deg:g} deg)")
+            f"of noise; need {max_std_deg:g} deg): {LOOSE_ROTATION}")
 
 
 def essential_rotations(E: np.ndarray) -> np.ndarray:

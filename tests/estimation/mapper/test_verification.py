@@ -10,6 +10,7 @@ from estimation.geometry.alignment import aligned_pose_errors, relative_pose
 from estimation.geometry.linalg import skew
 from estimation.mapper.incremental import reconstruct_models
 from estimation.mapper.verification import (
+    LOOSE_ROTATION,
     InlierSupport,
     VerifiedPair,
     agreement_problem,
@@ -100,6 +101,7 @@ def test_a_loosely_pinned_rotation_is_refused_naming_its_std_and_the_limit():
     assert rotation_std_problem(2.9, 3.0, 13) is None
     problem = rotation_std_problem(4.4, 3.0, 13)
     assert "13 inliers determine its rotation only to 4.4 deg" in problem and "need 3 deg" in problem
+    assert problem.endswith(LOOSE_ROTATION)
 
 
 def test_a_relative_rotation_agrees_with_its_own_essential_matrix_and_a_half_turn_does_not():
