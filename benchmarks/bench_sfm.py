@@ -30,6 +30,9 @@ Sets (../shared/data):
   a camera more than WRONG_DEG off (flipped, or placed by a wrong pose) is the failure to watch for.
 - unity: Unity Hall with the course's match files (ours only; no ground truth: RMS and Ceres left).
 
+Ours also prints the three registrations whose inliers pinned the rotation least (report.json's
+`registration_rotation_std_deg`, the figure `MapperConfig.verify_max_rotation_std_deg` limits).
+
     python benchmarks/bench_sfm.py                 # every set
     python benchmarks/bench_sfm.py --sets lego --no-pycolmap
     python benchmarks/bench_sfm.py --sets fountain --max-reprojection-sigmas 0
@@ -105,6 +108,8 @@ class Outcome:
     stage_seconds: dict[str, float] | None = None
     cpu_seconds: tuple[float, float] | None = None     # this process's, its worker processes'
     focal_px: float = float("nan")                      # the refined focal length (uncalibrated runs)
+    # the largest rotation std-devs (deg at 1 px) the registrations' inliers allowed, by image (ours)
+    loosest_registrations: dict[str, float] | None = None
 
 
 def lego_set(work: Path) -> BenchSet:
@@ -210,7 +215,20 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
                    ceres_left=ceres_cost_left(out / "sparse"),
                    stage_seconds={**result.report["seconds_per_stage"],
                                   **result.report["features"].get("seconds_per_stage", {})},
-                   focal_px=float(result.K[0, 0]))
+                   focal_px=float(result.K[0, 0]),
+                   loosest_registrations=loosest_registrations(result.report))
+
+
+LOOSEST_SHOWN = 3
+"""Registrations listed by `loosest_registrations`."""
+
+
+def loosest_registrations(report: dict) -> dict[str, float]:
+    """The LOOSEST_SHOWN registrations of every model whose inliers pinned the rotation least (report.json's
+    `registration_rotation_std_deg`), largest first."""
+    stds = {name: std for model in report["models"]
+            for name, std in model["registration_rotation_std_deg"].items()}
+    return dict(sorted(stds.items(), key=lambda item: -item[1])[:LOOSEST_SHOWN])
 
 
 def child_cpu_seconds() -> float:
@@ -385,6 +403,8 @@ def main() -> None:
                 print(f"ours, seconds per stage (detection, matching_and_verification: inside features): "
                       f"{stages}; CPU s {ours.cpu_seconds[0]:.2f} + {ours.cpu_seconds[1]:.2f} in worker "
                       f"processes", flush=True)
+                loosest = ", ".join(f"{name} {std:.2f}" for name, std in ours.loosest_registrations.items())
+                print(f"ours, loosest registrations (rotation std-dev at 1 px, deg): {loosest}", flush=True)
             if not bench.calibrated:
                 truth_focal = (bench.K[0, 0] + bench.K[1, 1]) / 2
                 found = [(method, outcome.focal_px) for method, outcome in

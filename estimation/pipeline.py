@@ -350,6 +350,7 @@ def model_summary(images: ImageSet, model: SparseModel) -> dict:
         "reprojection_limit_px": float(stats.reprojection_limit_px),
         "merged_models": list(stats.merged_models),
         "guided_registrations": dict(stats.guided_registrations),
+        "registration_rotation_std_deg": dict(stats.registration_rotation_std_deg),
     }
 
 

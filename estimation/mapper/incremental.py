@@ -113,6 +113,9 @@ class ReconstructionStats:
     merged_models: list[str] = field(default_factory=list)
     # images registered with guided 2D-3D matches (`_ModelBuilder.guided_correspondences`) -> their inliers
     guided_registrations: dict[str, int] = field(default_factory=dict)
+    # each registered image (not the initial pair) -> the rotation std-dev its registration's inliers allowed
+    # at 1 px of noise (`verification.pose_rotation_std_deg`), the figure verify_max_rotation_std_deg limits
+    registration_rotation_std_deg: dict[str, float] = field(default_factory=dict)
 
 
 class PrincipalPointTest(NamedTuple):
@@ -274,6 +277,7 @@ class _ModelBuilder:
         self.keypoints = keypoints   # SIFT's keypoints and descriptors: guided matching (None: without)
         self.guided: dict[int, int] = {}   # image registered with guided matches -> their inliers
         self.registered_inliers = np.zeros(len(tracks.image_names), np.int64)
+        self.rotation_std = np.full(len(tracks.image_names), np.nan)   # of each registration's inliers
         self.deregistrations = np.zeros(len(tracks.image_names), np.int64)
         self.checks: list[RegistrationCheck] = []
         self.merges: list[str] = []    # other models merged into this one, and their support
@@ -427,18 +431,18 @@ class _ModelBuilder:
         return pose, errors < ransac.pnp_threshold_px
 
     def support_problem(self, pose: CameraPose, points: np.ndarray, uv: np.ndarray, inliers: np.ndarray
-                        ) -> str | None:
+                        ) -> tuple[str | None, float]:
         """Why a pose with these inliers among the 2D-3D correspondences (points, uv) has too weak a
         support (the thresholds, relaxed or not, never under the verification's floor; the rotation they
-        determine at the measured pixel noise), or None."""
+        determine at 1 px of noise), or None; and that rotation std-dev (deg)."""
         min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,
                                                          self.mapper.verify_min_inlier_ratio)
         support = InlierSupport(int(inliers.sum()), len(uv), inlier_spread(uv[inliers], *self.image_size))
         problem = support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
-        if problem is not None:
-            return problem
         std = pose_rotation_std_deg(self.reconstruction.K, pose, points[inliers], 1.0)
-        return rotation_std_problem(std, self.mapper.verify_max_rotation_std_deg, support.inliers)
+        if problem is not None:
+            return problem, std
+        return rotation_std_problem(std, self.mapper.verify_max_rotation_std_deg, support.inliers), std
 
     def guided_correspondences(self, image: int, pose: CameraPose, point_ids: np.ndarray
                                ) -> tuple[np.ndarray, np.ndarray]:
@@ -487,7 +491,7 @@ class _ModelBuilder:
             pose, inliers = self.absolute_pose(points, uv)
         except DegenerateConfigurationError as error:
             return str(error)
-        problem = self.support_problem(pose, points, uv, inliers)
+        problem, rotation_std = self.support_problem(pose, points, uv, inliers)
         if problem is not None and self.keypoints is not None and self.mapper.guided_matching:
             guided_uv, guided_points = self.guided_correspondences(image, pose, point_ids)
             if len(guided_points):
@@ -497,7 +501,7 @@ class _ModelBuilder:
                     pose, inliers = self.absolute_pose(all_points, all_uv)
                 except DegenerateConfigurationError as error:
                     return f"{problem}; with {len(guided_points)} guided 2D-3D matches: {error}"
-                guided_problem = self.support_problem(pose, all_points, all_uv, inliers)
+                guided_problem, rotation_std = self.support_problem(pose, all_points, all_uv, inliers)
                 guided_inliers = int(inliers[len(obs_ids):].sum())
                 if guided_problem is None and guided_inliers < self.mapper.guided_min_inliers:
                     guided_problem = (f"{guided_inliers} of its inliers are guided matches (need "
@@ -518,6 +522,7 @@ class _ModelBuilder:
         reconstruction.register_image(image, pose)
         reconstruction.add_observations(obs_ids[inliers], point_ids[inliers])
         self.registered_inliers[image] = int(inliers.sum())   # its observations (guided matches are not)
+        self.rotation_std[image] = rotation_std
         return None
 
     def current_votes(self, image: int) -> list[VerifiedPair]:
@@ -594,6 +599,7 @@ class _ModelBuilder:
         used = second.used_observations()
         self.registered_inliers[added] = np.bincount(self.tracks.image_index[used],
                                                      minlength=len(first.registered))[added]
+        self.rotation_std[added] = other.rotation_std[added]
         found = (f"{len(added)} images merged by a similarity that reprojects {merge.inliers} of "
                  f"{merge.correspondences} cross-model 2D-3D correspondences (from {merge.shared_points} "
                  f"shared points; {overlap:.0%} of the moved points on this model's surface)")
@@ -933,6 +939,9 @@ def _finished_model(builder: _ModelBuilder, candidate: InitialPairCandidate,
         merged_models=list(builder.merges),
         guided_registrations={tracks.image_names[image]: inliers for image, inliers in builder.guided.items()
                               if reconstruction.registered[image]},
+        registration_rotation_std_deg={tracks.image_names[image]: float(builder.rotation_std[image])
+                                       for image in reconstruction.order
+                                       if np.isfinite(builder.rotation_std[image])},
     )
     model = _sparse_model(builder, candidate, stats)
     model.checks, model.warnings = list(builder.checks), builder.mirror_warnings()

@@ -287,6 +287,8 @@ def test_no_camera_of_the_sparse_lego_ring_is_registered_in_the_wrong_place(shar
     assert all("images merged" in merge for merge in model["merged_models"])
     assert model["merged_models"] or model["guided_registrations"]
     assert {"registration_checks", "unregistered"} <= report.keys()
+    limit = ReconstructionConfig().mapper.verify_max_rotation_std_deg
+    assert 0 < max(model["registration_rotation_std_deg"].values()) <= limit
     if seed == 7:   # the loose poses are refused, and the report says so (r_88: 12 inliers, 4.6 deg)
         assert any("rotation only to" in check["reason"] for check in report["registration_checks"])
     assert len(report["unregistered"]) == 50 - len(registered)
