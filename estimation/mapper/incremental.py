@@ -434,14 +434,15 @@ class _ModelBuilder:
                         ) -> tuple[str | None, float]:
         """Why a pose with these inliers among the 2D-3D correspondences (points, uv) has too weak a
         support (the thresholds, relaxed or not, never under the verification's floor; the rotation they
-        determine at 1 px of noise), or None; and that rotation std-dev (deg)."""
+        determine at 1 px of noise), or None; and that rotation std-dev (deg; NaN when the inlier minimums
+        already fail)."""
         min_inliers, min_ratio = self.thresholds.floored(self.mapper.verify_min_inliers,
                                                          self.mapper.verify_min_inlier_ratio)
         support = InlierSupport(int(inliers.sum()), len(uv), inlier_spread(uv[inliers], *self.image_size))
         problem = support_problem(support, min_inliers, min_ratio, self.mapper.verify_min_inlier_spread)
-        std = pose_rotation_std_deg(self.reconstruction.K, pose, points[inliers], 1.0)
         if problem is not None:
-            return problem, std
+            return problem, np.nan
+        std = pose_rotation_std_deg(self.reconstruction.K, pose, points[inliers], 1.0)
         return rotation_std_problem(std, self.mapper.verify_max_rotation_std_deg, support.inliers), std
 
     def guided_correspondences(self, image: int, pose: CameraPose, point_ids: np.ndarray

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from estimation.geometry.alignment import rotation_angle_deg
+from estimation.geometry.linalg import skew
 from estimation.two_view.essential import pose_candidates, project_to_essential
 from estimation.two_view.geometry import TwoViewGeometry
 from estimation.types import CameraPose
@@ -80,10 +81,7 @@ def pose_rotation_std_deg(K: np.ndarray, pose: CameraPose, points: np.ndarray, p
     pixel = camera @ K.T / depth[:, None]
     # d pi / dx = (K[:2] - pixel[:2] e_3^T) / z, per point (N, 2, 3)
     d_pi = (K[None, :2, :] - pixel[:, :2, None] * np.array([0.0, 0.0, 1.0])) / depth[:, None, None]
-    skew = np.zeros((len(rotated), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -rotated[:, 2], rotated[:, 1], -rotated[:, 0]
-    skew -= np.swapaxes(skew, 1, 2)
-    jacobian = np.concatenate([d_pi @ -skew, d_pi], axis=2).reshape(-1, 6)
+    jacobian = np.concatenate([d_pi @ -skew(rotated), d_pi], axis=2).reshape(-1, 6)
     information = jacobian.T @ jacobian
     if np.linalg.cond(information) > 1e12:
         return float("inf")
