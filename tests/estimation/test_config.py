@@ -15,6 +15,7 @@ from estimation.config import ReconstructionConfig
     ("mapper", "relaxed_registration_factor", 1.5),
     ("mapper", "refinement_max_iterations", 0),
     ("mapper", "initial_pair_max_error_px", 0.0),
+    ("mapper", "verify_max_rotation_std_deg", 0.0),
     ("bundle_adjustment", "local_max_iterations", 0),
     ("bundle_adjustment", "local_max_iterations_refining", 0),
 ])
