@@ -395,6 +395,15 @@ class MapperConfig(StrictConfig):
         "fountain-P11 under the refined focal, 0010's pairs with 0002-0004 (ratios 0.58-0.82) were 48-93 "
         "deg off the truth and refused it, while 49 of 52 pairs within 10 deg had >= 0.85.",
     )
+    verify_veto_support_ratio: float = Field(
+        0.5, ge=0, le=1, description="A pair whose rotation disagrees with a pose keeps its vote only when "
+        "the pose's relative geometry explains less than this times the share of their track "
+        "correspondences that the pair's own E explains (Sampson distance under the PnP threshold); "
+        "otherwise its E is what is off, not the pose. A mirrored placement explains almost none of a true "
+        "neighbour's correspondences. On the lego video (bench_video --seed 1) a 31-inlier pair's E 67 deg "
+        "off vetoed a keyframe whose pose explained 61-66 % of their 38 correspondences (the true pose: "
+        "61 %). 0: no pair vetoes (the vote is off).",
+    )
     verify_min_rotation_agreement: float = Field(
         1.0, ge=0, le=1, description="Least share of the voting pairs' inliers that must agree with a "
         "registration's rotation (1: every voting pair, a veto); an image below it is refused (at "

@@ -59,7 +59,10 @@ from estimation.mapper.verification import (
     RotationAgreement,
     VerifiedPair,
     agreement_problem,
+    epipolar_share,
     inlier_spread,
+    pair_fundamental,
+    pose_fundamental,
     pose_rotation_std_deg,
     rotation_agreement,
     rotation_std_problem,
@@ -513,7 +516,7 @@ class _ModelBuilder:
                 self.guided[image] = guided_inliers
                 inliers = inliers[:len(obs_ids)]
         if problem is None:
-            problem = agreement_problem(self.rotation_agreement(image, pose.R),
+            problem = agreement_problem(self.rotation_agreement(image, pose),
                                         self.mapper.verify_min_rotation_agreement, self.tracks.image_names)
             if problem is not None:
                 self.checks.append(RegistrationCheck(image, "refused", problem))
@@ -540,13 +543,30 @@ class _ModelBuilder:
             self._current_votes[image] = [pair for pair in current if pair is not None]
         return self._current_votes[image]
 
-    def rotation_agreement(self, image: int, R: np.ndarray) -> RotationAgreement:
-        """How the rotation R of `image` agrees with its verified pairs with the other registered images."""
+    def rotation_agreement(self, image: int, pose: CameraPose) -> RotationAgreement:
+        """How the pose of `image` agrees with its verified pairs with the other registered images; a
+        disagreeing pair votes only when their track correspondences contradict the pose (`contradicts`)."""
         reconstruction = self.reconstruction
         pairs = [pair for pair in self.current_votes(image)
                  if reconstruction.registered[pair.other] and pair.other != image]
-        return rotation_agreement(R, pairs, {pair.other: reconstruction.R[pair.other] for pair in pairs},
-                                  self.mapper.verify_max_rotation_deviation_deg)
+        R_of = {pair.other: reconstruction.R[pair.other] for pair in pairs}
+        max_deviation = self.mapper.verify_max_rotation_deviation_deg
+        agreement = rotation_agreement(pose.R, pairs, R_of, max_deviation)
+        if agreement.share >= 1.0:
+            return agreement
+        credible = [pair for pair in pairs if agreement.deviations_deg[pair.other] <= max_deviation
+                    or self.contradicts(image, pose, pair)]
+        return rotation_agreement(pose.R, credible, R_of, max_deviation)
+
+    def contradicts(self, image: int, pose: CameraPose, pair: VerifiedPair) -> bool:
+        """Whether the pose of `image` explains under verify_veto_support_ratio times the share of their track
+        correspondences that the pair's own geometry explains (`epipolar_share` at the PnP threshold)."""
+        reconstruction = self.reconstruction
+        _, uv_image, uv_other = self.tracks.pair_correspondences(image, pair.other)   # working pixels of K
+        own = epipolar_share(pair_fundamental(pair, reconstruction.K), uv_image, uv_other, self.pnp_threshold)
+        posed = epipolar_share(pose_fundamental(reconstruction.K, pose, reconstruction.pose(pair.other)),
+                               uv_image, uv_other, self.pnp_threshold)
+        return posed < self.mapper.verify_veto_support_ratio * own
 
     def cross_correspondences(self, other: Reconstruction) -> CrossCorrespondences:
         """This model's keypoints (in its registered images) whose tracks have a point in `other`."""
@@ -627,7 +647,7 @@ class _ModelBuilder:
                           f"{self.registered_inliers[image]} inliers "
                           f"(need {mapper.deregister_min_kept_ratio:.0%})")
             else:
-                reason = agreement_problem(self.rotation_agreement(image, reconstruction.R[image]),
+                reason = agreement_problem(self.rotation_agreement(image, reconstruction.pose(image)),
                                            mapper.verify_min_rotation_agreement, self.tracks.image_names)
             if reason is not None:
                 removed.append(image)
@@ -752,7 +772,7 @@ class _ModelBuilder:
         names = self.tracks.image_names
         warnings = []
         for image in self.reconstruction.order:
-            problem = agreement_problem(self.rotation_agreement(image, self.reconstruction.R[image]),
+            problem = agreement_problem(self.rotation_agreement(image, self.reconstruction.pose(image)),
                                         self.mapper.verify_min_rotation_agreement, names)
             if problem is not None:
                 warnings.append(f"near-mirror ambiguity: {names[image]} is registered, but {problem}")

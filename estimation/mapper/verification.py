@@ -25,7 +25,8 @@ import numpy as np
 
 from estimation.geometry.alignment import rotation_angle_deg
 from estimation.geometry.linalg import skew
-from estimation.two_view.essential import pose_candidates, project_to_essential
+from estimation.two_view.essential import fundamental_from_essential, pose_candidates, project_to_essential
+from estimation.two_view.fundamental import sampson_distance
 from estimation.two_view.geometry import TwoViewGeometry
 from estimation.types import CameraPose
 
@@ -119,6 +120,7 @@ class VerifiedPair(NamedTuple):
                                   # (normalized); None while it rests on F (`under_intrinsics` gives them)
     inliers: int                  # the pair's verified inliers: the weight of its vote
     F: np.ndarray | None = None   # pixels, x_image^T F x_other = 0: the pair's geometry without calibration
+    E: np.ndarray | None = None   # normalized, x_image^T E x_other = 0: its verified E (with calibration)
 
 
 def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], num_images: int,
@@ -131,8 +133,10 @@ def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], num_images:
         if geometry.num_inliers < min_inliers or (geometry.E is None and geometry.F is None):
             continue
         if geometry.E is not None:
-            votes[j].append(VerifiedPair(i, essential_rotations(geometry.E), geometry.num_inliers))
-            votes[i].append(VerifiedPair(j, essential_rotations(geometry.E.T), geometry.num_inliers))
+            votes[j].append(VerifiedPair(i, essential_rotations(geometry.E), geometry.num_inliers,
+                                         E=geometry.E))
+            votes[i].append(VerifiedPair(j, essential_rotations(geometry.E.T), geometry.num_inliers,
+                                         E=geometry.E.T))
         else:
             votes[j].append(VerifiedPair(i, None, geometry.num_inliers, geometry.F))
             votes[i].append(VerifiedPair(j, None, geometry.num_inliers, geometry.F.T))
@@ -141,7 +145,7 @@ def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], num_images:
 
 def under_intrinsics(pair: VerifiedPair, K_image: np.ndarray, K_other: np.ndarray,
                      min_singular_ratio: float) -> VerifiedPair | None:
-    """A pair resting on F with the rotations of E = K_image^T F K_other (pixel K of each image: the model's
+    """A pair resting on F with E = K_image^T F K_other and its rotations (pixel K of each image: the model's
     current ones), or None (no vote) when that E is no essential matrix: its singular values s_2 / s_1 <
     min_singular_ratio (F disagrees with those intrinsics); a pair with a verified E as it is."""
     if pair.F is None:
@@ -150,7 +154,26 @@ def under_intrinsics(pair: VerifiedPair, K_image: np.ndarray, K_other: np.ndarra
     singular = np.linalg.svd(E, compute_uv=False)
     if singular[1] < min_singular_ratio * singular[0]:
         return None
-    return pair._replace(rotations=essential_rotations(project_to_essential(E)))
+    E = project_to_essential(E)
+    return pair._replace(rotations=essential_rotations(E), E=E)
+
+
+def pair_fundamental(pair: VerifiedPair, K: np.ndarray) -> np.ndarray:
+    """The pair's own epipolar geometry in pixels of K, x_image^T F x_other = 0: F = K^-T E K^-1 of its
+    verified E (without calibration, the E that `under_intrinsics` took from its F)."""
+    return fundamental_from_essential(pair.E, K, K)
+
+
+def pose_fundamental(K: np.ndarray, image: CameraPose, other: CameraPose) -> np.ndarray:
+    """F = K^-T [t]x R K^-1 of two world-to-camera poses, R = R_image R_other^T and t = t_image - R t_other
+    (x_image^T F x_other = 0, pixels of K)."""
+    R = image.R @ other.R.T
+    return fundamental_from_essential(skew(image.t - R @ other.t) @ R, K, K)
+
+
+def epipolar_share(F: np.ndarray, uv_image: np.ndarray, uv_other: np.ndarray, threshold_px: float) -> float:
+    """#{i : sampson_i(x_image^T F x_other) < threshold_px} / N: the share of correspondences F explains."""
+    return float((sampson_distance(F, uv_other, uv_image) < threshold_px).mean()) if len(uv_image) else 0.0
 
 
 class RotationAgreement(NamedTuple):

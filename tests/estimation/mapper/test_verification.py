@@ -1,6 +1,8 @@
 """Each registration is held against evidence it was not fitted to: its support and spread, and the
 relative rotations that two-view geometry verified for its pairs."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -14,9 +16,12 @@ from estimation.mapper.verification import (
     InlierSupport,
     VerifiedPair,
     agreement_problem,
+    epipolar_share,
     essential_rotation_deviation_deg,
     essential_rotations,
     inlier_spread,
+    pair_fundamental,
+    pose_fundamental,
     pose_rotation_std_deg,
     rotation_agreement,
     rotation_std_problem,
@@ -268,3 +273,41 @@ def test_without_calibration_the_pairs_F_still_refuse_the_mirrored_placement(sym
     assert max(errors.values()) < 1.0 and len(errors) >= 15
     assert 5 not in model.poses and "near-mirror" in model.unregistered[5]
     assert model.cameras[0].fx == pytest.approx(scene.K[0, 0], rel=0.01)
+
+
+def test_the_poses_epipolar_geometry_explains_the_true_correspondences_and_a_mirrored_pose_does_not(
+        symmetric_ring):
+    ring, _ = symmetric_ring
+    scene = ring.scene
+    _, uv_9, uv_8 = scene.tracks.pair_correspondences(9, 8)
+    true_F = pose_fundamental(scene.K, scene.poses[9], scene.poses[8])
+    assert epipolar_share(true_F, uv_9, uv_8, threshold_px=4.0) > 0.95
+    # The same camera turned half around the ring's axis: a far-side placement.
+    half_turn = rotation_about_axis(np.array([0.0, 0.0, 1.0]), np.pi)
+    mirrored = CameraPose(R=scene.poses[9].R @ half_turn, t=scene.poses[9].t)
+    assert epipolar_share(pose_fundamental(scene.K, mirrored, scene.poses[8]), uv_9, uv_8, 4.0) < 0.2
+    # A pair's own E gives the same F as the poses it was verified from.
+    relative = relative_pose(scene.poses[8], scene.poses[9])
+    pair = VerifiedPair(8, None, len(uv_9), E=skew(relative.t) @ relative.R)
+    F = pair_fundamental(pair, scene.K)
+    np.testing.assert_allclose(F / np.linalg.norm(F), true_F / np.linalg.norm(true_F), atol=1e-9)
+
+
+def test_a_pair_whose_own_E_is_off_does_not_veto_a_pose_that_explains_its_correspondences(symmetric_ring):
+    """Pair (9, 10)'s E replaced by one 70 deg off: its rotation alone would veto the true poses, but they
+    explain the pair's correspondences far better than that E does, so both register, and the mirrored
+    placement of image 5 is still refused."""
+    ring, geometries = symmetric_ring
+    scene = ring.scene
+    relative = relative_pose(scene.poses[9], scene.poses[10])
+    turned = rotation_about_axis(np.array([1.0, 0.0, 0.0]), np.radians(70)) @ relative.R
+    wrong_E = skew(relative.t) @ turned
+    max_deviation = ReconstructionConfig().mapper.verify_max_rotation_deviation_deg
+    alone = rotation_agreement(scene.poses[10].R, [VerifiedPair(9, essential_rotations(wrong_E), 345)],
+                               {9: scene.poses[9].R}, max_deviation)
+    assert alone.share == 0.0
+    wrong = {**geometries, (9, 10): replace(geometries[(9, 10)], E=wrong_E)}
+    model = reconstruct_models(scene.tracks, scene.K, ReconstructionConfig(), pair_geometries=wrong)[0]
+    errors = rotation_errors(model, scene)
+    assert 9 in errors and 10 in errors and max(errors.values()) < 1.0
+    assert 5 not in model.poses and "near-mirror" in model.unregistered[5]
