@@ -36,6 +36,12 @@ RefitSolver = Callable[..., np.ndarray]
 """(inlier data arrays (n, ...)) -> models (M, ...): a non-minimal (e.g. least-squares) fit."""
 
 
+def msac_cost(residuals: np.ndarray, threshold: float) -> np.ndarray:
+    """sum_i min(r_i^2, t^2) over the last axis (MSAC, Torr & Zisserman 2000): inliers by how well they fit,
+    each outlier at the threshold's cost."""
+    return np.minimum(residuals**2, threshold**2).sum(axis=-1)
+
+
 class RansacResult(NamedTuple):
     """The model with the largest consensus, its inliers and every row's residual under it."""
 

@@ -28,7 +28,7 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsCovariance, Intr
 from estimation.config import BundleAdjustmentConfig, ReconstructionConfig
 from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.geometry.absolute_pose import absolute_pose_ransac
-from estimation.geometry.pnp import pnp_nonlinear, pnp_ransac, reprojection_errors_per_hypothesis
+from estimation.geometry.pnp import consensus_from_turned_starts, pnp_nonlinear, pnp_ransac
 from estimation.geometry.projection import (
     Camera,
     CameraInput,
@@ -423,15 +423,16 @@ class _ModelBuilder:
         reconstruction = self.reconstruction
         ransac = self.config.ransac.model_copy(update={"pnp_threshold_px": self.pnp_threshold})
         if self.mapper.absolute_pose == "p3p":
-            result = absolute_pose_ransac(reconstruction.K, points, uv, ransac)
-            return result.pose, result.inlier_mask
-        linear = pnp_ransac(reconstruction.K, points, uv, ransac)
-        pose = pnp_nonlinear(
-            reconstruction.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
-        ).pose
-        errors = reprojection_errors_per_hypothesis(reconstruction.K, np.column_stack([pose.R, pose.t]),
-                                                    points, uv)
-        return pose, errors < ransac.pnp_threshold_px
+            pose = absolute_pose_ransac(reconstruction.K, points, uv, ransac).pose
+        else:
+            linear = pnp_ransac(reconstruction.K, points, uv, ransac)
+            pose = pnp_nonlinear(
+                reconstruction.K, points[linear.inlier_mask], uv[linear.inlier_mask], linear.pose
+            ).pose
+        best = consensus_from_turned_starts(reconstruction.K, points, uv, pose, ransac.pnp_threshold_px,
+                                            self.mapper.registration_turn_deg,
+                                            self.mapper.registration_turn_min_gain)
+        return best.pose, best.inlier_mask
 
     def support_problem(self, pose: CameraPose, points: np.ndarray, uv: np.ndarray, inliers: np.ndarray
                         ) -> tuple[str | None, float]:

@@ -7,6 +7,7 @@ from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.geometry.alignment import rotation_angle_deg
 from estimation.geometry.pnp import (
+    consensus_from_turned_starts,
     pnp_linear,
     pnp_nonlinear,
     pnp_ransac,
@@ -124,3 +125,33 @@ def test_the_errors_per_hypothesis_score_every_hypothesis_like_the_reprojection_
     behind = reprojection_errors_per_hypothesis(np.eye(3), np.eye(3, 4)[None], np.array([[0.0, 0, -2]]),
                                                 np.zeros((1, 2)))
     assert behind[0, 0] == np.inf
+
+
+def turned(pose: CameraPose, axis: np.ndarray, degrees: float, centroid: np.ndarray) -> CameraPose:
+    """`pose` turned about its camera axis around `centroid`, which stays where the camera sees it."""
+    R = rotation_about_axis(axis, np.radians(degrees)) @ pose.R
+    return CameraPose(R=R, t=pose.R @ centroid + pose.t - R @ centroid)
+
+
+def test_a_pose_one_turn_from_the_truth_gives_way_to_the_truths_consensus():
+    scene = make_scene(num_points=120, noise_px=0.5, seed=4)
+    points, uv, _ = correspondences(scene, 1)
+    truth = scene.poses[1]
+    off = turned(truth, np.array([0.0, 1.0, 0.0]), 6.0, points.mean(axis=0))   # 8 of 120 inliers left
+    start_inliers = (reprojection_errors_per_hypothesis(
+        scene.K, np.column_stack([off.R, off.t]), points, uv) < 2.0).sum()
+    best = consensus_from_turned_starts(scene.K, points, uv, off, 2.0, turn_deg=10.0, min_gain=0.05)
+    assert 6 <= start_inliers < 0.5 * len(uv)
+    assert rotation_angle_deg(best.pose.R, truth.R) < 0.2
+    assert best.inlier_mask.sum() > 0.95 * len(uv)
+
+
+def test_the_true_pose_keeps_its_place_and_turn_zero_changes_nothing():
+    scene = make_scene(num_points=120, noise_px=0.5, seed=4)
+    points, uv, _ = correspondences(scene, 1)
+    pose = refine_pose(scene.K, points, uv, scene.poses[1])
+    best = consensus_from_turned_starts(scene.K, points, uv, pose, 2.0, turn_deg=10.0, min_gain=0.05)
+    assert best.pose is pose
+    off = turned(pose, np.array([1.0, 0.0, 0.0]), 9.0, points.mean(axis=0))
+    unturned = consensus_from_turned_starts(scene.K, points, uv, off, 2.0, turn_deg=0.0, min_gain=0.05)
+    assert unturned.pose is off
