@@ -9,6 +9,7 @@ import numpy as np
 
 from estimation.config import RansacConfig
 from estimation.errors import DegenerateConfigurationError
+from estimation.geometry.alignment import rotation_angle_deg
 from estimation.geometry.linalg import null_vector
 from estimation.geometry.projection import as_camera, project
 from estimation.geometry.ransac import msac_cost, ransac
@@ -21,6 +22,9 @@ vertical, both ways (a shallow patch leaves the rotation loosest about the axes 
 WIDE_REFITS, REFITS = 2, 2
 """Re-fits of each turned start on its inliers at twice the threshold, then at the threshold: the start's
 inliers at the threshold alone are too few to pull it into its basin."""
+SAME_BASIN_DEG = 1.0
+"""A turned start that comes back within this of the pose is in the pose's own basin: it is not followed
+further (what it could gain there is a borderline inlier, which the MSAC margin would refuse anyway)."""
 
 
 class PnPResult(NamedTuple):
@@ -195,6 +199,8 @@ def consensus_from_turned_starts(K: np.ndarray, points: np.ndarray, uv: np.ndarr
             if mask.sum() < MIN_CORRESPONDENCES:
                 break
             candidate = refine_pose(K, points[mask], uv[mask], candidate)
+            if rotation_angle_deg(candidate.R, pose.R) < SAME_BASIN_DEG:
+                break
         else:
             candidate_errors = errors(candidate)
             mask = candidate_errors < threshold_px
