@@ -19,7 +19,7 @@ MIN_CORRESPONDENCES = 6
 TURN_AXES = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
 """Camera axes a pose is turned about for `consensus_from_turned_starts`: the image's horizontal and
 vertical, both ways (a shallow patch leaves the rotation loosest about the axes in the image plane)."""
-WIDE_REFITS, REFITS = 2, 2
+WIDE_REFITS, REFITS = 1, 1
 """Re-fits of each turned start on its inliers at twice the threshold, then at the threshold: the start's
 inliers at the threshold alone are too few to pull it into its basin."""
 SAME_BASIN_DEG = 1.0
