@@ -281,10 +281,10 @@ class MapperConfig(StrictConfig):
     )
     registration_turn_deg: float = Field(
         10.0, ge=0, description="Each absolute pose is also refined from starts turned by this about the "
-        "camera's x and y axes, and the start with the most inliers wins "
-        "(`pnp.consensus_from_turned_starts`; 0: off). On the lego video (bench_video --seed 2) RANSAC's "
-        "pose of keyframe 000176 explained 29 of 66 correspondences 9.5 deg off the truth; a start turned "
-        "10 deg found the true pose's basin with 32.",
+        "camera's x and y axes; one that ends with clearly more inliers at a clearly lower cost replaces it "
+        "(`pnp.consensus_from_turned_starts`, registration_turn_min_gain; 0: off). On the lego video "
+        "(bench_video --seed 2) RANSAC's pose of keyframe 000176 explained 29 of 66 correspondences 9.5 deg "
+        "off the truth; a start turned 10 deg found the true pose's basin with 32.",
     )
     registration_turn_min_gain: float = Field(
         0.05, ge=0, lt=1, description="A turned start replaces RANSAC's pose only with over 1 + this times "

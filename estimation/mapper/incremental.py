@@ -561,9 +561,12 @@ class _ModelBuilder:
 
     def contradicts(self, image: int, pose: CameraPose, pair: VerifiedPair) -> bool:
         """Whether the pose of `image` explains under verify_veto_support_ratio times the share of their track
-        correspondences that the pair's own geometry explains (`epipolar_share` at the PnP threshold)."""
+        correspondences that the pair's own geometry explains (`epipolar_share` at the PnP threshold); True
+        without correspondences (the pair's E is then the only evidence)."""
         reconstruction = self.reconstruction
         _, uv_image, uv_other = self.tracks.pair_correspondences(image, pair.other)   # working pixels of K
+        if len(uv_image) == 0:
+            return True
         own = epipolar_share(pair_fundamental(pair, reconstruction.K), uv_image, uv_other, self.pnp_threshold)
         posed = epipolar_share(pose_fundamental(reconstruction.K, pose, reconstruction.pose(pair.other)),
                                uv_image, uv_other, self.pnp_threshold)

@@ -120,7 +120,8 @@ class VerifiedPair(NamedTuple):
                                   # (normalized); None while it rests on F (`under_intrinsics` gives them)
     inliers: int                  # the pair's verified inliers: the weight of its vote
     F: np.ndarray | None = None   # pixels, x_image^T F x_other = 0: the pair's geometry without calibration
-    E: np.ndarray | None = None   # normalized, x_image^T E x_other = 0: its verified E (with calibration)
+    E: np.ndarray | None = None   # normalized, x_image^T E x_other = 0: its verified E (without
+                                  # calibration, the one `under_intrinsics` takes from F)
 
 
 def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], num_images: int,
