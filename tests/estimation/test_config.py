@@ -16,6 +16,9 @@ from estimation.config import ReconstructionConfig
     ("mapper", "refinement_max_iterations", 0),
     ("mapper", "initial_pair_max_error_px", 0.0),
     ("mapper", "verify_max_rotation_std_deg", 0.0),
+    ("mapper", "verify_veto_support_ratio", 1.5),
+    ("mapper", "registration_turn_deg", -10.0),
+    ("mapper", "registration_turn_min_gain", 1.0),
     ("bundle_adjustment", "local_max_iterations", 0),
     ("bundle_adjustment", "local_max_iterations_refining", 0),
 ])
