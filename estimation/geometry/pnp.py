@@ -203,8 +203,8 @@ def consensus_from_turned_starts(K: np.ndarray, points: np.ndarray, uv: np.ndarr
                 break
         else:
             candidate_errors = errors(candidate)
-            mask = candidate_errors < threshold_px
-            if (mask.sum() > max(needed, best.inlier_mask.sum())
-                    and cost(candidate_errors) < (1.0 - min_gain) * best_cost):
-                best, best_cost = PnPConsensus(candidate, mask), cost(candidate_errors)
+            mask, candidate_cost = candidate_errors < threshold_px, cost(candidate_errors)
+            gains = mask.sum() > max(needed, best.inlier_mask.sum())
+            if gains and candidate_cost < (1.0 - min_gain) * best_cost:
+                best, best_cost = PnPConsensus(candidate, mask), candidate_cost
     return best

@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from estimation.geometry.alignment import rotation_angle_deg
+from estimation.geometry.alignment import relative_pose, rotation_angle_deg
 from estimation.geometry.linalg import skew
 from estimation.two_view.essential import fundamental_from_essential, pose_candidates, project_to_essential
 from estimation.two_view.fundamental import sampson_distance
@@ -166,10 +166,10 @@ def pair_fundamental(pair: VerifiedPair, K: np.ndarray) -> np.ndarray:
 
 
 def pose_fundamental(K: np.ndarray, image: CameraPose, other: CameraPose) -> np.ndarray:
-    """F = K^-T [t]x R K^-1 of two world-to-camera poses, R = R_image R_other^T and t = t_image - R t_other
+    """F = K^-T [t]x R K^-1 of two world-to-camera poses, (R, t) = `relative_pose(other, image)`
     (x_image^T F x_other = 0, pixels of K)."""
-    R = image.R @ other.R.T
-    return fundamental_from_essential(skew(image.t - R @ other.t) @ R, K, K)
+    relative = relative_pose(other, image)
+    return fundamental_from_essential(skew(relative.t) @ relative.R, K, K)
 
 
 def epipolar_share(F: np.ndarray, uv_image: np.ndarray, uv_other: np.ndarray, threshold_px: float) -> float:
