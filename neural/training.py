@@ -467,7 +467,8 @@ class Trainer:
         )
 
     def train_step(self) -> tuple[float, float, float]:
-        """One optimisation step (the step count advances); its loss, PSNR and learning rate."""
+        """One optimisation step (the step count advances); its loss (without the regularizers the model adds
+        as gradients), PSNR and learning rate."""
         result = self._train_step()
         self.step += 1
         return result
@@ -511,6 +512,7 @@ class Trainer:
             )
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        self.model.add_regularizer_gradients()
         self.optimizer.step()
         return loss.item(), psnr_from_mse(mse.item()), lr
 

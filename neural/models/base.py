@@ -75,6 +75,10 @@ class RadianceModel(torch.nn.Module):
         """
         return False
 
+    def add_regularizer_gradients(self) -> None:
+        """Called by the trainer after each step's backward pass: adds the gradients of the regularizers that
+        the model forms directly (cheaper than through autograd) to its parameters' .grad. Default: none."""
+
     def param_groups(self, lr: float) -> list[dict[str, Any]]:
         """Parameter groups with their learning rates for Adam; default: everything at lr."""
         return [{"params": list(self.parameters()), "lr": lr}]

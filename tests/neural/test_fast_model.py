@@ -268,15 +268,29 @@ def test_a_checkpoint_of_an_upsampled_model_loads_into_a_fresh_model():
     assert torch.equal(fresh.occupancy.occupied, model.occupancy.occupied)
 
 
-def test_total_variation_regularizer_is_returned_as_extra_loss_when_weighted():
+def plain_total_variation(grid: torch.Tensor) -> torch.Tensor:
+    """Sum over the three axes of the mean squared difference of neighbouring voxels, through autograd."""
+    return sum(
+        (grid.narrow(axis, 1, n - 1) - grid.narrow(axis, 0, n - 1)).square().mean()
+        for axis, n in zip((2, 3, 4), grid.shape[2:], strict=True)
+    )
+
+
+def test_total_variation_is_added_to_the_grids_gradients_not_to_the_loss():
     origins, directions, _ = ring_views(num_views=1, size=4)
-    plain = FastModel(SCENE, small_config())
-    assert plain.render_rays(origins, directions, 1.5, 5.0, WHITE, train=True).extra_loss is None
-    model = FastModel(SCENE, small_config(tv_density_weight=0.5))
+    model = FastModel(SCENE, small_config(tv_density_weight=0.5, tv_color_weight=0.25))
     with torch.no_grad():
-        model.density[..., ::2, :, :] = 1.0  # alternating planes: squared differences of 1 along x
-    extra = model.render_rays(origins, directions, 1.5, 5.0, WHITE, train=True).extra_loss
-    assert extra is not None and float(extra.detach()) == pytest.approx(0.5 * 1.0)
+        model.density.normal_()
+        model.color.normal_()
+    assert model.render_rays(origins, directions, 1.5, 5.0, WHITE, train=True).extra_loss is None
+    model.add_regularizer_gradients()  # no backward pass yet: the gradients start from zero
+    density, color = (grid.detach().clone().requires_grad_(True) for grid in (model.density, model.color))
+    (0.5 * plain_total_variation(density) + 0.25 * plain_total_variation(color)).backward()
+    torch.testing.assert_close(model.density.grad, density.grad)
+    torch.testing.assert_close(model.color.grad, color.grad)
+    plain = FastModel(SCENE, small_config())
+    plain.add_regularizer_gradients()
+    assert plain.density.grad is None and plain.color.grad is None
 
 
 def test_param_groups_give_the_colour_grid_its_own_learning_rate():
@@ -473,21 +487,16 @@ def test_an_occupancy_query_that_marks_seen_counts_only_the_occupied_cells_once(
     assert torch.equal(grid.query(points), occupied)
 
 
-def test_total_variation_gradient_is_autograds_of_the_squared_differences():
-    from neural.models.fast import total_variation
+def test_total_variation_gradient_adds_autograds_of_the_squared_differences_to_the_gradient():
+    from neural.models.fast import add_total_variation_gradient
 
-    grid = torch.randn(1, 2, 7, 5, 4, dtype=torch.float64, requires_grad=True)
-    reference = grid.detach().clone().requires_grad_(True)
-    expected = sum(
-        (reference.narrow(axis, 1, n - 1) - reference.narrow(axis, 0, n - 1)).square().mean()
-        for axis, n in zip((2, 3, 4), reference.shape[2:], strict=True)
-    )
-    value = total_variation(grid)
-    torch.testing.assert_close(value, expected)
-    (3.0 * value).backward()
-    (3.0 * expected).backward()
-    torch.testing.assert_close(grid.grad, reference.grad)
-    assert torch.autograd.gradcheck(total_variation, (grid.detach().clone().requires_grad_(True),))
+    grid = torch.randn(1, 2, 7, 5, 4, dtype=torch.float64)
+    earlier = torch.randn_like(grid)  # what the backward pass left: kept, the TV gradient added to it
+    gradient = earlier.clone()
+    add_total_variation_gradient(grid, gradient, 3.0)
+    reference = grid.clone().requires_grad_(True)
+    (3.0 * plain_total_variation(reference)).backward()
+    torch.testing.assert_close(gradient, earlier + reference.grad)
 
 
 @pytest.mark.parametrize("first_samples", [1, 3, 8])
