@@ -195,16 +195,10 @@ def add_total_variation_gradient(grid: Tensor, gradient: Tensor, weight: float) 
     fountain-P11's 2M-voxel grids, a quarter of a training step."""
     for axis in (2, 3, 4):
         length = grid.shape[axis] - 1
-        difference = _neighbour_differences(grid, axis)
+        difference = grid.narrow(axis, 1, length) - grid.narrow(axis, 0, length)
         scale = 2.0 * weight / difference.numel()
         gradient.narrow(axis, 1, length).add_(difference, alpha=scale)
         gradient.narrow(axis, 0, length).sub_(difference, alpha=scale)
-
-
-def _neighbour_differences(grid: Tensor, axis: int) -> Tensor:
-    """v_k+1 - v_k along one axis of the grid."""
-    length = grid.shape[axis] - 1
-    return grid.narrow(axis, 1, length) - grid.narrow(axis, 0, length)
 
 
 class FastModel(GridSchedule, RadianceModel):
@@ -490,7 +484,7 @@ class FastModel(GridSchedule, RadianceModel):
             if weight > 0:
                 if grid.grad is None:
                     grid.grad = torch.zeros_like(grid)
-                add_total_variation_gradient(grid.detach(), grid.grad, weight)
+                add_total_variation_gradient(grid, grid.grad, weight)
 
     # -------------------------------------------------------------------------------------- training
     @torch.no_grad()
