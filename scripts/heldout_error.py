@@ -1,9 +1,11 @@
 """Where a photo run's held-out error lies (benchmarks/RESULTS.md, bench_nerf_real): for each held-out photo,
 its PSNR and the share of its squared error in the pixels whose ray direction no training photo's view
-contains (content at a distance there was never photographed), the render's mean colour minus the photo's;
-and the PSNR on random pixels of each training photo, with the same bias.
+contains (content at a distance there was never photographed), the render's mean colour minus the photo's
+and the PSNR without it, and the share of its squared error and the PSNR in bands of columns (split at the
+fractions of the width --column-splits gives: content at a photo's sides may be in no other photo); and the
+PSNR on random pixels of each training photo, with the same bias.
 
-    python3 scripts/heldout_error.py RUN_DIR RECONSTRUCTION_DIR [--pixels 8192]
+    python3 scripts/heldout_error.py RUN_DIR RECONSTRUCTION_DIR [--pixels 8192] [--column-splits 0.25,0.9]
 
 RUN_DIR is a trained run (bench_nerf_real's OUT/SCENE/CONFIG), RECONSTRUCTION_DIR the reconstruction it was
 trained on (OUT/sfm/SCENE). Directions are compared in the run's scene frame with each training camera's
@@ -48,6 +50,29 @@ def psnr(squared_error: float) -> float:
     return float(-10.0 * np.log10(squared_error))
 
 
+def column_bands(error: np.ndarray, splits: list[float]) -> str:
+    """Each band of columns of the (H, W) squared error, split at the width fractions `splits`: its share
+    of the squared error and its PSNR."""
+    width = error.shape[1]
+    edges = [0, *(round(fraction * width) for fraction in splits), width]
+    return "; ".join(
+        f"columns {low}-{high}: {error[:, low:high].sum() / error.sum():.1%} of it, "
+        f"PSNR {psnr(error[:, low:high].mean()):.2f} dB"
+        for low, high in zip(edges[:-1], edges[1:], strict=True)
+    )
+
+
+def width_fractions(text: str) -> list[float]:
+    """--column-splits: increasing fractions of the width strictly between 0 and 1, comma-separated."""
+    try:
+        fractions = [float(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of numbers") from None
+    if any(not 0 < f < 1 for f in fractions) or fractions != sorted(set(fractions)):
+        raise argparse.ArgumentTypeError(f"{text!r}: the fractions must increase, strictly between 0 and 1")
+    return fractions
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -55,6 +80,8 @@ def main() -> None:
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("reconstruction", type=Path)
     parser.add_argument("--pixels", type=int, default=8192, help="random pixels rendered per training photo")
+    parser.add_argument("--column-splits", type=width_fractions, default=[0.25, 0.9],
+                        help="width fractions where the held-out photos' column bands split (0.25,0.9)")
     args = parser.parse_args()
 
     run = load_run(args.run_dir, device="cpu")
@@ -65,14 +92,18 @@ def main() -> None:
         with torch.no_grad():
             rendered = render_frame(run, dataset.normalization.pose_to_original(dataset.poses[index]), camera)
         truth = np.asarray(dataset.images[index], np.float64)
-        error = ((rendered.rgb.numpy() - truth) ** 2).mean(axis=-1).ravel()
+        difference = rendered.rgb.numpy() - truth
+        image_error = (difference**2).mean(axis=-1)
+        error = image_error.ravel()
         directions = rays_of(dataset, index).directions.reshape(-1, 3).numpy().astype(np.float64)
         unseen = unseen_directions(directions, dataset, training)
-        bias = (rendered.rgb.numpy() - truth).reshape(-1, 3).mean(axis=0)
+        bias = difference.reshape(-1, 3).mean(axis=0)
         print(f"held-out {Path(dataset.image_names[index]).name}: PSNR {psnr(error.mean()):.2f} dB; "
               f"{unseen.mean():.1%} of its pixels look where no training photo does and carry "
               f"{error[unseen].sum() / error.sum():.1%} of its squared error; render - photo mean colour "
-              f"{np.round(bias, 3).tolist()}")
+              f"{np.round(bias, 3).tolist()}, PSNR without it {psnr(((difference - bias)**2).mean()):.2f} "
+              f"dB; "
+              f"squared error by {column_bands(image_error, args.column_splits)}")
     rng = np.random.default_rng(0)
     for index in training:
         rays = rays_of(dataset, index)

@@ -4,12 +4,14 @@ product only."""
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -231,3 +233,20 @@ def test_import_graph_draws_a_cycle_on_one_floor_in_red(tmp_path):
     svg = import_graph.render_svg(graph, depth=2)
     assert svg.count(f'stroke="{import_graph.CYCLE_COLOUR}" stroke-width="2"') == 2  # a and b, not c
     assert "1 import cycle(s) in red" in svg
+
+
+def test_heldout_error_column_bands_give_each_bands_share_of_the_error_and_its_psnr():
+    heldout_error = load_script("heldout_error")
+    error = np.full((4, 10), 1e-2)
+    error[:, 9] = 1e-1  # the right tenth: 10 of the 19 units of error
+    text = heldout_error.column_bands(error, [0.5, 0.9])
+    assert text == ("columns 0-5: 26.3% of it, PSNR 20.00 dB; columns 5-9: 21.1% of it, PSNR 20.00 dB; "
+                    "columns 9-10: 52.6% of it, PSNR 10.00 dB")
+
+
+@pytest.mark.parametrize("splits", ["0.9,0.2", "0,0.5", "0.5,1", "x"])
+def test_heldout_error_refuses_column_splits_that_are_no_increasing_fractions(splits):
+    heldout_error = load_script("heldout_error")
+    with pytest.raises(argparse.ArgumentTypeError, match=re.escape(repr(splits))):
+        heldout_error.width_fractions(splits)
+    assert heldout_error.width_fractions("0.25,0.9") == [0.25, 0.9]
