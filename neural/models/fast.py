@@ -191,8 +191,8 @@ def add_total_variation_gradient(grid: Tensor, gradient: Tensor, weight: float) 
     Along an axis with n differences, each difference d_k = v_k+1 - v_k adds 2 d_k / n to v_k+1's gradient and
     subtracts it from v_k's. Written into the gradient in place (after the backward pass), not through
     autograd: the loss is quadratic, so the gradient needs only the differences, and autograd's version (a
-    zero gradient of the whole grid per shifted slice, then the sum into .grad) cost 2.5x as much on
-    fountain-P11's 2M-voxel grids, a quarter of a training step."""
+    zero gradient of the whole grid per shifted slice, then the sum into .grad) cost 38 ms of a fountain-P11
+    step on its final 2M-voxel grids, against 26 ms now (one thread; benchmarks/RESULTS.md)."""
     for axis in (2, 3, 4):
         length = grid.shape[axis] - 1
         difference = grid.narrow(axis, 1, length) - grid.narrow(axis, 0, length)
