@@ -439,7 +439,8 @@ def write_depths_file(out_dir: Path, images: ImageSet, model: SparseModel, confi
     centres = np.stack([model.poses[m].center for m in order])[position[model.obs_camera]]
     points = model.points[model.obs_point]
     sigma = along_ray_sigmas(points, centres, covariances[model.obs_point])
-    file_paths = [os.path.relpath(images.paths[m].resolve(), out_dir.resolve()) for m in order]
+    out_dir_resolved = out_dir.resolve()
+    file_paths = [os.path.relpath(images.paths[m].resolve(), out_dir_resolved) for m in order]
     depths = DepthObservations(file_paths, position[model.obs_camera], points, sigma, noise)
     write_depths(out_dir / DEPTHS_NAME, depths)
     return out_dir / DEPTHS_NAME

@@ -465,6 +465,17 @@ def _point_block_inverses(information: sparse.csc_matrix, points: np.ndarray) ->
     return np.linalg.pinv(blocks)
 
 
+def _covariance_of(information: np.ndarray) -> np.ndarray:
+    """information^-1 of a symmetric positive definite matrix, its pseudo-inverse where it is not (an
+    indeterminate direction); the held gauge makes a model's camera block definite, where the inverse
+    costs a sixth of the pseudo-inverse's SVD (lego's 540 x 540: 12 against 70 ms)."""
+    try:
+        np.linalg.cholesky(information)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(information)
+    return np.linalg.inv(information)
+
+
 def _block_diagonal(blocks: np.ndarray) -> sparse.bsr_matrix:
     count = len(blocks)
     return sparse.bsr_matrix((blocks, np.arange(count), np.arange(count + 1)), shape=(3 * count, 3 * count))
@@ -523,7 +534,7 @@ def _point_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
         return block_inverses
     coupling = information[points][:, rest].tocsr()   # H_pc, rows three per point
     reduced = coupling.T @ _block_diagonal(block_inverses) @ coupling
-    camera_covariance = np.linalg.pinv(information[rest][:, rest].toarray() - reduced.toarray())
+    camera_covariance = _covariance_of(information[rest][:, rest].toarray() - reduced.toarray())
     # Per point, lifted = H_pp^-1 H_pc is nonzero only in the columns of the cameras that see the point:
     # kept sparse, its product with S^-1 costs its non-zeros, not every camera column of every point.
     lifted = (_block_diagonal(block_inverses) @ coupling).tocsr()

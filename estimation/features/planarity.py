@@ -4,14 +4,16 @@ end's worker process while the mapper works.
 The test can only relabel a pair planar or panoramic (so that it does not start a model); it never changes
 a pair's inliers, so the tracks are made without it. In the front end, where both cores are busy, it took
 ~0.35 of lego's ~6 CPU s; the mapper that follows runs on one core, and the front end's worker process is
-still there, its modules imported. The mapper looks up only its initial-pair candidates' types (31 on lego),
-and one looked up before the worker is done is tested in this process (the same result: each test's RANSAC
-is seeded). `geometries()` waits for the rest (the report lists every pair).
+still there, its modules imported. The mapper looks up only its initial-pair candidates' types (29 on lego,
+the pairs sharing most tracks): the worker tests the pairs with most inliers first, in small chunks, so that
+those lookups find their tests done; one looked up before its chunk is done is tested in this process (the
+same result: each test's RANSAC is seeded). `geometries()` waits for the rest (the report lists every pair).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
+from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import suppress
 
@@ -22,6 +24,9 @@ from estimation.parallel import WorkerPool
 from estimation.two_view.geometry import TwoViewGeometry, classify_planarity
 
 Pair = tuple[int, int]
+PAIRS_PER_CHUNK = 16
+"""Pairs per planarity task (~1 ms each on lego): the first chunks are back before the mapper's first lookups,
+which once repeated 29 tests (30 ms) in this process while the worker tested the pairs in image order."""
 
 
 def classify_pairs(geometries: list[TwoViewGeometry], uv: list[tuple[np.ndarray, np.ndarray]],
@@ -43,17 +48,32 @@ class PairTypes(Mapping[Pair, str]):
         self._geometries = {(min(pair), max(pair)): geometry for pair, geometry in geometries.items()}
         self._uv = {(min(pair), max(pair)): uv for pair, uv in untested_uv.items()}
         self._settings = (K, config, ransac)
-        self._untested = [pair for pair, geometry in self._geometries.items()
-                          if not geometry.planarity_tested]
+        untested = [pair for pair, geometry in self._geometries.items() if not geometry.planarity_tested]
+        untested.sort(key=lambda pair: -self._geometries[pair].num_inliers)
         self._pool: WorkerPool | None = pool
-        self._background = None
-        if self._untested:
-            with suppress(BrokenProcessPool):     # a dead worker: the pairs are tested in this process
-                self._background = pool.submit(classify_pairs, [self._geometries[p] for p in self._untested],
-                                               [self._uv[pair] for pair in self._untested], *self._settings)
+        self._chunks: list[tuple[list[Pair], Future]] = []   # the worker's tasks, strongest pairs first
+        self._chunk_of: dict[Pair, int] = {}
+        with suppress(BrokenProcessPool):     # a dead worker: the pairs are tested in this process
+            for start in range(0, len(untested), PAIRS_PER_CHUNK):
+                chunk = untested[start:start + PAIRS_PER_CHUNK]
+                future = pool.submit(classify_pairs, [self._geometries[pair] for pair in chunk],
+                                     [self._uv[pair] for pair in chunk], *self._settings)
+                self._chunk_of.update(dict.fromkeys(chunk, len(self._chunks)))
+                self._chunks.append((chunk, future))
+
+    def _collect(self, chunk: int) -> None:
+        """The worker's results for one chunk (waited for), unless its process died."""
+        pairs, future = self._chunks[chunk]
+        with suppress(BrokenProcessPool):     # a dead worker: they are tested in this process when looked up
+            self._geometries.update(zip(pairs, future.result(), strict=True))
 
     def _tested(self, pair: Pair) -> TwoViewGeometry:
         geometry = self._geometries[pair]
+        if not geometry.planarity_tested:
+            chunk = self._chunk_of.get(pair)
+            if chunk is not None and self._chunks[chunk][1].done():
+                self._collect(chunk)
+                geometry = self._geometries[pair]
         if not geometry.planarity_tested:
             geometry = classify_pairs([geometry], [self._uv[pair]], *self._settings)[0]
             self._geometries[pair] = geometry
@@ -76,10 +96,9 @@ class PairTypes(Mapping[Pair, str]):
     def geometries(self) -> dict[Pair, TwoViewGeometry]:
         """Every pair's geometry, its planarity tested: the worker's results (waited for; tested here instead
         if its process died); the pool is shut down."""
-        if self._background is not None:
-            with suppress(BrokenProcessPool):      # a dead worker: they are tested below, in this process
-                self._geometries.update(zip(self._untested, self._background.result(), strict=True))
-            self._background = None
+        for chunk in range(len(self._chunks)):
+            self._collect(chunk)
+        self._chunks, self._chunk_of = [], {}
         # Its results in, the worker process exits beside the caller's next work (its exit took ~0.05 s).
         self.close(wait=False)
         return {pair: self._tested(pair) for pair in self._geometries}

@@ -37,11 +37,20 @@ def align_similarity(source: np.ndarray, target: np.ndarray) -> Similarity:
     return Similarity(scale=scale, R=R, t=mu_t - scale * R @ mu_s)
 
 
+def rotation_angles_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """Geodesic angle of R = R_a^T R_b: atan2(|vee(R - R^T)| / 2, (trace(R) - 1) / 2), in degrees, for
+    stacked rotations (..., 3, 3) that broadcast against each other -> (...)."""
+    R = np.swapaxes(R_a, -1, -2) @ R_b
+    vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+                   axis=-1)
+    sin_angle = np.sqrt(np.einsum("...k,...k->...", vee, vee)) / 2.0
+    cos_angle = (np.einsum("...ii->...", R) - 1.0) / 2.0
+    return np.degrees(np.arctan2(sin_angle, cos_angle))
+
+
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Geodesic angle of R = R_a^T R_b: atan2(|vee(R - R^T)| / 2, (trace(R) - 1) / 2), in degrees."""
-    R = R_a.T @ R_b
-    sin_angle = np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-    return float(np.degrees(np.arctan2(sin_angle, (np.trace(R) - 1.0) / 2.0)))
+    """`rotation_angles_deg` of one pair of rotations."""
+    return float(rotation_angles_deg(R_a, R_b))
 
 
 class PoseErrors(NamedTuple):

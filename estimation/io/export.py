@@ -18,13 +18,13 @@ Conventions crossed here, once:
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import orjson
 
 from estimation.errors import InputError
 from estimation.geometry.projection import COLMAP_MODEL_NAMES, Camera, CameraInput, as_camera, is_shared
@@ -188,8 +188,10 @@ def write_colmap_text(
         in_image = order[obs_camera[order] == image_index]
         point2d_index[in_image] = np.arange(in_image.size)
         shifted = obs_uv[in_image] + PIXEL_CENTER_SHIFT
+        # Python floats and ints (tolist) format twice as fast as numpy scalars.
         lines.append(" ".join(
-            f"{u:.17g} {v:.17g} {p + 1}" for (u, v), p in zip(shifted, obs_point[in_image], strict=True)
+            f"{u:.17g} {v:.17g} {p}" for u, v, p in zip(shifted[:, 0].tolist(), shifted[:, 1].tolist(),
+                                                         (obs_point[in_image] + 1).tolist(), strict=True)
         ))
     (folder / "images.txt").write_text("\n".join(lines) + "\n")
 
@@ -202,13 +204,13 @@ def write_colmap_text(
         f"{track_lengths.mean() if len(points) else 0.0:.4f}",
     ]
     by_point = np.argsort(obs_point, kind="stable")
-    starts = np.concatenate([[0], np.cumsum(track_lengths)])
-    for p in range(len(points)):
-        observations = by_point[starts[p]:starts[p + 1]]
-        track = " ".join(f"{obs_camera[o] + 1} {point2d_index[o]}" for o in observations)
-        x, y, z = points[p]
-        r, g, b = np.asarray(colors[p], int)
-        line = f"{p + 1} {x:.17g} {y:.17g} {z:.17g} {r} {g} {b} {float(errors[p]):.17g} {track}"
+    starts = np.concatenate([[0], np.cumsum(track_lengths)]).tolist()
+    image_ids, point2d = (obs_camera[by_point] + 1).tolist(), point2d_index[by_point].tolist()
+    rgb = np.asarray(colors, int).reshape(-1, 3).tolist()
+    for p, ((x, y, z), (r, g, b), error) in enumerate(
+            zip(points.tolist(), rgb, np.asarray(errors, float).tolist(), strict=True)):
+        track = " ".join(f"{image_ids[k]} {point2d[k]}" for k in range(starts[p], starts[p + 1]))
+        line = f"{p + 1} {x:.17g} {y:.17g} {z:.17g} {r} {g} {b} {error:.17g} {track}"
         lines.append(line.rstrip())
     (folder / "points3D.txt").write_text("\n".join(lines) + "\n")
 
@@ -518,10 +520,17 @@ def transforms_dict(
     return content
 
 
+JSON_OPTIONS = (orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS
+                | orjson.OPT_APPEND_NEWLINE)
+"""Indented by two spaces, numpy arrays and scalars as numbers, integer keys as strings (as json.dumps
+writes them), a final newline. orjson writes lego's 0.5 MB report.json in 1 ms, where json.dumps's indented
+(pure Python) encoder took 30 ms; NaN and infinities become null (json.dumps wrote NaN, which is no JSON)."""
+
+
 def write_json(path: Path, content: dict) -> None:
-    """Pretty-printed JSON (numpy arrays and scalars converted)."""
+    """Pretty-printed UTF-8 JSON (`JSON_OPTIONS`; paths as strings)."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(content, indent=2, default=_json_default) + "\n")
+    Path(path).write_bytes(orjson.dumps(content, default=_json_default, option=JSON_OPTIONS))
 
 
 def _json_default(value: object) -> object:

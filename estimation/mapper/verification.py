@@ -23,9 +23,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from estimation.geometry.alignment import relative_pose, rotation_angle_deg
+from estimation.geometry.alignment import relative_pose, rotation_angles_deg
 from estimation.geometry.linalg import skew
-from estimation.two_view.essential import fundamental_from_essential, pose_candidates, project_to_essential
+from estimation.two_view.essential import (
+    essential_rotations,
+    fundamental_from_essential,
+    project_to_essential,
+)
 from estimation.two_view.fundamental import sampson_distance
 from estimation.two_view.geometry import TwoViewGeometry
 from estimation.types import CameraPose
@@ -99,17 +103,12 @@ def rotation_std_problem(std_deg: float, max_std_deg: float, inliers: int) -> st
             f"of noise; need {max_std_deg:g} deg): {LOOSE_ROTATION}")
 
 
-def essential_rotations(E: np.ndarray) -> np.ndarray:
-    """(2, 3, 3): the two rotations R of E ~ [t]x R (the true one and its twisted pair, 180 deg about the
-    baseline from it)."""
-    return np.stack([candidate.R for candidate in pose_candidates(E)[::2]])
-
-
-def essential_rotation_deviation_deg(rotations: np.ndarray, R_relative: np.ndarray) -> float:
+def essential_rotation_deviations_deg(rotations: np.ndarray, R_relative: np.ndarray) -> np.ndarray:
     """min over the two rotations R of E (`essential_rotations`) of angle(R, R_relative): how far a relative
     rotation (x_2 = R_relative x_1 + t) is from the pair's verified epipolar geometry, without chirality
-    (a far-side placement is far from both)."""
-    return min(rotation_angle_deg(R, R_relative) for R in rotations)
+    (a far-side placement is far from both); stacked pairs: rotations (..., 2, 3, 3), R_relative (..., 3, 3)
+    -> (...)."""
+    return rotation_angles_deg(rotations, R_relative[..., None, :, :]).min(axis=-1)
 
 
 class VerifiedPair(NamedTuple):
@@ -130,14 +129,19 @@ def voting_pairs(geometries: dict[tuple[int, int], TwoViewGeometry], num_images:
     x_m^T E x_other = 0 (E of pair (i, j) relates x_j^T E x_i = 0, so image i gets E^T); a pair with F only
     (no calibration) gets its rotations from `under_intrinsics`."""
     votes: list[list[VerifiedPair]] = [[] for _ in range(num_images)]
+    with_E = [pair for pair, geometry in geometries.items()
+              if geometry.num_inliers >= min_inliers and geometry.E is not None]
+    # All at once: one batched SVD instead of one per pair and direction (0.03 s of lego's mapping).
+    E = np.stack([geometries[pair].E for pair in with_E]) if with_E else np.zeros((0, 3, 3))
+    rotations = dict(zip(with_E, zip(essential_rotations(E), essential_rotations(E.swapaxes(-1, -2)),
+                                     strict=True), strict=True))
     for (i, j), geometry in geometries.items():
         if geometry.num_inliers < min_inliers or (geometry.E is None and geometry.F is None):
             continue
         if geometry.E is not None:
-            votes[j].append(VerifiedPair(i, essential_rotations(geometry.E), geometry.num_inliers,
-                                         E=geometry.E))
-            votes[i].append(VerifiedPair(j, essential_rotations(geometry.E.T), geometry.num_inliers,
-                                         E=geometry.E.T))
+            of_j, of_i = rotations[(i, j)]
+            votes[j].append(VerifiedPair(i, of_j, geometry.num_inliers, E=geometry.E))
+            votes[i].append(VerifiedPair(j, of_i, geometry.num_inliers, E=geometry.E.T))
         else:
             votes[j].append(VerifiedPair(i, None, geometry.num_inliers, geometry.F))
             votes[i].append(VerifiedPair(j, None, geometry.num_inliers, geometry.F.T))
@@ -193,11 +197,16 @@ class RotationAgreement(NamedTuple):
 def rotation_agreement(R_image: np.ndarray, pairs: list[VerifiedPair], R_of: dict[int, np.ndarray],
                        max_deviation_deg: float) -> RotationAgreement:
     """Each pair votes with its inliers for or against R_image: for when R_image R_other^T is within
-    max_deviation_deg of its E's rotation (`essential_rotation_deviation_deg`); R_of: other -> its R."""
-    deviations = {pair.other: essential_rotation_deviation_deg(pair.rotations, R_image @ R_of[pair.other].T)
-                  for pair in pairs}
-    agreeing = sum(pair.inliers for pair in pairs if deviations[pair.other] <= max_deviation_deg)
-    return RotationAgreement(agreeing, sum(pair.inliers for pair in pairs), deviations)
+    max_deviation_deg of its E's rotation (`essential_rotation_deviations_deg`); R_of: other -> its R."""
+    if not pairs:
+        return RotationAgreement(0, 0, {})
+    R_others = np.stack([R_of[pair.other] for pair in pairs])
+    deviations = essential_rotation_deviations_deg(np.stack([pair.rotations for pair in pairs]),
+                                                   R_image @ np.swapaxes(R_others, -1, -2))
+    inliers = np.array([pair.inliers for pair in pairs])
+    agreeing = int(inliers[deviations <= max_deviation_deg].sum())
+    return RotationAgreement(agreeing, int(inliers.sum()),
+                             dict(zip([pair.other for pair in pairs], deviations.tolist(), strict=True)))
 
 
 def agreement_problem(agreement: RotationAgreement, min_share: float, image_names: list[str]) -> str | None:

@@ -8,6 +8,7 @@ from estimation.geometry.alignment import (
     align_similarity,
     aligned_pose_errors,
     rotation_angle_deg,
+    rotation_angles_deg,
 )
 from estimation.synthetic import make_scene, project, rotation_about_axis
 
@@ -87,3 +88,12 @@ def test_aligned_pose_errors_vanish_for_a_similarity_transformed_reconstruction(
 def test_rotation_angle_is_accurate_for_tiny_angles():
     assert rotation_angle_deg(np.eye(3), rotation_about_axis(np.array([0, 0, 1.0]), 1e-9)) == pytest.approx(
         np.degrees(1e-9), rel=1e-6)
+
+
+def test_rotation_angles_of_stacked_rotations_are_each_pairs_angle_up_to_a_half_turn():
+    axis = np.array([0.2, -1.0, 0.4])
+    angles = np.array([0.0, 0.3, 2.0, np.pi])
+    turned = np.stack([rotation_about_axis(axis, angle) for angle in angles])
+    start = rotation_about_axis(np.array([1.0, 0.0, 0.0]), 0.7)
+    assert rotation_angles_deg(start, start @ turned) == pytest.approx(np.degrees(angles), abs=1e-9)
+    assert rotation_angle_deg(start, start @ turned[2]) == pytest.approx(np.degrees(2.0))

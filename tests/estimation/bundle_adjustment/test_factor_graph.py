@@ -8,6 +8,7 @@ import pytest
 
 from estimation.bundle_adjustment.factor_graph import (
     IntrinsicsRefinement,
+    _covariance_of,
     _marked,
     _pinhole_calibration,
     bundle_adjust,
@@ -490,6 +491,14 @@ def test_point_covariances_are_gtsams_marginals_and_the_noise_is_measured_from_t
         np.testing.assert_allclose(result.point_covariances[point],
                                    marginals.marginalCovariance(point_key + point), rtol=1e-3, atol=1e-12)
     assert result.point_covariances.shape == (40, 3, 3)
+
+
+def test_a_definite_information_gives_its_inverse_and_an_indeterminate_one_its_pseudo_inverse():
+    rows = np.random.default_rng(0).normal(size=(6, 8))
+    definite = rows @ rows.T
+    np.testing.assert_allclose(_covariance_of(definite) @ definite, np.eye(6), atol=1e-9)
+    indeterminate = rows[:4].T @ rows[:4]          # 8 x 8 of rank 4
+    np.testing.assert_allclose(_covariance_of(indeterminate), np.linalg.pinv(indeterminate), atol=1e-9)
 
 
 def test_point_covariances_are_refused_with_refined_intrinsics():

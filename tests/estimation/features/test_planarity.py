@@ -4,11 +4,13 @@ the worker process or, when looked up first or when that process died, in the ca
 import os
 import signal
 import time
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
 
 from estimation.config import RansacConfig, TwoViewConfig
+from estimation.features import planarity
 from estimation.features.planarity import PairTypes
 from estimation.parallel import WorkerPool
 from estimation.synthetic import project, rotation_about_axis
@@ -85,3 +87,31 @@ def test_the_worker_process_ends_once_the_results_are_in(pairs):
     while process.exitcode is None and time.monotonic() < deadline:
         time.sleep(0.01)
     assert process.exitcode == 0
+
+
+class RecordingPool:
+    """Runs each submitted task at once, recording the inlier counts of the pairs it was given."""
+
+    def __init__(self) -> None:
+        self.tasks: list[list[int]] = []
+
+    def submit(self, function, geometries, *args):
+        self.tasks.append([geometry.num_inliers for geometry in geometries])
+        future = Future()
+        future.set_result(function(geometries, *args))
+        return future
+
+    def shutdown(self, wait: bool = True) -> None:
+        pass
+
+
+def test_the_worker_tests_the_pairs_with_most_inliers_first_a_chunk_at_a_time(pairs, monkeypatch):
+    monkeypatch.setattr(planarity, "PAIRS_PER_CHUNK", 2)
+    # fewest inliers in the first pair of image order, most in the last
+    sizes = dict(zip(pairs, (60, 200, 120), strict=True))
+    sized = {pair: (uv1[:sizes[pair]], uv2[:sizes[pair]]) for pair, (uv1, uv2) in pairs.items()}
+    pool = RecordingPool()
+    types = pair_types(sized, pool)
+    assert pool.tasks == [[200, 120], [60]]
+    assert {pair: geometry.type for pair, geometry in types.geometries().items()} == {
+        pair: geometry.type for pair, geometry in expected(sized).items()}

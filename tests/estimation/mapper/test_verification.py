@@ -17,8 +17,7 @@ from estimation.mapper.verification import (
     VerifiedPair,
     agreement_problem,
     epipolar_share,
-    essential_rotation_deviation_deg,
-    essential_rotations,
+    essential_rotation_deviations_deg,
     inlier_spread,
     pair_fundamental,
     pose_fundamental,
@@ -30,6 +29,7 @@ from estimation.mapper.verification import (
     voting_pairs,
 )
 from estimation.synthetic import make_symmetric_ring, rotation_about_axis
+from estimation.two_view.essential import essential_rotations
 from estimation.two_view.geometry import TwoViewGeometry, TwoViewGeometryType, verify_epipolar
 from estimation.types import CameraPose
 
@@ -113,11 +113,15 @@ def test_a_relative_rotation_agrees_with_its_own_essential_matrix_and_a_half_tur
     relative = CameraPose(rotation_about_axis(np.array([0.1, 1.0, 0.0]), np.radians(7)),
                           np.array([1.0, 0.0, 0.1]))
     E = essential_of(relative)
-    assert essential_rotation_deviation_deg(essential_rotations(E), relative.R) < 1e-6
+    assert essential_rotation_deviations_deg(essential_rotations(E), relative.R) < 1e-6
     # E is up to scale and sign
-    assert essential_rotation_deviation_deg(essential_rotations(-3.0 * E), relative.R) < 1e-6
+    assert essential_rotation_deviations_deg(essential_rotations(-3.0 * E), relative.R) < 1e-6
     flipped = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.pi) @ relative.R
-    assert essential_rotation_deviation_deg(essential_rotations(E), flipped) > 170
+    assert essential_rotation_deviations_deg(essential_rotations(E), flipped) > 170
+    # stacked pairs: one deviation each
+    stacked = essential_rotation_deviations_deg(np.stack([essential_rotations(E)] * 2),
+                                                np.stack([relative.R, flipped]))
+    assert stacked.shape == (2,) and stacked[0] < 1e-6 and stacked[1] > 170
 
 
 def test_voting_pairs_orient_each_pair_from_the_voting_image_and_skip_weak_pairs():

@@ -15,6 +15,7 @@ from estimation.synthetic import make_scene
 from estimation.two_view.essential import (
     choose_relative_pose,
     essential_from_fundamental,
+    essential_rotations,
     five_point_essential,
     in_front_of_both,
     pose_candidates,
@@ -49,6 +50,22 @@ def test_four_candidates_are_proper_rotations_with_opposite_baselines():
         assert np.linalg.norm(pose.t) == pytest.approx(1.0)
     np.testing.assert_allclose(candidates[0].t, -candidates[1].t)
     assert rotation_angle_deg(candidates[0].R, candidates[2].R) > 1.0
+
+
+def test_essential_rotations_of_stacked_matrices_are_each_ones_two_candidate_rotations():
+    scene = make_scene(num_points=50)
+    E = np.stack([essential_from_fundamental(eight_point(*scene.tracks.pair_correspondences(0, j)[1:]),
+                                             scene.K) for j in (1, 2, 3)])
+    rotations = essential_rotations(-2.0 * E)          # E is up to scale and sign
+    assert rotations.shape == (3, 2, 3, 3)
+    for one, both in zip(E, rotations, strict=True):
+        for R in both:
+            # E ~ [t]x R: E R^T is skew-symmetric (+-[t]x for the twisted pair), R a proper rotation
+            np.testing.assert_allclose(one @ R.T, -(one @ R.T).T, atol=1e-9)
+            np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+            assert np.linalg.det(R) == pytest.approx(1.0)
+        assert rotation_angle_deg(*both) > 1.0
+        np.testing.assert_allclose(essential_rotations(one), both, atol=1e-12)
 
 
 def test_chirality_picks_the_true_pose_from_noise_free_correspondences():
