@@ -101,9 +101,8 @@ def main() -> None:
         print(f"held-out {Path(dataset.image_names[index]).name}: PSNR {psnr(error.mean()):.2f} dB; "
               f"{unseen.mean():.1%} of its pixels look where no training photo does and carry "
               f"{error[unseen].sum() / error.sum():.1%} of its squared error; render - photo mean colour "
-              f"{np.round(bias, 3).tolist()}, PSNR without it {psnr(((difference - bias)**2).mean()):.2f} "
-              f"dB; "
-              f"squared error by {column_bands(image_error, args.column_splits)}")
+              f"{np.round(bias, 3).tolist()}, PSNR without it {psnr(((difference - bias) ** 2).mean()):.2f} "
+              f"dB; squared error by {column_bands(image_error, args.column_splits)}")
     rng = np.random.default_rng(0)
     for index in training:
         rays = rays_of(dataset, index)

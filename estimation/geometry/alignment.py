@@ -66,7 +66,7 @@ def aligned_pose_errors(estimated: list[CameraPose], truth: list[CameraPose]) ->
     similarity = align_similarity(centers_estimated, np.array([p.center for p in truth]))
     aligned = [similarity.apply_pose(p) for p in estimated]
     return PoseErrors(
-        rotation_deg=np.array([rotation_angle_deg(a.R, b.R) for a, b in zip(aligned, truth, strict=True)]),
+        rotation_deg=rotation_angles_deg(np.array([a.R for a in aligned]), np.array([b.R for b in truth])),
         center=np.array([np.linalg.norm(a.center - b.center) for a, b in zip(aligned, truth, strict=True)]),
     )
 
