@@ -25,8 +25,9 @@ from estimation.two_view.geometry import TwoViewGeometry, classify_planarity
 
 Pair = tuple[int, int]
 PAIRS_PER_CHUNK = 16
-"""Pairs per planarity task (~1 ms each on lego): the first chunks are back before the mapper's first lookups,
-which once repeated 29 tests (30 ms) in this process while the worker tested the pairs in image order."""
+"""Pairs per planarity task (~1 ms each on lego): the first chunks are back before most of the mapper's
+lookups, which repeated all 29 of their tests (30 ms) in this process while the worker tested the pairs in
+image order (now 8-12 of them: `python -m cProfile benchmarks/bench_sfm.py --sets lego --no-pycolmap`)."""
 
 
 def classify_pairs(geometries: list[TwoViewGeometry], uv: list[tuple[np.ndarray, np.ndarray]],
