@@ -202,19 +202,24 @@ def essential_from_fundamental(F: np.ndarray, K: np.ndarray) -> np.ndarray:
     return project_to_essential(K.T @ F @ K)
 
 
+def _rotations_of_svd(U: np.ndarray, Vt: np.ndarray) -> np.ndarray:
+    """R in {U W V^T, U W^T V^T}, each flipped to det R = +1 (E and -E describe the same geometry), for
+    stacked factors of E = U S V^T (..., 3, 3) -> (..., 2, 3, 3)."""
+    rotations = U[..., None, :, :] @ np.stack([W, W.T]) @ Vt[..., None, :, :]
+    return rotations * np.sign(np.linalg.det(rotations))[..., None, None]
+
+
 def essential_rotations(E: np.ndarray) -> np.ndarray:
     """The two R with E ~ [t]x R, R in {U W V^T, U W^T V^T} (det R = +1; the true one and its twisted pair,
     180 deg about the baseline from it), of stacked E (..., 3, 3) -> (..., 2, 3, 3)."""
     U, _, Vt = np.linalg.svd(E)
-    rotations = U[..., None, :, :] @ np.stack([W, W.T]) @ Vt[..., None, :, :]
-    # E and -E describe the same geometry: flip to a proper rotation.
-    return rotations * np.sign(np.linalg.det(rotations))[..., None, None]
+    return _rotations_of_svd(U, Vt)
 
 
 def pose_candidates(E: np.ndarray) -> list[CameraPose]:
-    """The four (R, C) with E ~ [t]x R: R of `essential_rotations`, t = +-u3, C = -R^T t."""
-    baseline = np.linalg.svd(E)[0][:, 2]
-    return [CameraPose(R=R, t=sign * baseline) for R in essential_rotations(E) for sign in (1.0, -1.0)]
+    """The four (R, C) with E ~ [t]x R: R of `essential_rotations`, t = +-u3, C = -R^T t (one SVD)."""
+    U, _, Vt = np.linalg.svd(E)
+    return [CameraPose(R=R, t=sign * U[:, 2]) for R in _rotations_of_svd(U, Vt) for sign in (1.0, -1.0)]
 
 
 def in_front_of_both(pose: CameraPose, points: np.ndarray) -> np.ndarray:
