@@ -322,6 +322,26 @@ def test_a_reconstruction_trains_the_depth_loss_and_without_enough_points_says_w
     assert "training without depth supervision: too few sparse points" in caplog.text
 
 
+def test_each_depth_rays_sigma_is_its_points_own_or_the_median_raised_to_the_floor(tmp_path):
+    from neural.training import DepthRaySampler
+    from tests.neural.test_data import write_depths_of, write_reconstruction
+
+    _, poses, points = write_reconstruction(tmp_path)
+    write_depths_of(tmp_path, poses, points)
+    dataset = load_dataset(tmp_path)
+    train_views = dataset.split("train")
+    own = dataset.depth_rays.of_images(train_views).sigma.copy()
+    own[::2] *= 3.0  # the points' own std-devs differ, so the constant median is not every ray's own
+    dataset.depth_rays.sigma[np.isin(dataset.depth_rays.image, train_views)] = own
+    for uncertainty, expected in (("covariance", own), ("constant", np.full_like(own, np.median(own)))):
+        for floor in (0.04, 1e-6):
+            config = TrainConfig(depth_uncertainty=uncertainty, depth_min_sigma=floor)
+            sampler = DepthRaySampler(dataset, train_views, config, torch.device("cpu"))
+            np.testing.assert_allclose(sampler.sigma.numpy(), np.sqrt(expected**2 + floor**2))
+    with pytest.raises(ValueError, match="depth_min_sigma"):
+        TrainConfig(depth_min_sigma=0)
+
+
 def test_synthetic_data_trains_without_depth_supervision_by_default(tiny_npz, tmp_path):
     train(tiny_npz, tmp_path / "run", tiny_config(steps=1))
     stored = json.loads((tmp_path / "run/config.json").read_text())
