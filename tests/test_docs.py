@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -250,3 +251,27 @@ def test_heldout_error_refuses_column_splits_that_are_no_increasing_fractions(sp
     with pytest.raises(argparse.ArgumentTypeError, match=re.escape(repr(splits))):
         heldout_error.width_fractions(splits)
     assert heldout_error.width_fractions("0.25,0.9") == [0.25, 0.9]
+
+
+def test_heldout_error_dominant_plane_is_the_plane_most_points_lie_on():
+    heldout_error = load_script("heldout_error")
+    rng = np.random.default_rng(0)
+    on_plane = np.column_stack([rng.uniform(-1, 1, 300), rng.uniform(-1, 1, 300), np.full(300, 0.5)])
+    scattered = rng.uniform(-1, 1, (100, 3))
+    normal, offset = heldout_error.dominant_plane(np.vstack([on_plane, scattered]), 0.01, rng)
+    assert np.allclose(abs(normal[2]), 1.0, atol=1e-6)
+    assert np.isclose(offset * np.sign(normal[2]), 0.5, atol=1e-6)
+
+
+def test_heldout_error_counts_a_ray_unseen_where_it_meets_the_plane_outside_every_training_view():
+    heldout_error = load_script("heldout_error")
+    # One training camera at the origin looking down -z (OpenGL axes), 90 degrees wide: it sees the plane
+    # z = -1 for |x|, |y| < 1. The rays start 3 units to the right of it, also looking down -z.
+    dataset = SimpleNamespace(width=100, height=100, fx=50.0, fy=50.0, cx=50.0, cy=50.0, poses=[np.eye(4)])
+    plane = (np.array([0.0, 0.0, 1.0]), -1.0)
+    origins = np.tile([3.0, 0.0, 0.0], (3, 1))
+    directions = np.array([[-3.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    seen = heldout_error.seen_on_plane(origins, directions, plane, dataset, np.array([0]))
+    # Meets the plane at (0, 0, -1): seen; at (3, 0, -1): outside the view; away from the plane: counted seen.
+    assert seen.tolist() == [True, False, True]
