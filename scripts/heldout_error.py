@@ -4,8 +4,9 @@ contains (content at a distance there was never photographed), the render's mean
 and the PSNR without it, and the share of its squared error and the PSNR in bands of columns (split at the
 fractions of the width --column-splits gives: content at a photo's sides may be in no other photo); what a
 perfect field could score: the dominant plane of its rendered surface (a facade), the pixels whose ray meets
-that plane where no training photo sees it, and the PSNR with every other pixel exact; and the PSNR on random
-pixels of each training photo, with the same bias.
+that plane where no training photo sees it, and the PSNR with every other pixel exact; how far the rendered
+depth is from the reconstruction's at the photo's own sparse points (its depth rays); and the PSNR on random
+pixels of each training photo, with the same bias and depth figure.
 
     python3 scripts/heldout_error.py RUN_DIR RECONSTRUCTION_DIR [--pixels 8192] [--column-splits 0.25,0.9]
         [--plane-tolerance 0.02]
@@ -26,7 +27,7 @@ import torch
 from neural.artefacts import IMAGE_CACHE_DIR
 from neural.data import load_dataset_for
 from neural.inference import PinholeIntrinsics, load_run, render_frame, render_rays_chunked
-from neural.rays import generate_rays
+from neural.rays import generate_rays, pixel_rays
 
 
 def inside_view(camera_axes: np.ndarray, dataset) -> np.ndarray:
@@ -91,6 +92,25 @@ def rays_of(dataset, index: int):
     """The rays of every pixel of the dataset's photo `index` (scene frame)."""
     pose = torch.as_tensor(dataset.poses[index], dtype=torch.float32)
     return generate_rays(pose, dataset.width, dataset.height, dataset.fx, dataset.fy, dataset.cx, dataset.cy)
+
+
+def depth_error(run, dataset, index: int) -> str:
+    """' at its N sparse points the rendered depth is X % off the reconstruction's (median)': |rendered -
+    reconstructed| / reconstructed distance along the rays of the photo's depth rays (its points)."""
+    rays = dataset.depth_rays
+    if rays is None or not (rays.image == index).any():
+        return ""
+    mine = rays.image == index
+    pose = torch.as_tensor(dataset.poses[index], dtype=torch.float32)
+    u, v = (torch.as_tensor(values[mine], dtype=torch.float32) for values in (rays.u, rays.v))
+    ray = pixel_rays(pose, u, v, dataset.fx, dataset.fy, dataset.cx, dataset.cy)
+    with torch.no_grad():
+        rendered = render_rays_chunked(run.model, ray.origins, ray.directions, run.scene, run.background,
+                                       run.config.chunk_rays)
+    distance = np.asarray(rays.distance[mine], np.float64)
+    relative = np.abs(rendered.depth.numpy() - distance) / distance
+    return (f"; at its {mine.sum()} sparse points the rendered depth is {np.median(relative):.1%} off the "
+            f"reconstruction's (median)")
 
 
 def psnr(squared_error: float) -> float:
@@ -169,7 +189,8 @@ def main() -> None:
               f"dB; squared error by {column_bands(image_error, args.column_splits)}; its rendered surface's "
               f"dominant plane holds {on_plane:.0%} of it, and {1 - seen.mean():.1%} of its pixels meet that "
               f"plane where no training photo sees it{psnr_there(error[~seen])}: with "
-              f"every other pixel exact its PSNR would be {psnr(np.where(seen, 0.0, error).mean()):.2f} dB")
+              f"every other pixel exact its PSNR would be {psnr(np.where(seen, 0.0, error).mean()):.2f} dB"
+              f"{depth_error(run, dataset, index)}")
     rng = np.random.default_rng(0)
     for index in training:
         rays = rays_of(dataset, index)
@@ -181,7 +202,7 @@ def main() -> None:
         difference = rendered.rgb.numpy() - truth
         bias = np.round(difference.mean(axis=0), 3).tolist()
         print(f"training {Path(dataset.image_names[index]).name}: PSNR {psnr((difference**2).mean()):.2f} dB "
-              f"on {args.pixels} pixels; render - photo mean colour {bias}")
+              f"on {args.pixels} pixels; render - photo mean colour {bias}{depth_error(run, dataset, index)}")
 
 
 if __name__ == "__main__":

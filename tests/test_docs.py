@@ -275,3 +275,27 @@ def test_heldout_error_counts_a_ray_unseen_where_it_meets_the_plane_outside_ever
     seen = heldout_error.seen_on_plane(origins, directions, plane, dataset, np.array([0]))
     # Meets the plane at (0, 0, -1): seen; at (3, 0, -1): outside the view; away from the plane: counted seen.
     assert seen.tolist() == [True, False, True]
+
+
+def test_heldout_error_depth_error_is_the_median_relative_gap_at_the_photos_own_points():
+    heldout_error = load_script("heldout_error")
+    import torch
+
+    class FlatModel(torch.nn.Module):
+        """Every ray ends 2 units away."""
+
+        def render_rays(self, origins, directions, *args, **kwargs):
+            depth = torch.full((len(origins),), 2.0)
+            return SimpleNamespace(rgb=torch.zeros(len(origins), 3), depth=depth,
+                                   opacity=torch.ones_like(depth))
+
+    depth_rays = SimpleNamespace(image=np.array([0, 0, 0, 1]), u=np.array([1.0, 2.0, 3.0, 4.0]),
+                                 v=np.array([1.0, 2.0, 3.0, 4.0]), distance=np.array([2.0, 2.5, 1.0, 2.0]))
+    dataset = SimpleNamespace(depth_rays=depth_rays, poses=np.stack([np.eye(4)] * 3), fx=10.0, fy=10.0,
+                              cx=5.0, cy=5.0)
+    run = SimpleNamespace(model=FlatModel(), scene=SimpleNamespace(near=0.1, far=10.0),
+                          background=torch.zeros(3), config=SimpleNamespace(chunk_rays=2))
+    # Image 0: gaps 0, 0.5 / 2.5 and 1 / 1 -> median 20 %; image 2 has no points.
+    assert heldout_error.depth_error(run, dataset, 0) == (
+        "; at its 3 sparse points the rendered depth is 20.0% off the reconstruction's (median)")
+    assert heldout_error.depth_error(run, dataset, 2) == ""
