@@ -129,9 +129,16 @@ def column_bands(error: np.ndarray, splits: list[float]) -> str:
     )
 
 
-def psnr_there(error: np.ndarray) -> str:
-    """' (PSNR x dB there)' for the squared errors of some pixels, '' for none."""
-    return f" (PSNR {psnr(error.mean()):.2f} dB there)" if len(error) else ""
+def perfect_field(error: np.ndarray, seen: np.ndarray, on_plane: float) -> str:
+    """What the pixels no training photo sees (`seen` False) cost: their share, their PSNR and the PSNR with
+    every other pixel's squared error (`error`, per pixel) at 0."""
+    if seen.all():
+        return f"its rendered surface's dominant plane holds {on_plane:.0%} of it, all of it seen in training"
+    unseen_error = error[~seen]
+    return (f"its rendered surface's dominant plane holds {on_plane:.0%} of it, and {1 - seen.mean():.1%} of "
+            f"its pixels meet that plane where no training photo sees it "
+            f"(PSNR {psnr(unseen_error.mean()):.2f} dB there): with every other pixel exact its PSNR would "
+            f"be {psnr(unseen_error.sum() / len(error)):.2f} dB")
 
 
 def width_fractions(text: str) -> list[float]:
@@ -186,11 +193,8 @@ def main() -> None:
               f"{unseen.mean():.1%} of its pixels look where no training photo does and carry "
               f"{error[unseen].sum() / error.sum():.1%} of its squared error; render - photo mean colour "
               f"{np.round(bias, 3).tolist()}, PSNR without it {psnr(((difference - bias) ** 2).mean()):.2f} "
-              f"dB; squared error by {column_bands(image_error, args.column_splits)}; its rendered surface's "
-              f"dominant plane holds {on_plane:.0%} of it, and {1 - seen.mean():.1%} of its pixels meet that "
-              f"plane where no training photo sees it{psnr_there(error[~seen])}: with "
-              f"every other pixel exact its PSNR would be {psnr(np.where(seen, 0.0, error).mean()):.2f} dB"
-              f"{depth_error(run, dataset, index)}")
+              f"dB; squared error by {column_bands(image_error, args.column_splits)}; "
+              f"{perfect_field(error, seen, on_plane)}{depth_error(run, dataset, index)}")
     rng = np.random.default_rng(0)
     for index in training:
         rays = rays_of(dataset, index)

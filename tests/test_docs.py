@@ -299,3 +299,14 @@ def test_heldout_error_depth_error_is_the_median_relative_gap_at_the_photos_own_
     assert heldout_error.depth_error(run, dataset, 0) == (
         "; at its 3 sparse points the rendered depth is 20.0% off the reconstruction's (median)")
     assert heldout_error.depth_error(run, dataset, 2) == ""
+
+
+def test_heldout_error_perfect_field_scores_the_unseen_pixels_error_alone():
+    heldout_error = load_script("heldout_error")
+    error = np.array([1e-2, 1e-2, 1e-1, 1e-3])
+    seen = np.array([True, True, False, True])
+    assert heldout_error.perfect_field(error, seen, 0.5) == (
+        "its rendered surface's dominant plane holds 50% of it, and 25.0% of its pixels meet that plane "
+        "where no training photo sees it (PSNR 10.00 dB there): with every other pixel exact its PSNR would "
+        "be 16.02 dB")
+    assert heldout_error.perfect_field(error, np.ones(4, bool), 0.5).endswith("all of it seen in training")
