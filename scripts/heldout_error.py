@@ -152,6 +152,17 @@ def width_fractions(text: str) -> list[float]:
     return fractions
 
 
+def positive_distance(text: str) -> float:
+    """--plane-tolerance: a finite distance above 0."""
+    try:
+        distance = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(distance) or distance <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: the tolerance must be a finite distance above 0")
+    return distance
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -161,7 +172,7 @@ def main() -> None:
     parser.add_argument("--pixels", type=int, default=8192, help="random pixels rendered per training photo")
     parser.add_argument("--column-splits", type=width_fractions, default=[0.25, 0.9],
                         help="width fractions where the held-out photos' column bands split (0.25,0.9)")
-    parser.add_argument("--plane-tolerance", type=float, default=0.02,
+    parser.add_argument("--plane-tolerance", type=positive_distance, default=0.02,
                         help="distance (scene units, the box spans [-1, 1]) within which rendered surface "
                         "points belong to the dominant plane (0.02)")
     args = parser.parse_args()

@@ -310,3 +310,19 @@ def test_heldout_error_perfect_field_scores_the_unseen_pixels_error_alone():
         "where no training photo sees it (PSNR 10.00 dB there): with every other pixel exact its PSNR would "
         "be 16.02 dB")
     assert heldout_error.perfect_field(error, np.ones(4, bool), 0.5).endswith("all of it seen in training")
+
+
+@pytest.mark.parametrize("tolerance", ["0", "-0.1", "nan", "x"])
+def test_heldout_error_refuses_a_plane_tolerance_that_is_no_positive_distance(tolerance):
+    heldout_error = load_script("heldout_error")
+    with pytest.raises(argparse.ArgumentTypeError, match=re.escape(repr(tolerance))):
+        heldout_error.positive_distance(tolerance)
+    assert heldout_error.positive_distance("0.05") == 0.05
+
+
+def test_heldout_error_names_the_flag_when_the_plane_tolerance_is_refused():
+    completed = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "heldout_error.py"), "run", "reconstruction",
+         "--plane-tolerance", "0"], capture_output=True, text=True, cwd=ROOT)
+    assert completed.returncode == 2
+    assert "--plane-tolerance" in completed.stderr and "'0'" in completed.stderr
