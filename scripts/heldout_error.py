@@ -40,22 +40,14 @@ def inside_view(camera_axes: np.ndarray, dataset) -> np.ndarray:
     return ahead & (u >= 0) & (u < dataset.width) & (v >= 0) & (v < dataset.height)
 
 
-def unseen_directions(directions: np.ndarray, dataset, training: np.ndarray) -> np.ndarray:
-    """(N,) True where no training camera's view contains the unit direction (directions (N, 3), scene
-    frame): its camera axes R^T d inside no training image."""
-    seen = np.zeros(len(directions), bool)
-    for index in training:
-        seen |= inside_view(directions @ dataset.poses[index][:3, :3], dataset)
-    return ~seen
-
-
-def seen_points(points: np.ndarray, dataset, training: np.ndarray) -> np.ndarray:
-    """(N,) True where some training camera's view contains the point (N, 3), scene frame: R^T (X - C)
-    inside its image (occlusion ignored, so this errs towards seen)."""
-    seen = np.zeros(len(points), bool)
+def seen_by_training(vectors: np.ndarray, dataset, training: np.ndarray, at_infinity: bool) -> np.ndarray:
+    """(N,) True where some training camera's view contains the point (N, 3), or with `at_infinity` the unit
+    direction, in the scene frame: R^T (X - C), or R^T d, inside its image (occlusion ignored, so a point
+    errs towards seen)."""
+    seen = np.zeros(len(vectors), bool)
     for index in training:
         pose = dataset.poses[index]
-        seen |= inside_view((points - pose[:3, 3]) @ pose[:3, :3], dataset)
+        seen |= inside_view((vectors if at_infinity else vectors - pose[:3, 3]) @ pose[:3, :3], dataset)
     return seen
 
 
@@ -63,7 +55,7 @@ def dominant_plane(points: np.ndarray, tolerance: float, rng: np.random.Generato
                    ) -> tuple[np.ndarray, float]:
     """The plane n . X = c (unit n) that most points (N, 3) lie within `tolerance` of: RANSAC over point
     triples, then least squares (the smallest singular vector) on its inliers."""
-    best = np.zeros(len(points), bool)
+    best, best_count = np.zeros(len(points), bool), 0
     for _ in range(trials):
         a, b, c = points[rng.choice(len(points), 3, replace=False)]
         normal = np.cross(b - a, c - a)
@@ -71,8 +63,8 @@ def dominant_plane(points: np.ndarray, tolerance: float, rng: np.random.Generato
             continue
         normal /= np.linalg.norm(normal)
         inliers = np.abs((points - a) @ normal) < tolerance
-        if inliers.sum() > best.sum():
-            best = inliers
+        if inliers.sum() > best_count:
+            best, best_count = inliers, inliers.sum()
     centre = points[best].mean(axis=0)
     normal = np.linalg.svd(points[best] - centre, full_matrices=False)[2][2]
     return normal, float(normal @ centre)
@@ -85,7 +77,7 @@ def seen_on_plane(origins: np.ndarray, directions: np.ndarray, plane: tuple[np.n
     normal, offset = plane
     facing = directions @ normal
     t = (offset - origins @ normal) / np.where(np.abs(facing) > 1e-12, facing, 1e-12)
-    return (t <= 0) | seen_points(origins + t[:, None] * directions, dataset, training)
+    return (t <= 0) | seen_by_training(origins + t[:, None] * directions, dataset, training, False)
 
 
 def rays_of(dataset, index: int):
@@ -152,6 +144,19 @@ def width_fractions(text: str) -> list[float]:
     return fractions
 
 
+def plane_figures(surface: np.ndarray, origins: np.ndarray, directions: np.ndarray, error: np.ndarray,
+                  dataset, training: np.ndarray, tolerance: float) -> str:
+    """`perfect_field` on the dominant plane of up to 4096 of the rendered surface points (N, 3), the rays
+    (origins, directions) of every pixel and their squared errors."""
+    if len(surface) < 3:
+        return "no rendered surface to fit a plane to"
+    rng = np.random.default_rng(0)
+    sample = surface[rng.choice(len(surface), min(len(surface), 4096), replace=False)]
+    plane = dominant_plane(sample, tolerance, rng)
+    on_plane = np.mean(np.abs(sample @ plane[0] - plane[1]) < tolerance)
+    return perfect_field(error, seen_on_plane(origins, directions, plane, dataset, training), on_plane)
+
+
 def positive_distance(text: str) -> float:
     """--plane-tolerance: a finite distance above 0."""
     try:
@@ -191,21 +196,18 @@ def main() -> None:
         rays = rays_of(dataset, index)
         origins = rays.origins.reshape(-1, 3).numpy().astype(np.float64)
         directions = rays.directions.reshape(-1, 3).numpy().astype(np.float64)
-        unseen = unseen_directions(directions, dataset, training)
+        unseen = ~seen_by_training(directions, dataset, training, at_infinity=True)
         bias = difference.reshape(-1, 3).mean(axis=0)
         surface = origins + rendered.depth.numpy().reshape(-1, 1) * directions
-        opaque = np.flatnonzero(rendered.opacity.numpy().ravel() > 0.5)
-        plane_rng = np.random.default_rng(0)
-        sample = surface[plane_rng.choice(opaque, min(len(opaque), 4096), replace=False)]
-        plane = dominant_plane(sample, args.plane_tolerance, plane_rng)
-        on_plane = np.mean(np.abs(sample @ plane[0] - plane[1]) < args.plane_tolerance)
-        seen = seen_on_plane(origins, directions, plane, dataset, training)
+        opaque = rendered.opacity.numpy().ravel() > 0.5
+        plane = plane_figures(surface[opaque], origins, directions, error, dataset, training,
+                              args.plane_tolerance)
         print(f"held-out {Path(dataset.image_names[index]).name}: PSNR {psnr(error.mean()):.2f} dB; "
               f"{unseen.mean():.1%} of its pixels look where no training photo does and carry "
               f"{error[unseen].sum() / error.sum():.1%} of its squared error; render - photo mean colour "
               f"{np.round(bias, 3).tolist()}, PSNR without it {psnr(((difference - bias) ** 2).mean()):.2f} "
               f"dB; squared error by {column_bands(image_error, args.column_splits)}; "
-              f"{perfect_field(error, seen, on_plane)}{depth_error(run, dataset, index)}")
+              f"{plane}{depth_error(run, dataset, index)}")
     rng = np.random.default_rng(0)
     for index in training:
         rays = rays_of(dataset, index)
