@@ -13,10 +13,13 @@ two-view verification). Both use every core of the machine. Sets:
 
 On lego it also measures the retrieval used beyond `exhaustive_up_to` images (VLAD, untimed): the share of
 the view pairs whose ground-truth viewing directions are within 20 / 30 degrees that the retrieval
-neighbours contain.
+neighbours contain, with the vocabulary trained on each cap of --vocabulary-descriptors (0: every
+descriptor); --turned also times that training on the views each turned by 90 and 270 degrees as well
+(bench_celery_sfm's 270 images).
 
     python benchmarks/bench_features.py
     python benchmarks/bench_features.py --sets lego --max-side 3200 --max-features 8192
+    python benchmarks/bench_features.py --sets lego --vocabulary-descriptors 20000,0,10000 --turned
 """
 
 from __future__ import annotations
@@ -25,16 +28,24 @@ import argparse
 import json
 import math
 import os
+import sys
 import tempfile
 import time
 from collections import Counter
 from pathlib import Path
 
+import cv2
 import numpy as np
 from PIL import Image
 
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
-from estimation.features.pairs import exhaustive_pairs, retrieval_pairs, train_vocabulary, vlad
+from estimation.features.pairs import (
+    VOCABULARY_TRAINING_DESCRIPTORS,
+    exhaustive_pairs,
+    retrieval_pairs,
+    train_vocabulary,
+    vlad,
+)
 from estimation.features.sift import detect_features, sift_tracks
 from estimation.io.images import find_calibration, list_images, load_rgb
 from neural.data import load_image
@@ -58,8 +69,11 @@ def prepare_lego(data: Path, folder: Path) -> np.ndarray:
     return np.array([[focal, 0.0, centre], [0.0, focal, centre], [0.0, 0.0, 1.0]])
 
 
-def lego_retrieval_recall(data: Path, folder: Path, config: SiftConfig) -> list[str]:
-    """Recall of the VLAD retrieval pairs against ground-truth view-direction neighbours, per k."""
+def lego_retrieval_recall(data: Path, folder: Path, config: SiftConfig, vocabulary_descriptors: list[int],
+                          turned: bool) -> list[str]:
+    """Recall of the VLAD retrieval pairs against ground-truth view-direction neighbours, per k, with the
+    vocabulary trained on each of `vocabulary_descriptors` (0: all of them); with `turned`, the seconds of
+    that training on the views turned too."""
     images = list_images(folder)
     direction = {}
     for split in LEGO_SPLITS:
@@ -68,17 +82,33 @@ def lego_retrieval_recall(data: Path, folder: Path, config: SiftConfig) -> list[
     views = np.stack([direction[name] for name in images.names])
     angle = np.degrees(np.arccos(np.clip(views @ views.T, -1.0, 1.0)))
     descriptors = [detect_features(load_rgb(path), config).descriptors for path in images.paths]
-    vocabulary = train_vocabulary(descriptors, config.vocabulary_size)
-    global_descriptors = np.stack([vlad(d, vocabulary) for d in descriptors])
     lines = []
-    for k in (10, 20, config.retrieval_neighbours):
-        pairs = retrieval_pairs(global_descriptors, k)
-        recall = []
-        for limit in (20, 30):
-            close = {(i, j) for i, j in exhaustive_pairs(len(images)) if angle[i, j] < limit}
-            recall.append(f"{len(pairs & close) / len(close):.3f} of {len(close)} pairs within {limit} deg")
-        lines.append(f"retrieval k={k}: {len(pairs)} of {len(images) * (len(images) - 1) // 2} pairs; recall "
-                     + ", ".join(recall))
+    for cap in vocabulary_descriptors:
+        vocabulary = train_vocabulary(descriptors, config.vocabulary_size, cap or sys.maxsize)
+        global_descriptors = np.stack([vlad(d, vocabulary) for d in descriptors])
+        lines.append(f"vocabulary on {cap or 'all'} of {sum(map(len, descriptors))} descriptors:")
+        for k in (10, 20, config.retrieval_neighbours):
+            pairs = retrieval_pairs(global_descriptors, k)
+            recall = []
+            for limit in (20, 30):
+                close = {(i, j) for i, j in exhaustive_pairs(len(images)) if angle[i, j] < limit}
+                recall.append(f"{len(pairs & close) / len(close):.3f} of {len(close)} pairs within {limit} "
+                              "deg")
+            lines.append(f"retrieval k={k}: {len(pairs)} of {len(images) * (len(images) - 1) // 2} pairs; "
+                         "recall " + ", ".join(recall))
+    if turned:
+        # bench_celery_sfm's 270 images: each view also turned by 90 and 270 degrees.
+        everything = [detect_features(np.ascontiguousarray(np.rot90(load_rgb(path), turns)), config)
+                      .descriptors for path in images.paths for turns in (0, 1, 3)]
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        for cap in vocabulary_descriptors:
+            start = time.perf_counter()
+            train_vocabulary(everything, config.vocabulary_size, cap or sys.maxsize)
+            lines.append(f"turned views ({len(everything)} images): vocabulary on {cap or 'all'} of "
+                         f"{sum(map(len, everything))} descriptors in {time.perf_counter() - start:.2f} s "
+                         "(k-means on one OpenCV thread)")
+        cv2.setNumThreads(threads)
     return lines
 
 
@@ -154,6 +184,12 @@ def main() -> None:
     parser.add_argument("--max-side", type=int, default=SiftConfig().max_image_side)
     parser.add_argument("--max-features", type=int, default=SiftConfig().max_features)
     parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--vocabulary-descriptors", type=lambda text: [int(v) for v in text.split(",")],
+                        default=[VOCABULARY_TRAINING_DESCRIPTORS],
+                        help="comma-separated caps on the descriptors training lego's retrieval vocabulary "
+                        "(0: all of them)")
+    parser.add_argument("--turned", action="store_true",
+                        help="also time that training on lego's views each turned by 90 and 270 degrees")
     args = parser.parse_args()
     config = SiftConfig(max_image_side=args.max_side, max_features=args.max_features)
     print(f"load before: {os.getloadavg()}  (cores: {os.cpu_count()})")
@@ -165,7 +201,8 @@ def main() -> None:
                 folder = work / "images"
                 folder.mkdir()
                 K = prepare_lego(args.data, folder)
-                retrieval = lego_retrieval_recall(args.data, folder, config)
+                retrieval = lego_retrieval_recall(args.data, folder, config, args.vocabulary_descriptors,
+                                                  args.turned)
             else:
                 folder = args.data / "strecha" / "fountain-P11"
                 K = find_calibration(folder)

@@ -17,9 +17,9 @@ from estimation.config import SiftConfig
 
 VOCABULARY_TRAINING_DESCRIPTORS = 20_000
 """At most this many descriptors (sampled evenly over the images) train the k-means vocabulary: about 300 a
-word. k-means' time grows with them, its words barely: a 270-image set's 69,488 took 2.1 s on one core,
-20,000 of them 0.5 s (no worker shares this step); on lego, 10,000 gave the same retrieval recall as all
-23,155 (benchmarks/RESULTS.md, bench_features)."""
+word. k-means' time grows with them, its words barely: a 270-image set's 69,488 took 2.0 s on one core,
+20,000 of them 0.8 s (no worker shares this step); on lego, 20,000 and all 23,155 give the same retrieval
+recall (benchmarks/bench_features.py --vocabulary-descriptors 20000,0 --turned)."""
 KMEANS_ITERATIONS = 20
 KMEANS_SEED = 0
 _NUMBER = re.compile(r"(\d+)")
@@ -47,11 +47,12 @@ def sequential_pairs(order: list[int], neighbours: int) -> set[tuple[int, int]]:
     return {(min(a, b), max(a, b)) for k, a in enumerate(order) for b in order[k + 1: k + 1 + neighbours]}
 
 
-def train_vocabulary(descriptors: list[np.ndarray], size: int) -> np.ndarray:
-    """(size, D) k-means centres (cv2.kmeans, k-means++) of up to VOCABULARY_TRAINING_DESCRIPTORS rows."""
+def train_vocabulary(descriptors: list[np.ndarray], size: int,
+                     max_descriptors: int = VOCABULARY_TRAINING_DESCRIPTORS) -> np.ndarray:
+    """(size, D) k-means centres (cv2.kmeans, k-means++) of up to `max_descriptors` rows, sampled evenly."""
     everything = np.concatenate([d for d in descriptors if len(d)]).astype(np.float32)
-    if len(everything) > VOCABULARY_TRAINING_DESCRIPTORS:
-        sample = np.linspace(0, len(everything) - 1, VOCABULARY_TRAINING_DESCRIPTORS).astype(int)
+    if len(everything) > max_descriptors:
+        sample = np.linspace(0, len(everything) - 1, max_descriptors).astype(int)
         everything = everything[sample]
     size = min(size, len(everything))
     cv2.setRNGSeed(KMEANS_SEED)
