@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from estimation.config import RansacConfig
+from estimation.geometry.ransac import ransac
 from neural.artefacts import IMAGE_CACHE_DIR
 from neural.data import load_dataset_for
 from neural.inference import PinholeIntrinsics, load_run, render_frame, render_rays_chunked
@@ -51,23 +53,32 @@ def seen_by_training(vectors: np.ndarray, dataset, training: np.ndarray, at_infi
     return seen
 
 
-def dominant_plane(points: np.ndarray, tolerance: float, rng: np.random.Generator, trials: int = 256
-                   ) -> tuple[np.ndarray, float]:
-    """The plane n . X = c (unit n) that most points (N, 3) lie within `tolerance` of: RANSAC over point
-    triples, then least squares (the smallest singular vector) on its inliers."""
-    best, best_count = np.zeros(len(points), bool), 0
-    for _ in range(trials):
-        a, b, c = points[rng.choice(len(points), 3, replace=False)]
-        normal = np.cross(b - a, c - a)
-        if np.linalg.norm(normal) < 1e-12:
-            continue
-        normal /= np.linalg.norm(normal)
-        inliers = np.abs((points - a) @ normal) < tolerance
-        if inliers.sum() > best_count:
-            best, best_count = inliers, inliers.sum()
-    centre = points[best].mean(axis=0)
-    normal = np.linalg.svd(points[best] - centre, full_matrices=False)[2][2]
-    return normal, float(normal @ centre)
+def planes_through(triples: np.ndarray) -> np.ndarray:
+    """(M, 4) planes (n, c), n . X = c with unit n, through point triples (B, 3, 3), less collinear ones."""
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    normals = normals[lengths > 1e-12] / lengths[lengths > 1e-12, None]
+    return np.column_stack([normals, np.einsum("md,md->m", normals, triples[lengths > 1e-12, 0])])
+
+
+def plane_distances(planes: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(M, N) |n . X - c| of every point (N, 3) to every plane (M, 4)."""
+    return np.abs(points @ planes[:, :3].T - planes[:, 3]).T
+
+
+def least_squares_plane(points: np.ndarray) -> np.ndarray:
+    """(1, 4) the plane through the centroid of points (N, 3) normal to their smallest singular vector."""
+    centre = points.mean(axis=0)
+    normal = np.linalg.svd(points - centre, full_matrices=False)[2][2]
+    return np.append(normal, normal @ centre)[None]
+
+
+def dominant_plane(points: np.ndarray, tolerance: float) -> tuple[np.ndarray, float]:
+    """The plane n . X = c (unit n) that most points (N, 3) lie within `tolerance` of: the project's RANSAC
+    over point triples, each new best re-fitted by least squares on its inliers."""
+    plane = ransac((points,), planes_through, 3, plane_distances, tolerance, RansacConfig(),
+                   refit=least_squares_plane, model_name="plane").model
+    return plane[:3], float(plane[3])
 
 
 def seen_on_plane(origins: np.ndarray, directions: np.ndarray, plane: tuple[np.ndarray, float], dataset,
@@ -152,7 +163,7 @@ def plane_figures(surface: np.ndarray, origins: np.ndarray, directions: np.ndarr
         return "no rendered surface to fit a plane to"
     rng = np.random.default_rng(0)
     sample = surface[rng.choice(len(surface), min(len(surface), 4096), replace=False)]
-    plane = dominant_plane(sample, tolerance, rng)
+    plane = dominant_plane(sample, tolerance)
     on_plane = np.mean(np.abs(sample @ plane[0] - plane[1]) < tolerance)
     return perfect_field(error, seen_on_plane(origins, directions, plane, dataset, training), on_plane)
 

@@ -258,7 +258,7 @@ def test_heldout_error_dominant_plane_is_the_plane_most_points_lie_on():
     rng = np.random.default_rng(0)
     on_plane = np.column_stack([rng.uniform(-1, 1, 300), rng.uniform(-1, 1, 300), np.full(300, 0.5)])
     scattered = rng.uniform(-1, 1, (100, 3))
-    normal, offset = heldout_error.dominant_plane(np.vstack([on_plane, scattered]), 0.01, rng)
+    normal, offset = heldout_error.dominant_plane(np.vstack([on_plane, scattered]), 0.01)
     assert np.allclose(abs(normal[2]), 1.0, atol=1e-6)
     assert np.isclose(offset * np.sign(normal[2]), 0.5, atol=1e-6)
 
