@@ -82,6 +82,8 @@ def lego_retrieval_recall(data: Path, folder: Path, config: SiftConfig, vocabula
     views = np.stack([direction[name] for name in images.names])
     angle = np.degrees(np.arccos(np.clip(views @ views.T, -1.0, 1.0)))
     descriptors = [detect_features(load_rgb(path), config).descriptors for path in images.paths]
+    all_pairs = exhaustive_pairs(len(images))
+    close = {limit: {(i, j) for i, j in all_pairs if angle[i, j] < limit} for limit in (20, 30)}
     lines = []
     for cap in vocabulary_descriptors:
         vocabulary = train_vocabulary(descriptors, config.vocabulary_size, cap or sys.maxsize)
@@ -89,27 +91,39 @@ def lego_retrieval_recall(data: Path, folder: Path, config: SiftConfig, vocabula
         lines.append(f"vocabulary on {cap or 'all'} of {sum(map(len, descriptors))} descriptors:")
         for k in (10, 20, config.retrieval_neighbours):
             pairs = retrieval_pairs(global_descriptors, k)
-            recall = []
-            for limit in (20, 30):
-                close = {(i, j) for i, j in exhaustive_pairs(len(images)) if angle[i, j] < limit}
-                recall.append(f"{len(pairs & close) / len(close):.3f} of {len(close)} pairs within {limit} "
-                              "deg")
-            lines.append(f"retrieval k={k}: {len(pairs)} of {len(images) * (len(images) - 1) // 2} pairs; "
-                         "recall " + ", ".join(recall))
+            recall = [f"{len(pairs & near) / len(near):.3f} of {len(near)} pairs within {limit} deg"
+                      for limit, near in close.items()]
+            lines.append(f"retrieval k={k}: {len(pairs)} of {len(all_pairs)} pairs; "
+                         f"recall {', '.join(recall)}")
     if turned:
         # bench_celery_sfm's 270 images: each view also turned by 90 and 270 degrees.
         everything = [detect_features(np.ascontiguousarray(np.rot90(load_rgb(path), turns)), config)
                       .descriptors for path in images.paths for turns in (0, 1, 3)]
         threads = cv2.getNumThreads()
         cv2.setNumThreads(1)
-        for cap in vocabulary_descriptors:
-            start = time.perf_counter()
-            train_vocabulary(everything, config.vocabulary_size, cap or sys.maxsize)
-            lines.append(f"turned views ({len(everything)} images): vocabulary on {cap or 'all'} of "
-                         f"{sum(map(len, everything))} descriptors in {time.perf_counter() - start:.2f} s "
-                         "(k-means on one OpenCV thread)")
-        cv2.setNumThreads(threads)
+        try:
+            for cap in vocabulary_descriptors:
+                start = time.perf_counter()
+                train_vocabulary(everything, config.vocabulary_size, cap or sys.maxsize)
+                seconds = time.perf_counter() - start
+                lines.append(f"turned views ({len(everything)} images): vocabulary on {cap or 'all'} of "
+                             f"{sum(map(len, everything))} descriptors in {seconds:.2f} s (k-means on one "
+                             "OpenCV thread)")
+        finally:
+            cv2.setNumThreads(threads)
     return lines
+
+
+def descriptor_caps(text: str) -> list[int]:
+    """--vocabulary-descriptors: comma-separated whole numbers >= 0 (0: every descriptor)."""
+    try:
+        caps = [int(value) for value in text.split(",")]
+    except ValueError:
+        caps = []
+    if not caps or min(caps) < 0:
+        raise argparse.ArgumentTypeError(
+            f"--vocabulary-descriptors: expected comma-separated whole numbers >= 0, got {text!r}")
+    return caps
 
 
 def run_ours(folder: Path, K: np.ndarray, config: SiftConfig) -> dict:
@@ -184,7 +198,7 @@ def main() -> None:
     parser.add_argument("--max-side", type=int, default=SiftConfig().max_image_side)
     parser.add_argument("--max-features", type=int, default=SiftConfig().max_features)
     parser.add_argument("--data", type=Path, default=DATA)
-    parser.add_argument("--vocabulary-descriptors", type=lambda text: [int(v) for v in text.split(",")],
+    parser.add_argument("--vocabulary-descriptors", type=descriptor_caps,
                         default=[VOCABULARY_TRAINING_DESCRIPTORS],
                         help="comma-separated caps on the descriptors training lego's retrieval vocabulary "
                         "(0: all of them)")
