@@ -1,10 +1,14 @@
-"""Shared fixtures: where the read-only data beside the project lives."""
+"""Shared fixtures: where the read-only data beside the project lives, and the benchmark scripts."""
 
+import importlib
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
 
 
 @pytest.fixture(scope="session")
@@ -13,3 +17,10 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         raise FileNotFoundError(f"expected the shared data folder at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture
+def benchmark_module(monkeypatch) -> Callable[[str], ModuleType]:
+    """Imports a script of benchmarks/ by name (the folder is on sys.path for the test only)."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    return importlib.import_module

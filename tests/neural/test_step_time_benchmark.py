@@ -2,19 +2,14 @@
 
 from __future__ import annotations
 
-import importlib
 import time
-from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 @pytest.fixture
-def bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    return importlib.import_module("bench_nerf_real")
+def bench(benchmark_module):
+    return benchmark_module("bench_nerf_real")
 
 
 def test_step_functions_are_called_in_turn_and_each_call_is_timed(bench):

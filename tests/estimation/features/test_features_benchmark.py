@@ -3,18 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import importlib
-from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[3] / "benchmarks"
-
 
 @pytest.fixture
-def bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    return importlib.import_module("bench_features")
+def bench(benchmark_module):
+    return benchmark_module("bench_features")
 
 
 def test_vocabulary_caps_are_whole_numbers_with_zero_for_every_descriptor(bench):
