@@ -181,7 +181,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory(prefix="bench_intrinsics_sets_") as work:
         for name in args.sets:
-            bench = lego_set(Path(work)) if name == "lego" else strecha_set(name)
+            bench = lego_set(Path(work)) if name == "lego" else strecha_set(name, Path(work))
             run_set(bench, args)
     print(f"load average {os.getloadavg()}")
 

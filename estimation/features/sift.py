@@ -130,6 +130,12 @@ CONTRAST_PREVIEW_SIDE = 800
 """The RMS contrast and the constant regions are measured on the image area-downscaled to this longest side
 (the contrast within 0.006 of the full-size value on the Strecha photos, in 3 instead of 140 ms; the
 window then spans as much of the scene whatever the resolution)."""
+OPENCV_SIFT_OFFSET_PX = 0.25
+"""How far OpenCV's SIFT places every keypoint right of and below where it is, in the pixels of the image it
+was given: its first octave is that image upscaled 2x by `resize` (pixel x of the upscaled image lies at
+x / 2 - 0.25 of the original), but it reports x / 2. Gaussian blobs at known centres come out 0.25 px off in
+both axes at every scale; `enable_precise_upscale` removes the offset but changes which keypoints are found
+(lego 87-88/90 at 0.45-0.57 deg, RANSAC seeds 0-3)."""
 
 
 class ImageContrast(NamedTuple):
@@ -161,7 +167,8 @@ def adaptive_contrast_threshold(contrast: float, config: SiftConfig) -> float:
 
 def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
     """SIFT on the (H, W, 3) uint8 image downscaled to config.max_image_side (area averaging), at most
-    config.max_features keypoints; uv in full-resolution pixels: u = (u_s + 0.5) W / W_s - 0.5. A
+    config.max_features keypoints; uv in full-resolution pixels: u = (u_cv - 0.25 + 0.5) W / W_s - 0.5, u_cv
+    OpenCV's keypoint in the downscaled image (`OPENCV_SIFT_OFFSET_PX`). A
     low-contrast image gets a lower contrast threshold (`adaptive_contrast_threshold`) and no keypoints in
     its constant regions."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
@@ -186,7 +193,7 @@ def detect_features(rgb: np.ndarray, config: SiftConfig) -> ImageFeatures:
     # OpenCV's nfeatures keeps ties (and extra orientations) at the cut: enforce the budget exactly.
     strongest = np.argsort([-kp.response for kp in keypoints], kind="stable")[: config.max_features]
     keypoints, descriptors = [keypoints[k] for k in strongest], descriptors[strongest]
-    uv_small = np.array([kp.pt for kp in keypoints], float).reshape(-1, 2)
+    uv_small = np.array([kp.pt for kp in keypoints], float).reshape(-1, 2) - OPENCV_SIFT_OFFSET_PX
     to_full = np.array([width / gray.shape[1], height / gray.shape[0]])
     # OpenCV rounds its float descriptors to whole numbers 0-255 (saturate_cast<uchar>): uint8 keeps them.
     size = np.array([kp.size for kp in keypoints], float) * float(np.mean(to_full))
