@@ -97,8 +97,11 @@ def lego_retrieval_recall(data: Path, folder: Path, config: SiftConfig, vocabula
                          f"recall {', '.join(recall)}")
     if turned:
         # bench_celery_sfm's 270 images: each view also turned by 90 and 270 degrees.
-        everything = [detect_features(np.ascontiguousarray(np.rot90(load_rgb(path), turns)), config)
-                      .descriptors for path in images.paths for turns in (0, 1, 3)]
+        # The unturned views' descriptors are the ones above.
+        everything = [turned_view for path, upright in zip(images.paths, descriptors, strict=True)
+                      for turned_view in (upright, *(
+                          detect_features(np.ascontiguousarray(np.rot90(load_rgb(path), turns)), config)
+                          .descriptors for turns in (1, 3)))]
         threads = cv2.getNumThreads()
         cv2.setNumThreads(1)
         try:

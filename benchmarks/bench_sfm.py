@@ -133,14 +133,19 @@ def lego_set(work: Path) -> BenchSet:
     return BenchSet("lego_200 (90)", folder, K, truth)
 
 
+def linked_images(source: Path, folder: Path) -> Path:
+    """`folder` holding a link to each image of `source` (nothing else of it)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for path in source.iterdir():
+        if path.suffix.lower() in IMAGE_SUFFIXES and not (folder / path.name).exists():
+            (folder / path.name).symlink_to(path.resolve())
+    return folder
+
+
 def uncalibrated_copy(bench: BenchSet, work: Path) -> BenchSet:
     """The set's images linked into `work` without calibration.txt (no EXIF either): focal length from
     the 1.2 max(w, h) prior, refined with a radial distortion by both methods; K stays the truth."""
-    folder = work / f"{bench.images.name}_uncalibrated"
-    folder.mkdir(parents=True, exist_ok=True)
-    for path in bench.images.iterdir():
-        if path.suffix.lower() in IMAGE_SUFFIXES and not (folder / path.name).exists():
-            (folder / path.name).symlink_to(path.resolve())
+    folder = linked_images(bench.images, work / f"{bench.images.name}_uncalibrated")
     return replace(bench, name=f"{bench.name} uncalibrated", images=folder, calibrated=False)
 
 
@@ -198,11 +203,7 @@ def strecha_set(name: str, work: Path) -> BenchSet:
     less STRECHA_PIXEL_OFFSET; pycolmap gets the data's K back), and its ground truth."""
     source = DATA / "strecha" / name
     bench = ground_truth_set(source, name)
-    folder = work / name
-    folder.mkdir(parents=True, exist_ok=True)
-    for path in source.iterdir():
-        if path.suffix.lower() in IMAGE_SUFFIXES and not (folder / path.name).exists():
-            (folder / path.name).symlink_to(path.resolve())
+    folder = linked_images(source, work / name)
     K = bench.K.copy()
     K[:2, 2] -= STRECHA_PIXEL_OFFSET
     np.savetxt(folder / "calibration.txt", K)

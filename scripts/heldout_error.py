@@ -57,8 +57,9 @@ def planes_through(triples: np.ndarray) -> np.ndarray:
     """(M, 4) planes (n, c), n . X = c with unit n, through point triples (B, 3, 3), less collinear ones."""
     normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
     lengths = np.linalg.norm(normals, axis=1)
-    normals = normals[lengths > 1e-12] / lengths[lengths > 1e-12, None]
-    return np.column_stack([normals, np.einsum("md,md->m", normals, triples[lengths > 1e-12, 0])])
+    planar = lengths > 1e-12
+    normals = normals[planar] / lengths[planar, None]
+    return np.column_stack([normals, np.einsum("md,md->m", normals, triples[planar, 0])])
 
 
 def plane_distances(planes: np.ndarray, points: np.ndarray) -> np.ndarray:
