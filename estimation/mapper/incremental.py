@@ -337,12 +337,13 @@ class _ModelBuilder:
         reconstruction.filter_points(self.max_error, self.min_angle)
 
     def mapper_ba_config(self, relative_error_tol: float, max_iterations: int,
-                         local: bool = False) -> BundleAdjustmentConfig:
+                         local: bool = False, refining: bool | None = None) -> BundleAdjustmentConfig:
         """The settings of one of the mapper's BAs: mapper_optimizer (mapper_refining_optimizer when it
-        refines intrinsics), stopping at relative_error_tol or after max_iterations; a global one
-        eliminates in mapper_global_ordering (mapper_refining_global_ordering when it refines intrinsics)."""
+        refines intrinsics; `refining` None: when the reconstruction's BAs do), stopping at
+        relative_error_tol or after max_iterations; a global one eliminates in mapper_global_ordering
+        (mapper_refining_global_ordering when it refines intrinsics)."""
         ba = self.config.bundle_adjustment
-        refining = self.refines_intrinsics()
+        refining = self.refines_intrinsics() if refining is None else refining
         optimizer = ba.mapper_refining_optimizer if refining else ba.mapper_optimizer
         update = {"relative_error_tol": relative_error_tol, "optimizer": optimizer,
                   "max_iterations": max_iterations}
@@ -356,12 +357,20 @@ class _ModelBuilder:
         refine = self.reconstruction.refine
         return refine is not None and refine.refines(self.reconstruction.cameras[0].model)
 
+    def local_refines_intrinsics(self) -> bool:
+        """Whether the local BAs refine intrinsics: while the reconstruction's BAs do and the model has
+        under local_intrinsics_until_images images (then the global refinements and the final BA go on
+        refining them)."""
+        return (self.refines_intrinsics()
+                and len(self.reconstruction.order) < self.mapper.local_intrinsics_until_images)
+
     def local_ba_config(self) -> BundleAdjustmentConfig:
         """A local BA: it stops at local_relative_error_tol or after local_max_iterations
         (local_max_iterations_refining when it refines intrinsics)."""
         ba = self.config.bundle_adjustment
-        steps = ba.local_max_iterations_refining if self.refines_intrinsics() else ba.local_max_iterations
-        return self.mapper_ba_config(ba.local_relative_error_tol, steps, local=True)
+        refining = self.local_refines_intrinsics()
+        steps = ba.local_max_iterations_refining if refining else ba.local_max_iterations
+        return self.mapper_ba_config(ba.local_relative_error_tol, steps, local=True, refining=refining)
 
     def refinement_ba_config(self) -> BundleAdjustmentConfig:
         """The global BA of the initial pair and of each refinement round: it stops at
@@ -689,7 +698,8 @@ class _ModelBuilder:
         ba = self.config.bundle_adjustment
         neighbours = np.argsort(-shared, kind="stable")[: ba.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
-        reconstruction.bundle_adjust(self.local_ba_config(), variable_images=window)
+        reconstruction.bundle_adjust(self.local_ba_config(), variable_images=window,
+                                     hold_intrinsics=not self.local_refines_intrinsics())
         touched = np.flatnonzero(reconstruction.points_seen_in(window))
         reconstruction.complete_tracks(self.max_error, touched)
         reconstruction.merge_tracks(self.max_error)

@@ -448,10 +448,12 @@ class Reconstruction:
     def bundle_adjust(
         self, config: BundleAdjustmentConfig, variable_images: list[int] | None = None,
         intrinsics_covariance: bool = False, relative_sigma: np.ndarray | None = None,
+        hold_intrinsics: bool = False,
     ) -> BundleAdjustmentResult:
         """Global BA (variable_images None: first image fixed, scale by the second) or local BA of the
         points seen by `variable_images`, with the other images that see them held fixed; both refine the
-        intrinsics as `refine` says (as COLMAP's local BA does) and the scene adopts them.
+        intrinsics as `refine` says (as COLMAP's local BA does; none with `hold_intrinsics`) and the scene
+        adopts them.
         `relative_sigma` (one per track observation): each observation's pixel std-dev as a multiple of
         measurement_sigma_px (None: all alike).
 
@@ -464,7 +466,7 @@ class Reconstruction:
         position = np.full(len(self.registered), -1, np.int64)
         position[cameras] = np.arange(len(cameras))
         fixed, scale_reference = [0], 1
-        refine = self.refine or IntrinsicsRefinement()
+        refine = IntrinsicsRefinement() if hold_intrinsics else self.refine or IntrinsicsRefinement()
         if variable_images is not None:
             used = used.compress(self.points_seen_in(variable_images).take(self.obs_point.take(used)))
             # The images seeing those points that are not variable, in image order (masks: no set operations).

@@ -105,10 +105,11 @@ def test_only_the_final_bundle_adjustment_weighs_each_observation_by_its_keypoin
     keypoints = keypoints_with_sizes(scene.tracks, sizes)
     adjust, weights = Reconstruction.bundle_adjust, {}
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None,
+                  **kwargs):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
         weights.setdefault(kind, []).append(relative_sigma)
-        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma, **kwargs)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     reconstruct_models(scene.tracks, scene.K, CONFIG, keypoints=keypoints)
@@ -524,11 +525,12 @@ def record_bundle_adjustments(monkeypatch) -> list[tuple[str, float]]:
     calls = []
     adjust = Reconstruction.bundle_adjust
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None,
+                  **kwargs):
         kind = ("final" if intrinsics_covariance else "local" if variable_images is not None
                 else "initial" if len(scene.order) == 2 and not calls else "global")
         calls.append((kind, config.relative_error_tol))
-        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma, **kwargs)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     return calls
@@ -568,10 +570,11 @@ def test_every_mapper_ba_runs_the_mapper_optimizer_and_the_global_ones_the_mappe
     kinds = {}
     adjust = Reconstruction.bundle_adjust
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None,
+                  **kwargs):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
         kinds.setdefault(kind, set()).add((config.optimizer, config.ordering))
-        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma, **kwargs)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     reconstruct(noisy_scene.tracks, noisy_scene, ReconstructionConfig(bundle_adjustment={
@@ -628,10 +631,11 @@ def record_iteration_caps(monkeypatch) -> dict[str, set[int]]:
     caps = {}
     adjust = Reconstruction.bundle_adjust
 
-    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None):
+    def recording(scene, config, variable_images=None, intrinsics_covariance=False, relative_sigma=None,
+                  **kwargs):
         kind = "final" if intrinsics_covariance else "local" if variable_images is not None else "global"
         caps.setdefault(kind, set()).add(config.max_iterations)
-        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma)
+        return adjust(scene, config, variable_images, intrinsics_covariance, relative_sigma, **kwargs)
 
     monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
     return caps
@@ -656,6 +660,37 @@ def test_refining_intrinsics_the_local_bas_take_their_own_cap_and_the_refinement
     caps = record_iteration_caps(monkeypatch)
     run_incremental(scene.tracks, truth, CAPPED, refine=IntrinsicsRefinement(focal=True, distortion=True))
     assert caps == {"local": {4}, "global": {50}, "final": {50}}
+
+
+def test_refining_intrinsics_the_local_bas_hold_them_once_the_model_has_local_intrinsics_until_images(
+        monkeypatch):
+    """From the model's fourth image on, each local BA holds the shared camera (at the fixed-intrinsics
+    cap); the global BAs go on refining it, so the focal length still converges from COLMAP's prior."""
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
+    prior = Camera("simple-radial", fx=960.0, fy=960.0, cx=400.0, cy=300.0)
+    local_bas = []   # (images in the model, intrinsics held, iteration cap, camera changed)
+    adjust = Reconstruction.bundle_adjust
+
+    def recording(model, config, variable_images=None, *args, hold_intrinsics=False, **kwargs):
+        before = model.cameras[0]
+        result = adjust(model, config, variable_images, *args, hold_intrinsics=hold_intrinsics, **kwargs)
+        if variable_images is not None:
+            local_bas.append((len(model.order), hold_intrinsics, config.max_iterations,
+                              model.cameras[0] != before))
+        return result
+
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
+    config = CAPPED.model_copy(update={"mapper": CAPPED.mapper.model_copy(
+        update={"local_intrinsics_until_images": 4})})
+    model = run_incremental(scene.tracks, prior, config,
+                            refine=IntrinsicsRefinement(focal=True, distortion=True))
+    assert ({(images >= 4, held, cap) for images, held, cap, _ in local_bas}
+            == {(False, False, 4), (True, True, 2)})
+    assert not any(changed for _, held, _, changed in local_bas if held)
+    assert len(model.poses) == 8
+    assert model.cameras[0].fx == pytest.approx(truth.fx, rel=0.005)
+    assert pose_errors(model, scene).rotation_deg.max() < 0.2
 
 
 def test_track_observation_pairs_lists_each_pair_of_a_tracks_observations_once_with_its_image_pair():
