@@ -351,6 +351,7 @@ def model_summary(images: ImageSet, model: SparseModel) -> dict:
         "merged_models": list(stats.merged_models),
         "guided_registrations": dict(stats.guided_registrations),
         "registration_rotation_std_deg": dict(stats.registration_rotation_std_deg),
+        "warnings": list(model.warnings),
     }
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -15,7 +16,7 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import CameraConfig
 from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_depths, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
-from estimation.pipeline import initial_intrinsics
+from estimation.pipeline import initial_intrinsics, model_summary
 from estimation.synthetic import project
 
 pytestmark = pytest.mark.slow
@@ -102,6 +103,15 @@ def test_ply_transforms_report_and_figures_are_written_and_loadable(unity):
                  "cameras_and_points_top_view.png"]:
         with Image.open(out / "figures" / name) as figure:
             assert figure.format == "PNG" and min(figure.size) > 300
+
+
+def test_each_model_in_the_report_carries_its_own_warnings(unity, shared_data):
+    """A model left apart says why in report.json (`models[k].warnings`: a refused merge's reason)."""
+    result, _ = unity
+    apart = dataclasses.replace(result.model, warnings=["not merged into the largest model: 12% overlap"])
+    summary = model_summary(list_images(shared_data / "unity_hall"), apart)
+    assert summary["warnings"] == ["not merged into the largest model: 12% overlap"]
+    assert result.report["models"][0]["warnings"] == result.model.warnings
 
 
 def test_the_visibility_matrix_has_every_point_in_two_or_more_registered_images(unity):
