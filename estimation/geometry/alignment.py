@@ -71,6 +71,16 @@ def aligned_pose_errors(estimated: list[CameraPose], truth: list[CameraPose]) ->
     )
 
 
+def relative_rotation_errors_deg(estimated: list[CameraPose], truth: list[CameraPose]) -> np.ndarray:
+    """`rotation_angles_deg` of R_i R_j^T against R*_i R*_j^T for every pair i < j (M (M - 1) / 2,): free of
+    any alignment (a few nearly collinear centres pin a similarity's rotation poorly)."""
+    R_estimated = np.array([p.R for p in estimated])
+    R_true = np.array([p.R for p in truth])
+    first, second = np.triu_indices(len(estimated), k=1)
+    return rotation_angles_deg(R_estimated[first] @ np.swapaxes(R_estimated[second], -1, -2),
+                               R_true[first] @ np.swapaxes(R_true[second], -1, -2))
+
+
 def relative_pose(reference: CameraPose, other: CameraPose) -> CameraPose:
     """`other` in the frame of `reference`: R = R_o R_r^T, t = t_o - R t_r (reference: R = I, C = 0)."""
     R = other.R @ reference.R.T

@@ -7,10 +7,12 @@ from estimation.geometry.alignment import (
     Similarity,
     align_similarity,
     aligned_pose_errors,
+    relative_rotation_errors_deg,
     rotation_angle_deg,
     rotation_angles_deg,
 )
 from estimation.synthetic import make_scene, project, rotation_about_axis
+from estimation.types import CameraPose
 
 
 def test_every_point_is_in_front_of_every_camera_and_inside_every_image():
@@ -83,6 +85,19 @@ def test_aligned_pose_errors_vanish_for_a_similarity_transformed_reconstruction(
     errors = aligned_pose_errors(moved, scene.poses)
     assert errors.rotation_deg.max() < 1e-9
     assert errors.center.max() < 1e-9
+
+
+def test_relative_rotation_errors_ignore_the_frame_and_blame_the_pairs_of_a_turned_camera():
+    scene = make_scene(num_cameras=5)
+    R = rotation_about_axis(np.array([0.3, -1.0, 0.2]), 2.0)
+    moved = [Similarity(0.3, R, np.array([5.0, 1.0, 2.0])).apply_pose(p) for p in scene.poses]
+    assert relative_rotation_errors_deg(moved, scene.poses).max() < 1e-9
+    turned = rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(2.0)) @ moved[3].R
+    moved[3] = CameraPose(turned, moved[3].t)
+    errors = relative_rotation_errors_deg(moved, scene.poses)   # pairs (0,1) (0,2) (0,3) (0,4) (1,2) ...
+    assert len(errors) == 10
+    assert errors[[2, 5, 7, 9]] == pytest.approx(2.0, abs=1e-9)   # every pair with camera 3
+    assert np.delete(errors, [2, 5, 7, 9]).max() < 1e-9
 
 
 def test_rotation_angle_is_accurate_for_tiny_angles():
