@@ -321,9 +321,10 @@ class MapperConfig(StrictConfig):
         "are re-triangulated (COLMAP's re_min_ratio).",
     )
     local_intrinsics_until_images: int = Field(
-        20, ge=2, description="Local BAs refine the intrinsics (when the reconstruction refines them) only "
-        "while the model has fewer images than this; from then on they hold them, and the global "
-        "refinements (every global_ba_growth) and the final BA go on refining them: one more image adds "
+        20, ge=2, description="Local BAs refine a shared camera's intrinsics (when the reconstruction "
+        "refines them) only while the model has fewer images than this; from then on they hold them, and "
+        "the global refinements (every global_ba_growth) and the final BA go on refining them (per-image "
+        "cameras: every local BA refines its images' own): one more image adds "
         "little to what twenty determine, and a local BA that refines the shared camera takes "
         "local_max_iterations_refining steps with every point of its window tied to it. Without "
         "calibration (bench_sfm.py): lego_200 5.7 s instead of 7.4 s end to end (pycolmap 6.2 / 5.8 s), "

@@ -358,11 +358,14 @@ class _ModelBuilder:
         return refine is not None and refine.refines(self.reconstruction.cameras[0].model)
 
     def local_refines_intrinsics(self) -> bool:
-        """Whether the local BAs refine intrinsics: while the reconstruction's BAs do and the model has
-        under local_intrinsics_until_images images (then the global refinements and the final BA go on
-        refining them)."""
-        return (self.refines_intrinsics()
-                and len(self.reconstruction.order) < self.mapper.local_intrinsics_until_images)
+        """Whether the local BAs refine intrinsics: when the reconstruction's BAs do, per-image cameras
+        always (a new image's own camera has only its local BA until the next global refinement), a shared
+        one while the model has under local_intrinsics_until_images images (then the global refinements
+        and the final BA go on refining it)."""
+        if not self.refines_intrinsics():
+            return False
+        return (self.reconstruction.refine.per_image
+                or len(self.reconstruction.order) < self.mapper.local_intrinsics_until_images)
 
     def local_ba_config(self) -> BundleAdjustmentConfig:
         """A local BA: it stops at local_relative_error_tol or after local_max_iterations

@@ -662,6 +662,27 @@ def test_refining_intrinsics_the_local_bas_take_their_own_cap_and_the_refinement
     assert caps == {"local": {4}, "global": {50}, "final": {50}}
 
 
+def record_local_bas(monkeypatch) -> list[tuple[int, bool, int, bool]]:
+    """(images in the model, intrinsics held, iteration cap, any camera changed) of every local BA."""
+    local_bas = []
+    adjust = Reconstruction.bundle_adjust
+
+    def recording(model, config, variable_images=None, *args, hold_intrinsics=False, **kwargs):
+        before = list(model.cameras)
+        result = adjust(model, config, variable_images, *args, hold_intrinsics=hold_intrinsics, **kwargs)
+        if variable_images is not None:
+            local_bas.append((len(model.order), hold_intrinsics, config.max_iterations,
+                              list(model.cameras) != before))
+        return result
+
+    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
+    return local_bas
+
+
+UNTIL_FOUR = CAPPED.model_copy(update={"mapper": CAPPED.mapper.model_copy(
+    update={"local_intrinsics_until_images": 4})})
+
+
 def test_refining_intrinsics_the_local_bas_hold_them_once_the_model_has_local_intrinsics_until_images(
         monkeypatch):
     """From the model's fourth image on, each local BA holds the shared camera (at the fixed-intrinsics
@@ -669,21 +690,8 @@ def test_refining_intrinsics_the_local_bas_hold_them_once_the_model_has_local_in
     truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
     scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
     prior = Camera("simple-radial", fx=960.0, fy=960.0, cx=400.0, cy=300.0)
-    local_bas = []   # (images in the model, intrinsics held, iteration cap, camera changed)
-    adjust = Reconstruction.bundle_adjust
-
-    def recording(model, config, variable_images=None, *args, hold_intrinsics=False, **kwargs):
-        before = model.cameras[0]
-        result = adjust(model, config, variable_images, *args, hold_intrinsics=hold_intrinsics, **kwargs)
-        if variable_images is not None:
-            local_bas.append((len(model.order), hold_intrinsics, config.max_iterations,
-                              model.cameras[0] != before))
-        return result
-
-    monkeypatch.setattr(Reconstruction, "bundle_adjust", recording)
-    config = CAPPED.model_copy(update={"mapper": CAPPED.mapper.model_copy(
-        update={"local_intrinsics_until_images": 4})})
-    model = run_incremental(scene.tracks, prior, config,
+    local_bas = record_local_bas(monkeypatch)
+    model = run_incremental(scene.tracks, prior, UNTIL_FOUR,
                             refine=IntrinsicsRefinement(focal=True, distortion=True))
     assert ({(images >= 4, held, cap) for images, held, cap, _ in local_bas}
             == {(False, False, 4), (True, True, 2)})
@@ -691,6 +699,17 @@ def test_refining_intrinsics_the_local_bas_hold_them_once_the_model_has_local_in
     assert len(model.poses) == 8
     assert model.cameras[0].fx == pytest.approx(truth.fx, rel=0.005)
     assert pose_errors(model, scene).rotation_deg.max() < 0.2
+
+
+def test_per_image_cameras_are_refined_by_every_local_ba(monkeypatch):
+    """A new image's own camera has only its local BA until the next global refinement: never held."""
+    truth = Camera("simple-radial", fx=600.0, fy=600.0, cx=400.0, cy=300.0, k1=-0.1)
+    scene = make_scene(num_cameras=8, num_points=400, noise_px=0.5, seed=3, camera=truth, visibility=0.8)
+    local_bas = record_local_bas(monkeypatch)
+    run_incremental(scene.tracks, [truth] * 8, UNTIL_FOUR,
+                    refine=IntrinsicsRefinement(focal=True, distortion=True, per_image=True))
+    assert {held for _, held, _, _ in local_bas} == {False}
+    assert max(images for images, _, _, _ in local_bas) == 8
 
 
 def test_track_observation_pairs_lists_each_pair_of_a_tracks_observations_once_with_its_image_pair():
