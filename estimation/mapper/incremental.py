@@ -367,11 +367,10 @@ class _ModelBuilder:
         return (self.reconstruction.refine.per_image
                 or len(self.reconstruction.order) < self.mapper.local_intrinsics_until_images)
 
-    def local_ba_config(self) -> BundleAdjustmentConfig:
+    def local_ba_config(self, refining: bool) -> BundleAdjustmentConfig:
         """A local BA: it stops at local_relative_error_tol or after local_max_iterations
         (local_max_iterations_refining when it refines intrinsics)."""
         ba = self.config.bundle_adjustment
-        refining = self.local_refines_intrinsics()
         steps = ba.local_max_iterations_refining if refining else ba.local_max_iterations
         return self.mapper_ba_config(ba.local_relative_error_tol, steps, local=True, refining=refining)
 
@@ -701,8 +700,9 @@ class _ModelBuilder:
         ba = self.config.bundle_adjustment
         neighbours = np.argsort(-shared, kind="stable")[: ba.local_window - 1]
         window = [image, *[int(m) for m in neighbours if shared[m] > 0]]
-        reconstruction.bundle_adjust(self.local_ba_config(), variable_images=window,
-                                     hold_intrinsics=not self.local_refines_intrinsics())
+        refining = self.local_refines_intrinsics()
+        reconstruction.bundle_adjust(self.local_ba_config(refining), variable_images=window,
+                                     hold_intrinsics=not refining)
         touched = np.flatnonzero(reconstruction.points_seen_in(window))
         reconstruction.complete_tracks(self.max_error, touched)
         reconstruction.merge_tracks(self.max_error)
