@@ -73,7 +73,11 @@ def aligned_pose_errors(estimated: list[CameraPose], truth: list[CameraPose]) ->
 
 def relative_rotation_errors_deg(estimated: list[CameraPose], truth: list[CameraPose]) -> np.ndarray:
     """`rotation_angles_deg` of R_i R_j^T against R*_i R*_j^T for every pair i < j (M (M - 1) / 2,): free of
-    any alignment (a few nearly collinear centres pin a similarity's rotation poorly)."""
+    any alignment (a few nearly collinear centres pin a similarity's rotation poorly). ValueError unless
+    both list the same cameras' poses (as many of each)."""
+    if len(estimated) != len(truth):
+        raise ValueError(f"relative rotation errors: {len(estimated)} estimated poses against {len(truth)} "
+                         "true ones (one of each per camera)")
     R_estimated = np.array([p.R for p in estimated])
     R_true = np.array([p.R for p in truth])
     first, second = np.triu_indices(len(estimated), k=1)

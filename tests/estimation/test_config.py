@@ -19,6 +19,7 @@ from estimation.config import ReconstructionConfig
     ("mapper", "verify_veto_support_ratio", 1.5),
     ("mapper", "registration_turn_deg", -10.0),
     ("mapper", "registration_turn_min_gain", 1.0),
+    ("mapper", "local_intrinsics_until_images", 1),
     ("bundle_adjustment", "local_max_iterations", 0),
     ("bundle_adjustment", "local_max_iterations_refining", 0),
 ])

@@ -100,6 +100,12 @@ def test_relative_rotation_errors_ignore_the_frame_and_blame_the_pairs_of_a_turn
     assert np.delete(errors, [2, 5, 7, 9]).max() < 1e-9
 
 
+def test_relative_rotation_errors_refuse_pose_lists_of_different_lengths():
+    scene = make_scene(num_cameras=5)
+    with pytest.raises(ValueError, match="4 estimated poses against 5 true ones"):
+        relative_rotation_errors_deg(scene.poses[:4], scene.poses)
+
+
 def test_rotation_angle_is_accurate_for_tiny_angles():
     assert rotation_angle_deg(np.eye(3), rotation_about_axis(np.array([0, 0, 1.0]), 1e-9)) == pytest.approx(
         np.degrees(1e-9), rel=1e-6)
