@@ -34,3 +34,10 @@ def no_space(detail: str) -> ServiceError:
 def busy(detail: str, retry_after_seconds: int) -> ServiceError:
     """429 Too Many Requests, with the seconds after which to try again."""
     return ServiceError(429, detail, headers={"Retry-After": str(retry_after_seconds)})
+
+
+def retry_after_seconds(error: ServiceError) -> float | None:
+    """The seconds a `busy` refusal asks the caller to wait before trying again; None for any other."""
+    if error.status_code != 429 or not error.headers or "Retry-After" not in error.headers:
+        return None
+    return float(error.headers["Retry-After"])

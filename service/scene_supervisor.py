@@ -4,7 +4,8 @@
 A reconstruction that registered enough images leads to a NeRF job on its poses, a trained NeRF to an orbit
 video job and a held-out evaluation job, each created through the actions (a client's NeRF and video jobs
 go through the same ones, with all their checks). A child that fails or is cancelled fails the scene at
-that stage with the child's reason.
+that stage with the child's reason. A stage refused as busy (every upload check taken, the owner's queue
+full: a 429 with Retry-After) waits and is tried again after that delay, as a client would.
 Each scene is its own unit of failure: any error in one scene's step fails that scene with the reason
 (its finished stages stay available, and a retry re-runs only the failed stage) and never stops the loop
 for the others.
@@ -14,10 +15,11 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 
 from service.actions.nerf import NerfInputs, TrainOptions, create_nerf, queue_evaluation, queue_video
 from service.actions.scenes import owner_client, scene_lock, scene_owner, stage_jobs
-from service.errors import ServiceError
+from service.errors import ServiceError, retry_after_seconds
 from service.executor import Executor
 from service.kinds import JobState
 from service.layout import RECONSTRUCTION_REPORT, output_dir
@@ -40,13 +42,22 @@ class SceneSteps:
 
     def __init__(self, store: JobStore, executor: Executor, settings: ServiceSettings) -> None:
         self.store, self.executor, self.settings = store, executor, settings
+        self._busy_until: dict[str, float] = {}   # scene id -> monotonic time its busy stage is tried again
 
     def advance(self, scene: Scene) -> None:
-        """Moves the scene on; a refusal or any error in its step fails this scene with the reason."""
+        """Moves the scene on; a busy refusal makes it wait (`_wait`), any other refusal or error in its step
+        fails this scene with the reason."""
+        if time.monotonic() < self._busy_until.get(scene.id, 0.0):
+            return
         try:
             self._advance(scene)
+            self._busy_until.pop(scene.id, None)
         except ServiceError as refused:
-            self._fail(scene, f"the {STAGE_NAMES[scene.stage]} could not start: {refused.detail}")
+            retry_after = retry_after_seconds(refused)
+            if retry_after is not None:
+                self._wait(scene, refused.detail, retry_after)
+            else:
+                self._fail(scene, f"the {STAGE_NAMES[scene.stage]} could not start: {refused.detail}")
         except Exception as error:  # one scene's failure must not stall the others
             log.exception("scene %s failed at stage %s", scene.id, scene.stage)
             reason = without_server_paths(f"{type(error).__name__}: {error}", self.settings)
@@ -118,7 +129,14 @@ class SceneSteps:
             queue_evaluation(self.store, self.executor, scene.nerf_job_id, held_out, scene_child=child)
         self.store.update_scene(scene.id, log="orbit video and held-out renders queued")
 
+    def _wait(self, scene: Scene, reason: str, seconds: float) -> None:
+        """The scene stays running at its stage, tried again in `seconds`; its log says why, once per wait."""
+        if scene.id not in self._busy_until:
+            self.store.update_scene(scene.id, log=f"the {STAGE_NAMES[scene.stage]} waits: {reason}")
+        self._busy_until[scene.id] = time.monotonic() + seconds
+
     def _fail(self, scene: Scene, reason: str) -> None:
+        self._busy_until.pop(scene.id, None)
         self.store.update_scene(
             scene.id,
             state=JobState.failed,

@@ -478,3 +478,46 @@ def test_a_crash_right_after_a_child_job_starts_does_not_start_it_twice(settings
     assert len(nerf_jobs) == 1 and executor.submitted == [nerf_jobs[0].id]
     assert store.get_scene(scene.id).nerf_job_id == nerf_jobs[0].id
     store.dispose()
+
+
+def test_a_stage_refused_as_busy_waits_its_retry_after_and_starts_then(settings, monkeypatch):
+    """Every upload check taken (a 429 with Retry-After 5 s) is no failure of the scene: it stays running at
+    its stage, says so once in its log, is not tried again before the 5 s, and its NeRF starts after them.
+    Any other refusal still fails the scene with the reason."""
+    import service.scene_supervisor as supervision
+    from service.errors import ServiceError, busy
+    from service.kinds import JobKind, JobState
+    from service.store import JobStore
+
+    store = JobStore(settings.resolved_database_url)
+    scene = _scene_at_the_nerf_stage(store, settings)
+    clock = [1000.0]
+    monkeypatch.setattr(supervision.time, "monotonic", lambda: clock[0])
+    attempts = []
+
+    def create_nerf(store, executor, settings, client, inputs, scene_child=None):
+        attempts.append(clock[0])
+        if len(attempts) <= 2:
+            raise busy("reconstruction_id: all 2 upload checks are busy; retry after 5 s", 5)
+        return store.create(JobKind.nerf, {}, scene_child=scene_child)
+
+    monkeypatch.setattr(supervision, "create_nerf", create_nerf)
+    steps = supervision.SceneSteps(store, RecordingExecutor(), settings)
+    for now in (1000.0, 1001.0, 1004.9, 1005.0, 1009.9, 1010.0):
+        clock[0] = now
+        steps.advance(store.get_scene(scene.id))
+    waiting = store.get_scene(scene.id)
+    assert attempts == [1000.0, 1005.0, 1010.0]
+    assert waiting.state == JobState.running and waiting.nerf_job_id is not None
+    waits = [line for line in waiting.log if "NeRF waits: reconstruction_id: all 2 upload checks" in line]
+    assert len(waits) == 1
+
+    def refuse(*args, **kwargs):
+        raise ServiceError(422, "bad options")
+
+    refused = _scene_at_the_nerf_stage(store, settings)
+    monkeypatch.setattr(supervision, "create_nerf", refuse)
+    steps.advance(store.get_scene(refused.id))
+    failed = store.get_scene(refused.id)
+    assert failed.state == JobState.failed and failed.error == "nerf: the NeRF could not start: bad options"
+    store.dispose()
