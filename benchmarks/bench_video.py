@@ -132,6 +132,10 @@ def main() -> None:
         for view in {sources[i] for i in keyframes}:
             (same_views / view).symlink_to(photos / view)
         same_poses, same_report, same_seconds = ours(same_views, work / "same_out", calibration, args.seed)
+        for label, report in (("photos", photo_report), ("video", video_report),
+                              ("photos of the keyframe views", same_report)):
+            for warning in report["warnings"]:
+                print(f"ours on the {label}, warning: {warning[:300]}", flush=True)
         reference = same_poses if args.reference == "keyframe-views" else photo_poses
         rows = [(f"photos ({len(names)} PNG)", photo_poses, photo_report["images_total"], photo_seconds),
                 ("photos (keyframe views)", same_poses, same_report["images_total"], same_seconds),

@@ -463,6 +463,22 @@ class MapperConfig(StrictConfig):
         "CPU +0.1 s (1.8 -> 1.9 s: the weighted final BA takes 4 iterations instead of 2). 2.0 and 3.5 "
         "measured within 0.01 deg of 2.5 (mapper only, two feature seeds x RANSAC seeds 0-3).",
     )
+    fold_min_shared: float = Field(
+        0.5, ge=0, le=1, description="report.json warns that a model may be folded onto itself when at least "
+        "fold_min_pairs pairs of its cameras placed within fold_max_angle_deg of one viewpoint observe under "
+        "this share of the points they should share (`verification.shared_views`): a symmetric object's "
+        "look-alike sides put cameras of its far side at the near side's viewpoints. Pairs that close share "
+        "0.56 or more in lego_200's and lego_ring_400's models, 0.14-0.33 in the folded models of a rendered "
+        "box with look-alike opposite sides (bench_sfm.py --sets box,box24). 0: no check.",
+    )
+    fold_max_angle_deg: float = Field(
+        5.0, gt=0, description="Cameras this close (their relative rotation, and their baseline seen from "
+        "their points) are at one viewpoint for the fold check.",
+    )
+    fold_min_pairs: int = Field(
+        3, ge=1, description="Pairs at one viewpoint sharing under fold_min_shared that make a warning: a "
+        "folded model has one for nearly every camera of its far side; one or two are poorly seen views.",
+    )
     deregister_min_kept_ratio: float = Field(
         0.5, ge=0, le=1, description="After each global refinement, an image whose observations fell below "
         "this fraction of the inliers it was registered with is removed and tried again later.",

@@ -3,13 +3,15 @@
 Cameras sit on an arc (a full ring when there are many) of radius about 6 around the world origin,
 each looking at it with a little random elevation, roll and distance jitter. Points are uniform in
 the cube [-2, 2]^3, kept only where every camera sees them (in front, inside the image), so they fill
-the central part of every image.
+the central part of every image. `render_box_ring` renders images instead: a box whose opposite sides look
+alike, seen from a ring.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from estimation.geometry.projection import Camera
@@ -306,3 +308,135 @@ def make_symmetric_ring(num_cameras: int = 24, num_points: int = 3000, confused:
                                          colors),
                            inlier_mask=inlier_mask)
     return SymmetricRing(scene, tuple(confused), half_turn)
+
+
+BOX_HALF_SIZE = np.array([1.0, 0.6, 0.7])
+"""Half the rendered box's extent along the world's x, y and z (up); it stands on the ground plane."""
+TEXTURE_SIZE = 512
+GROUND_TILE = 6.0
+"""World units covered by one copy of the ground's texture (tiled)."""
+SUPERSAMPLING = 2
+"""Rays per pixel side (the image is the mean of SUPERSAMPLING^2 rays: edges anti-aliased)."""
+BACKGROUND_GREY = 200.0
+
+
+@dataclass(frozen=True)
+class RenderedRing:
+    """Rendered RGB images (uint8) with their true cameras (world-to-camera, OpenCV axes)."""
+
+    images: list[np.ndarray]
+    poses: list[CameraPose]
+    K: np.ndarray
+
+
+def _with_marks(texture: np.ndarray, rng: np.random.Generator, count: int) -> np.ndarray:
+    """The texture with `count` random filled discs, rectangles and letters drawn on it."""
+    texture = texture.copy()
+    size = texture.shape[0]
+    for _ in range(count):
+        colour = tuple(int(v) for v in rng.integers(0, 256, 3))
+        corner = tuple(int(v) for v in rng.integers(0, size, 2))
+        extent = int(rng.integers(10, 50))
+        kind = rng.integers(3)
+        if kind == 0:
+            cv2.circle(texture, corner, extent, colour, -1, cv2.LINE_AA)
+        elif kind == 1:
+            opposite = (corner[0] + extent, corner[1] + int(rng.integers(10, 50)))
+            cv2.rectangle(texture, corner, opposite, colour, -1, cv2.LINE_AA)
+        else:
+            letter = chr(int(rng.integers(65, 91)))
+            cv2.putText(texture, letter, corner, cv2.FONT_HERSHEY_SIMPLEX, extent / 15, colour, 3,
+                        cv2.LINE_AA)
+    return texture
+
+
+def _pattern(rng: np.random.Generator, marks: int) -> np.ndarray:
+    """A TEXTURE_SIZE^2 RGB texture: coloured noise at three scales under `marks` random shapes."""
+    noise = np.zeros((TEXTURE_SIZE, TEXTURE_SIZE, 3), np.float32)
+    for cell in (4, 16, 64):
+        coarse = rng.random((TEXTURE_SIZE // cell + 1, TEXTURE_SIZE // cell + 1, 3)).astype(np.float32)
+        noise += cv2.resize(coarse, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_CUBIC) * cell**-0.3
+    noise = (noise - noise.min()) / (noise.max() - noise.min()) * 160.0 + 40.0
+    return _with_marks(noise.astype(np.uint8), rng, marks)
+
+
+def _sample(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear texture colours at u, v in [0, 1] (rows of 1024: OpenCV's remap takes < 32767 per side)."""
+    count, row = len(u), 1024
+    if count == 0:
+        return np.zeros((0, 3), np.float32)
+    pad = (-count) % row
+    side = texture.shape[0] - 1
+    map_u = np.pad(u * side, (0, pad)).astype(np.float32).reshape(-1, row)
+    map_v = np.pad(v * side, (0, pad)).astype(np.float32).reshape(-1, row)
+    return cv2.remap(texture, map_u, map_v, cv2.INTER_LINEAR).reshape(-1, 3)[:count].astype(np.float32)
+
+
+def _render_box(K: np.ndarray, pose: CameraPose, size: int, sides: dict, ground: np.ndarray | None,
+                light: np.ndarray) -> np.ndarray:
+    """Ray-cast the box (slab test) and the ground plane z = -BOX_HALF_SIZE[2] from one camera."""
+    pixels = (np.arange(size * SUPERSAMPLING) + 0.5) / SUPERSAMPLING - 0.5
+    u, v = np.meshgrid(pixels, pixels)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ pose.R
+    origin = pose.center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        near, far = (-BOX_HALF_SIZE - origin) / rays, (BOX_HALF_SIZE - origin) / rays
+    entry = np.nanmax(np.minimum(near, far), -1)
+    hit = (np.nanmin(np.maximum(near, far), -1) >= entry) & (entry > 0)
+    image = np.full(u.shape + (3,), BACKGROUND_GREY, np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_ground = (-BOX_HALF_SIZE[2] - origin[2]) / rays[..., 2]
+    on_ground = (to_ground > 0) & ~hit
+    if ground is not None:
+        spot = origin[:2] + to_ground[on_ground][:, None] * rays[on_ground][:, :2]
+        tile = np.mod(spot / GROUND_TILE, 1.0)
+        image[on_ground] = _sample(ground, tile[:, 0], tile[:, 1])
+    surface = origin + entry[..., None] * rays
+    for (axis, sign), texture in sides.items():
+        on_side = hit & (np.abs(surface[..., axis] - sign * BOX_HALF_SIZE[axis]) < 1e-4)
+        normal = np.zeros(3)
+        normal[axis] = sign
+        point = surface[on_side]
+        if axis == 2:
+            across, down = point[:, 0] / BOX_HALF_SIZE[0], point[:, 1] / BOX_HALF_SIZE[1]
+        else:
+            # u along the side as seen from outside: opposite sides map alike under a half turn about z
+            right = np.cross([0.0, 0.0, 1.0], normal)
+            across, down = point @ right / BOX_HALF_SIZE[1 - axis], -point[:, 2] / BOX_HALF_SIZE[2]
+        shade = 0.55 + 0.45 * max(0.0, float(normal @ light))
+        image[on_side] = shade * _sample(texture, (across + 1) / 2, (down + 1) / 2)
+    return cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def render_box_ring(num_views: int = 36, size: int = 400, unique_marks: int = 8, textured_ground: bool = True,
+                    noise_grey: float = 1.0, seed: int = 0) -> RenderedRing:
+    """A box whose opposite sides carry one texture each (a half turn about the vertical maps the box onto
+    itself, but for `unique_marks` marks of each side and the top's own texture), on a ground plane (tiled
+    random marks, or plain grey), lit from one side, seen from `num_views` cameras on a ring around it
+    (equal azimuth steps with 1 deg of jitter, 25 +- 5 deg elevation, 4.2 +- 0.15 from its centre, 65 deg
+    field of view), with Gaussian sensor noise: views half a turn apart look alike."""
+    rng = np.random.default_rng(seed)
+    front, side = _pattern(rng, 60), _pattern(rng, 60)
+    sides = {(0, 1): _with_marks(front, rng, unique_marks), (0, -1): _with_marks(front, rng, unique_marks),
+             (1, 1): _with_marks(side, rng, unique_marks), (1, -1): _with_marks(side, rng, unique_marks),
+             (2, 1): _pattern(rng, 60)}
+    ground = None
+    if textured_ground:
+        blank = np.full((2 * TEXTURE_SIZE, 2 * TEXTURE_SIZE, 3), 190, np.uint8)
+        ground = (_with_marks(blank, rng, 150) * 0.5 + 100).astype(np.uint8)
+    focal = 0.78 * size
+    K = np.array([[focal, 0.0, (size - 1) / 2], [0.0, focal, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    light = np.array([0.5, 0.3, 0.8]) / np.linalg.norm([0.5, 0.3, 0.8])
+    images, poses = [], []
+    for k in range(num_views):
+        azimuth = 2 * np.pi * k / num_views + np.radians(rng.normal(0.0, 1.0))
+        elevation = np.radians(25.0 + rng.normal(0.0, 5.0))
+        distance = 4.2 + rng.normal(0.0, 0.15)
+        centre = distance * np.array([np.cos(elevation) * np.cos(azimuth),
+                                      np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+        R = look_at(centre, rng.normal(0.0, 0.05, 3), np.array([0.0, 0.0, 1.0]))
+        pose = CameraPose(R=R, t=-R @ centre)
+        rgb = _render_box(K, pose, size, sides, ground, light) + rng.normal(0.0, noise_grey, (size, size, 3))
+        images.append(np.clip(np.rint(rgb), 0, 255).astype(np.uint8))
+        poses.append(pose)
+    return RenderedRing(images, poses, K)

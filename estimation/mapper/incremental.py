@@ -66,6 +66,7 @@ from estimation.mapper.verification import (
     pose_rotation_std_deg,
     rotation_agreement,
     rotation_std_problem,
+    shared_views,
     support_problem,
     under_intrinsics,
     voting_pairs,
@@ -799,7 +800,33 @@ class _ModelBuilder:
                             f"side of the object and were refused or removed at least once "
                             f"({', '.join(flipped)}); symmetric objects need views that overlap their "
                             "neighbours well")
+        folded = self.fold_warning()
+        if folded is not None:
+            warnings.append(folded)
         return warnings
+
+    def fold_warning(self) -> str | None:
+        """A warning when at least fold_min_pairs pairs of cameras placed within fold_max_angle_deg of one
+        viewpoint share under fold_min_shared of their points (`shared_views`): a symmetric object's far side
+        put at the near side's viewpoints by its look-alike features. Which side is the true one, the points
+        cannot tell."""
+        mapper, reconstruction, names = self.mapper, self.reconstruction, self.tracks.image_names
+        if mapper.fold_min_shared <= 0:
+            return None
+        used = reconstruction.used_observations()
+        views = shared_views(reconstruction.poses, reconstruction.cameras, self.image_size,
+                             reconstruction.point_xyz, self.tracks.image_index[used],
+                             reconstruction.obs_point[used], mapper.fold_max_angle_deg)
+        folded = sorted((view for view in views if view.shared < mapper.fold_min_shared),
+                        key=lambda view: view.shared)
+        if len(folded) < mapper.fold_min_pairs:
+            return None
+        pairs = ", ".join(f"{names[view.image_a]} and {names[view.image_b]} {view.shared:.0%}"
+                          for view in folded)
+        return (f"possibly folded onto itself by a symmetric object: {len(folded)} pairs of cameras placed "
+                f"within {mapper.fold_max_angle_deg:g} deg of one viewpoint observe under "
+                f"{mapper.fold_min_shared:.0%} of the points they should share ({pairs}); cameras of the far "
+                "side may sit at the near side's viewpoints")
 
     def test_principal_point(self, covariance: IntrinsicsCovariance | None) -> PrincipalPointTest | None:
         """The refined principal point's shift from its start (the image centre) against its covariance;

@@ -20,6 +20,9 @@ from estimation.config import ReconstructionConfig
     ("mapper", "registration_turn_deg", -10.0),
     ("mapper", "registration_turn_min_gain", 1.0),
     ("mapper", "local_intrinsics_until_images", 1),
+    ("mapper", "fold_min_shared", 1.5),
+    ("mapper", "fold_max_angle_deg", 0.0),
+    ("mapper", "fold_min_pairs", 0),
     ("bundle_adjustment", "local_max_iterations", 0),
     ("bundle_adjustment", "local_max_iterations_refining", 0),
 ])

@@ -1,4 +1,5 @@
-"""The synthetic ground truth itself: geometry, noise, outliers, visibility, and similarity alignment."""
+"""The synthetic ground truth itself: geometry, noise, outliers, visibility, similarity alignment, and the
+rendered box ring."""
 
 import numpy as np
 import pytest
@@ -11,7 +12,14 @@ from estimation.geometry.alignment import (
     rotation_angle_deg,
     rotation_angles_deg,
 )
-from estimation.synthetic import make_scene, project, rotation_about_axis
+from estimation.synthetic import (
+    BACKGROUND_GREY,
+    BOX_HALF_SIZE,
+    make_scene,
+    project,
+    render_box_ring,
+    rotation_about_axis,
+)
 from estimation.types import CameraPose
 
 
@@ -118,3 +126,21 @@ def test_rotation_angles_of_stacked_rotations_are_each_pairs_angle_up_to_a_half_
     start = rotation_about_axis(np.array([1.0, 0.0, 0.0]), 0.7)
     assert rotation_angles_deg(start, start @ turned) == pytest.approx(np.degrees(angles), abs=1e-9)
     assert rotation_angle_deg(start, start @ turned[2]) == pytest.approx(np.degrees(2.0))
+
+
+def test_the_rendered_box_is_where_its_true_cameras_project_it_and_the_ground_around_it():
+    ring = render_box_ring(num_views=4, size=64, seed=1)
+    assert len(ring.images) == len(ring.poses) == 4
+    for image, pose in zip(ring.images, ring.poses, strict=True):
+        assert image.shape == (64, 64, 3) and image.dtype == np.uint8
+        u, v = project(ring.K, pose, np.array([[0.0, 0.0, BOX_HALF_SIZE[2]]]))[0]   # the top's centre
+        top = image[int(round(v)) - 1:int(round(v)) + 2, int(round(u)) - 1:int(round(u)) + 2]
+        assert np.abs(top.astype(float) - BACKGROUND_GREY).max() > 5    # the box, not the plain sky
+        below = image[-4:].reshape(-1, 3).astype(float)
+        assert below.std(axis=0).max() > 5                              # the ground's marks, not flat grey
+
+
+def test_views_half_a_turn_apart_look_more_alike_than_views_a_quarter_turn_apart():
+    ring = render_box_ring(num_views=4, size=96, textured_ground=False, unique_marks=0, seed=2)
+    first, quarter, half = (ring.images[k].astype(float) for k in (0, 1, 2))
+    assert np.abs(first - half).mean() < 0.8 * np.abs(first - quarter).mean()

@@ -1,5 +1,6 @@
 """Each registration is held against evidence it was not fitted to: its support and spread, and the
-relative rotations that two-view geometry verified for its pairs."""
+relative rotations that two-view geometry verified for its pairs; a finished model against the points its
+cameras at one viewpoint should share."""
 
 from dataclasses import replace
 
@@ -10,6 +11,7 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import ReconstructionConfig
 from estimation.geometry.alignment import aligned_pose_errors, relative_pose
 from estimation.geometry.linalg import skew
+from estimation.geometry.projection import Camera
 from estimation.mapper.incremental import reconstruct_models
 from estimation.mapper.verification import (
     LOOSE_ROTATION,
@@ -24,6 +26,7 @@ from estimation.mapper.verification import (
     pose_rotation_std_deg,
     rotation_agreement,
     rotation_std_problem,
+    shared_views,
     support_problem,
     under_intrinsics,
     voting_pairs,
@@ -315,3 +318,54 @@ def test_a_pair_whose_own_E_is_off_does_not_veto_a_pose_that_explains_its_corres
     errors = rotation_errors(model, scene)
     assert 9 in errors and 10 in errors and max(errors.values()) < 1.0
     assert 5 not in model.poses and "near-mirror" in model.unregistered[5]
+
+
+VIEW_K = np.array([[100.0, 0.0, 49.5], [0.0, 100.0, 49.5], [0.0, 0.0, 1.0]])
+VIEW_SIZE = (100, 100)
+
+
+def turned(degrees: float) -> CameraPose:
+    """A camera at the origin turned about its y axis."""
+    return CameraPose(R=rotation_about_axis(np.array([0.0, 1.0, 0.0]), np.radians(degrees)), t=np.zeros(3))
+
+
+def views_of(poses: dict[int, CameraPose], points: np.ndarray, observed: dict[int, np.ndarray]):
+    """`shared_views` within 5 deg, every camera the pinhole VIEW_K."""
+    obs_image = np.concatenate([np.full(len(index), m) for m, index in observed.items()])
+    obs_point = np.concatenate(list(observed.values()))
+    return shared_views(poses, [Camera.from_K(VIEW_K)] * (max(poses) + 1), VIEW_SIZE, points, obs_image,
+                        obs_point, max_angle_deg=5.0)
+
+
+@pytest.fixture
+def grid_points():
+    """100 points on a 10 x 10 grid 5 in front of the origin, inside a 100 px image at f = 100."""
+    x, y = np.meshgrid(np.linspace(-2.0, 2.0, 10), np.linspace(-2.0, 2.0, 10))
+    return np.column_stack([x.ravel(), y.ravel(), np.full(100, 5.0)])
+
+
+def test_cameras_at_one_viewpoint_that_observe_the_same_points_share_all_of_them(grid_points):
+    views = views_of({0: turned(0.0), 1: turned(1.0)}, grid_points, {0: np.arange(100), 1: np.arange(100)})
+    assert [(view.image_a, view.image_b) for view in views] == [(0, 1)]
+    assert views[0].shared == pytest.approx(1.0)
+    assert views[0].angle_deg == pytest.approx(1.0)
+
+
+def test_a_camera_at_the_viewpoint_that_observes_half_of_the_points_shares_half(grid_points):
+    # 1 -> 0: all of 1's points are 0's (1.0); 0 -> 1: half of 0's points inside 1 are 1's (0.5)
+    views = views_of({0: turned(0.0), 1: turned(1.0)}, grid_points, {0: np.arange(100), 1: np.arange(50)})
+    assert views[0].shared == pytest.approx(0.5)
+
+
+def test_points_outside_the_other_image_do_not_count_against_the_pair(grid_points):
+    aside = grid_points + [40.0, 0.0, 0.0]       # far right of both images
+    points = np.vstack([grid_points, aside])
+    views = views_of({0: turned(0.0), 1: turned(1.0)}, points, {0: np.arange(200), 1: np.arange(100)})
+    assert views[0].shared == pytest.approx(1.0)
+
+
+def test_cameras_farther_apart_than_the_angle_are_not_compared(grid_points):
+    views = views_of({0: turned(0.0), 1: turned(8.0), 2: CameraPose(R=np.eye(3), t=np.array([-1.0, 0, 0]))},
+                     grid_points, {m: np.arange(100) for m in range(3)})
+    # 8 deg of rotation, and a baseline of 1 seen from points 5 away (11 deg)
+    assert views == []
