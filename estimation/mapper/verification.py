@@ -235,13 +235,13 @@ class SharedView(NamedTuple):
     shared: float       # the smaller of the two ways (`shared_views`)
 
 
-def shared_views(poses: dict[int, CameraPose], cameras: Sequence[Camera], image_size: tuple[int, int],
+def shared_views(poses: dict[int, CameraPose], cameras: Sequence[Camera], image_size: tuple[float, float],
                  points: np.ndarray, obs_image: np.ndarray, obs_point: np.ndarray, max_angle_deg: float
                  ) -> list[SharedView]:
     """shared = min over both ways of |P_a & P_b| / |{X in P_a : in front of b, inside its image}| (P_m: the
     points image m observes) for every pair within max_angle_deg of each other's viewpoint: their relative
     rotation, and atan(baseline / the nearer median depth of their points). Cameras at one viewpoint
-    observe the same points; 7-15 deg apart on lego's rings they share about half of them."""
+    observe the same points (lego_200's and lego_ring_400's pairs within 5 deg share 56 % or more)."""
     images = sorted(poses)
     if len(images) < 2:
         return []
