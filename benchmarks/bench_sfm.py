@@ -82,6 +82,7 @@ from estimation import ReconstructionConfig, reconstruct  # noqa: E402
 from estimation.config import BundleAdjustmentConfig  # noqa: E402
 from estimation.geometry.alignment import aligned_pose_errors, relative_rotation_errors_deg  # noqa: E402
 from estimation.io.export import opengl_c2w_to_opencv_pose  # noqa: E402
+from estimation.mapper.verification import FOLDED  # noqa: E402
 from estimation.synthetic import render_box_ring  # noqa: E402
 from estimation.types import CameraPose  # noqa: E402
 
@@ -264,11 +265,9 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
                    focal_px=float(result.K[0, 0]),
                    loosest_registrations=loosest_registrations(result.report),
                    fold_warnings=[warning for warning in result.report["warnings"]
-                                  if warning.startswith(FOLD_WARNING)])
+                                  if warning.startswith(FOLDED)])
 
 
-FOLD_WARNING = "possibly folded"
-"""How report.json's warning of a model folded onto itself begins (`_ModelBuilder.fold_warning`)."""
 LOOSEST_SHOWN = 3
 """Registrations listed by `loosest_registrations`."""
 

@@ -318,6 +318,8 @@ GROUND_TILE = 6.0
 SUPERSAMPLING = 2
 """Rays per pixel side (the image is the mean of SUPERSAMPLING^2 rays: edges anti-aliased)."""
 BACKGROUND_GREY = 200.0
+MIN_RING_VIEWS = 3
+MIN_RENDER_SIZE = 16
 
 
 @dataclass(frozen=True)
@@ -415,6 +417,10 @@ def render_box_ring(num_views: int = 36, size: int = 400, unique_marks: int = 8,
     random marks, or plain grey), lit from one side, seen from `num_views` cameras on a ring around it
     (equal azimuth steps with 1 deg of jitter, 25 +- 5 deg elevation, 4.2 +- 0.15 from its centre, 65 deg
     field of view), with Gaussian sensor noise: views half a turn apart look alike."""
+    if num_views < MIN_RING_VIEWS:
+        raise ValueError(f"render_box_ring: num_views must be at least {MIN_RING_VIEWS}, got {num_views}")
+    if size < MIN_RENDER_SIZE:
+        raise ValueError(f"render_box_ring: size must be at least {MIN_RENDER_SIZE} px, got {size}")
     rng = np.random.default_rng(seed)
     front, side = _pattern(rng, 60), _pattern(rng, 60)
     sides = {(0, 1): _with_marks(front, rng, unique_marks), (0, -1): _with_marks(front, rng, unique_marks),

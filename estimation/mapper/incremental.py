@@ -53,6 +53,7 @@ from estimation.mapper.merge import (
 from estimation.mapper.next_image import PyramidCells, pyramid_cells, visibility_pyramid_scores
 from estimation.mapper.reconstruction import Reconstruction
 from estimation.mapper.verification import (
+    FOLDED,
     LOOSE_ROTATION,
     NEAR_MIRROR,
     InlierSupport,
@@ -786,7 +787,8 @@ class _ModelBuilder:
 
     def mirror_warnings(self) -> list[str]:
         """Warnings of near-mirror ambiguity: images whose verified pairs disagree with their final rotation,
-        and images refused or removed for such a disagreement during the reconstruction."""
+        images refused or removed for such a disagreement during the reconstruction, and a model folded
+        onto itself (`fold_warning`)."""
         names = self.tracks.image_names
         warnings = []
         for image in self.reconstruction.order:
@@ -823,7 +825,7 @@ class _ModelBuilder:
             return None
         pairs = ", ".join(f"{names[view.image_a]} and {names[view.image_b]} {view.shared:.0%}"
                           for view in folded)
-        return (f"possibly folded onto itself by a symmetric object: {len(folded)} pairs of cameras placed "
+        return (f"{FOLDED}: {len(folded)} pairs of cameras placed "
                 f"within {mapper.fold_max_angle_deg:g} deg of one viewpoint observe under "
                 f"{mapper.fold_min_shared:.0%} of the points they should share ({pairs}); cameras of the far "
                 "side may sit at the near side's viewpoints")

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from estimation.geometry.alignment import relative_pose, rotation_angles_deg
 from estimation.geometry.linalg import skew
@@ -41,6 +42,8 @@ from estimation.types import CameraPose
 
 NEAR_MIRROR = "a near-mirror placement"
 """The words that end a refusal for disagreeing with the verified pairs (the warnings look for them)."""
+FOLDED = "possibly folded onto itself by a symmetric object"
+"""How the warning of a model whose cameras at one viewpoint share few points begins (`shared_views`)."""
 LOOSE_ROTATION = "a loosely pinned rotation"
 """The words that end a refusal for inliers that pin the rotation too loosely (`rotation_std_problem`)."""
 SPREAD_GRID = 8
@@ -245,18 +248,26 @@ def shared_views(poses: dict[int, CameraPose], cameras: Sequence[Camera], image_
     images = sorted(poses)
     if len(images) < 2:
         return []
-    observed = {m: np.unique(obs_point[obs_image == m]) for m in images}
     R = np.stack([poses[m].R for m in images])
+    # Candidates first: optical axes within the angle (a rotation turns the axis by at most its angle), so
+    # that a model of thousands of images never compares every pair.
+    chord = 2.0 * np.sin(np.radians(min(max_angle_deg, 180.0)) / 2.0)
+    candidates = cKDTree(R[:, 2]).query_pairs(chord, output_type="ndarray")
+    if len(candidates) == 0:
+        return []
+    first, second = candidates[np.lexsort(candidates.T[::-1])].T
+    observed = {m: np.unique(obs_point[obs_image == m]) for m in images}
     centres = np.stack([poses[m].center for m in images])
     depth = np.array([np.median(points[observed[m]] @ poses[m].R[2] + poses[m].t[2]) if len(observed[m])
                       else np.inf for m in images])
-    rotation = rotation_angles_deg(R[:, None], R[None, :])
-    baseline = np.linalg.norm(centres[:, None] - centres[None, :], axis=2)
-    parallax = np.degrees(np.arctan(baseline / np.minimum(depth[:, None], depth[None, :])))
+    rotation = rotation_angles_deg(R[first], R[second])
+    baseline = np.linalg.norm(centres[first] - centres[second], axis=1)
+    parallax = np.degrees(np.arctan(baseline / np.minimum(depth[first], depth[second])))
     angle = np.maximum(rotation, parallax)
     width, height = image_size
     views = []
-    for a, b in zip(*np.nonzero(np.triu(angle <= max_angle_deg, k=1)), strict=True):
+    close = angle <= max_angle_deg
+    for a, b, pair_angle in zip(first[close], second[close], angle[close], strict=True):
         both = len(np.intersect1d(observed[images[a]], observed[images[b]], assume_unique=True))
         shares = []
         for one, other in ((images[a], images[b]), (images[b], images[a])):
@@ -265,5 +276,5 @@ def shared_views(poses: dict[int, CameraPose], cameras: Sequence[Camera], image_
             inside = ((projection.depth > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] < width)
                       & (uv[:, 1] < height))
             shares.append(both / max(int(inside.sum()), 1))
-        views.append(SharedView(images[a], images[b], float(angle[a, b]), min(shares)))
+        views.append(SharedView(images[a], images[b], float(pair_angle), min(shares)))
     return views

@@ -144,3 +144,9 @@ def test_views_half_a_turn_apart_look_more_alike_than_views_a_quarter_turn_apart
     ring = render_box_ring(num_views=4, size=96, textured_ground=False, unique_marks=0, seed=2)
     first, quarter, half = (ring.images[k].astype(float) for k in (0, 1, 2))
     assert np.abs(first - half).mean() < 0.8 * np.abs(first - quarter).mean()
+
+
+@pytest.mark.parametrize(("field", "value"), [("num_views", 2), ("size", 8)])
+def test_a_box_ring_too_small_to_render_is_refused_naming_its_argument(field, value):
+    with pytest.raises(ValueError, match=f"{field} must be at least .*, got {value}"):
+        render_box_ring(**{field: value})
