@@ -455,9 +455,9 @@ def main() -> None:
                             f"{100 * ours.ceres_left:.3f} % | {ours.seconds:.1f} | {ratio} |")
                 print(rows[-1], flush=True)
                 stages = ", ".join(f"{stage} {value:.1f}" for stage, value in ours.stage_seconds.items())
-                print(f"ours, seconds per stage (detection, matching_and_verification: inside features): "
-                      f"{stages}; CPU s {ours.cpu_seconds[0]:.2f} + {ours.cpu_seconds[1]:.2f} in worker "
-                      f"processes", flush=True)
+                print(f"ours, seconds per stage (detection, matching_and_verification, view_graph: inside "
+                      f"features): {stages}; CPU s {ours.cpu_seconds[0]:.2f} + {ours.cpu_seconds[1]:.2f} in "
+                      f"worker processes", flush=True)
                 loosest = ", ".join(f"{name} {std:.2f}" for name, std in ours.loosest_registrations.items())
                 print(f"ours, loosest registrations (rotation std-dev at 1 px, deg): {loosest}", flush=True)
                 for warning in ours.fold_warnings:

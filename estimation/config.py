@@ -243,6 +243,17 @@ class TwoViewConfig(StrictConfig):
         description="A planar-or-panoramic pair is a pure rotation (panoramic) when the baseline over the "
         "scene plane's distance, from H's singular values, is below this.",
     )
+    max_rotation_residual_deg: float | None = Field(
+        90.0, gt=0, le=180,
+        description="A verified pair whose relative rotation is further than this from the world rotations "
+        "averaged over the view graph is a look-alike (a symmetric object's far side seen as its near side): "
+        "its matches stay out of the tracks (`features.view_graph`). None: every verified pair is kept.",
+    )
+    anchor_pairs_per_image: int = Field(
+        2, ge=1,
+        description="The rotations are averaged over each image's this many pairs with the most inliers (a "
+        "look-alike shares only the symmetric part of two views: fewer inliers than true neighbours).",
+    )
 
 
 class MapperConfig(StrictConfig):

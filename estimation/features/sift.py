@@ -47,6 +47,7 @@ from estimation.features.matching import (
 )
 from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
+from estimation.features.view_graph import NO_LOOK_ALIKES, LookAlikes, look_alike_pairs, pair_rotations
 from estimation.io.images import ImageSet, load_rgb
 from estimation.parallel import WorkerPool, resolve_workers
 from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry, verify_epipolar
@@ -111,10 +112,12 @@ class SiftResult:
     verified_per_pair: dict[tuple[int, int], int]       # kept after geometric verification
     num_rejected_links: int
     two_view: dict[tuple[int, int], TwoViewGeometry] = field(default_factory=dict)   # verified pairs
-    seconds_per_stage: dict[str, float] = field(default_factory=dict)   # detection, matching_and_verification
+    # detection, matching_and_verification, view_graph
+    seconds_per_stage: dict[str, float] = field(default_factory=dict)
     # with defer_planarity: the pixels of the matches (in i, in j) of each pair whose planarity is untested
     untested_uv: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     features: TrackFeatures | None = None   # the keypoints and descriptors behind the tracks
+    look_alikes: LookAlikes = NO_LOOK_ALIKES   # the verified pairs left out of the tracks (`view_graph`)
 
 
 def root_sift(descriptors: np.ndarray) -> np.ndarray:
@@ -400,13 +403,17 @@ def sift_tracks(
     pool: WorkerPool | None = None,
     defer_planarity: bool = False,
     stages: FeatureStages | None = None,
+    view_graph_K: np.ndarray | None = None,
 ) -> SiftResult:
     """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
     merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1.
     `pool`: the worker processes to use (a `sift_pool`, left running; default: one of this call's own).
     `defer_planarity`: H is left out (the tracks do not depend on it); `untested_uv` holds what
     `features.planarity` needs to test it later. `stages`: where the extraction chunks and the matching
-    blocks run (default: `PoolStages`, this machine's threads and the pool's processes)."""
+    blocks run (default: `PoolStages`, this machine's threads and the pool's processes). `view_graph_K`
+    (N, 3, 3): each image's intrinsics, exact or a prior, to measure the verified pairs' rotations with and
+    leave the look-alikes out of the tracks (`features.view_graph`); default: K for every image, or (without
+    K) no such check."""
     report = progress or (lambda stage, fraction: None)
     workers = resolve_workers(config.workers)
     seconds: dict[str, float] = {}
@@ -429,6 +436,20 @@ def sift_tracks(
         matches, geometries = match_and_verify_pairs(work, pairs, pool, lambda fraction: report(
             "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction), stages)
         seconds["matching_and_verification"] = time.perf_counter() - started
+
+    look_alikes = NO_LOOK_ALIKES
+    if view_graph_K is None and K is not None:
+        view_graph_K = np.broadcast_to(K, (len(features), 3, 3))
+    if two_view is not None and view_graph_K is not None:
+        started = time.perf_counter()
+        rotations = pair_rotations(geometries, lambda i, j: (work.uv[i][matches[(i, j)].index_a],
+                                                             work.uv[j][matches[(i, j)].index_b]),
+                                   view_graph_K, two_view.min_inliers)
+        look_alikes = look_alike_pairs(len(features), rotations, two_view)
+        # Left out of the geometries, a look-alike neither links tracks nor votes on registrations.
+        left_out = set(look_alikes.pairs)
+        geometries = {pair: geometry for pair, geometry in geometries.items() if pair not in left_out}
+        seconds["view_graph"] = time.perf_counter() - started
 
     offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])
     links, link_ratios, verified_per_pair = [], [], {}
@@ -466,4 +487,5 @@ def sift_tracks(
                      for (i, j), geometry in geometries.items() if not geometry.planarity_tested},
         features=TrackFeatures(features, used_nodes[assembly.observation_node]
                                - offsets[assembly.tracks.image_index]),
+        look_alikes=look_alikes,
     )

@@ -222,6 +222,25 @@ def pose_candidates(E: np.ndarray) -> list[CameraPose]:
     return [CameraPose(R=R, t=sign * U[:, 2]) for R in _rotations_of_svd(U, Vt) for sign in (1.0, -1.0)]
 
 
+def relative_rotations(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """R of each stacked E (P, 3, 3) whose pose (R, +-t) puts most of its normalized correspondences x1, x2
+    (P, M, 2) in front of both cameras: z2 x2 = z1 R x1 + t with z1, z2 > 0 (depths from x2 x (z1 R x1 + t) =
+    0), for many pairs at once -> (P, 3, 3)."""
+    U, _, Vt = np.linalg.svd(E)
+    R = _rotations_of_svd(U, Vt)                                       # (P, 2, 3, 3)
+    t = U[:, None, :, 2]                                               # (P, 1, 3), up to sign
+    h1, h2 = (np.concatenate([x, np.ones(x.shape[:-1] + (1,))], axis=-1) for x in (x1, x2))
+    rotated = np.einsum("prij,pmj->prmi", R, h1)                       # (P, 2, M, 3): R x1
+    across = np.cross(h2[:, None], rotated)                            # x2 x R x1
+    z1 = -np.einsum("prmi,prmi->prm", np.cross(h2[:, None], t[:, :, None]), across)
+    z1 /= np.maximum(np.einsum("prmi,prmi->prm", across, across), 1e-300)
+    z2 = z1 * rotated[..., 2] + t[:, :, None, 2]                       # (z1 R x1 + t)_z, x2_z = 1
+    # t's sign flips both depths' signs together: a candidate R counts the points of either sign.
+    agree = z1 * z2 > 0
+    in_front = np.maximum((agree & (z1 > 0)).sum(-1), (agree & (z1 < 0)).sum(-1))   # (P, 2)
+    return R[np.arange(len(E)), np.argmax(in_front, axis=1)]
+
+
 def in_front_of_both(pose: CameraPose, points: np.ndarray) -> np.ndarray:
     """Chirality: r3 . (X - C) > 0 for the second camera and X_z > 0 for the first (R = I, C = 0)."""
     return (points[:, 2] > 0) & ((points - pose.center) @ pose.R[2] > 0)

@@ -273,6 +273,7 @@ def test_sift_tracks_on_unity_hall_are_multiview_and_consistent(unity_sift):
     assert np.unique(keys).size == keys.size                     # at most once per image
     assert np.all((tracks.uv >= 0) & (tracks.uv <= [images.width, images.height]))
     assert tracks.colors.dtype == np.uint8 and len(tracks.colors) == tracks.num_tracks
+    assert result.look_alikes.pairs == [] and result.look_alikes.conflicts == []   # no symmetric object
 
 
 def test_one_worker_detects_matches_and_verifies_exactly_as_two_do(shared_data, unity_sift):
@@ -287,7 +288,7 @@ def test_one_worker_detects_matches_and_verifies_exactly_as_two_do(shared_data, 
         np.testing.assert_array_equal(geometry.E, parallel.two_view[pair].E)
     np.testing.assert_array_equal(serial.tracks.track_index, parallel.tracks.track_index)
     np.testing.assert_array_equal(serial.tracks.uv, parallel.tracks.uv)
-    assert set(serial.seconds_per_stage) == {"detection", "matching_and_verification"}
+    assert set(serial.seconds_per_stage) == {"detection", "matching_and_verification", "view_graph"}
 
 
 class SerialStages:

@@ -21,6 +21,7 @@ from estimation.two_view.essential import (
     pose_candidates,
     ransac_essential,
     refine_essential,
+    relative_rotations,
     to_normalized,
 )
 from estimation.two_view.fundamental import eight_point, ransac_fundamental, sampson_residual
@@ -78,6 +79,23 @@ def test_chirality_picks_the_true_pose_from_noise_free_correspondences():
     assert direction_error_deg(chosen.pose.center, truth.center) < 1e-6
     assert chosen.in_front.all()
     assert sorted(chosen.candidate_scores) == [0, 0, 0, 200]
+
+
+def test_relative_rotations_of_many_pairs_at_once_are_the_poses_chirality_picks():
+    scene = make_scene(num_cameras=6, num_points=200, noise_px=0.5)
+    pairs = [(0, j) for j in range(1, 6)] + [(2, 4), (5, 3)]
+    E, x1, x2, truth = [], [], [], []
+    for i, j in pairs:
+        _, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+        E.append(essential_from_fundamental(eight_point(uv1, uv2), scene.K) * (-1) ** j)   # sign is free
+        x1.append(to_normalized(scene.K, uv1[:32]))
+        x2.append(to_normalized(scene.K, uv2[:32]))
+        truth.append(relative_pose(scene.poses[i], scene.poses[j]).R)
+    rotations = relative_rotations(np.stack(E), np.stack(x1), np.stack(x2))
+    for R, one, true_R, (i, j) in zip(rotations, E, truth, pairs, strict=True):
+        _, uv1, uv2 = scene.tracks.pair_correspondences(i, j)
+        np.testing.assert_allclose(R, choose_relative_pose(one, scene.K, uv1, uv2).pose.R, atol=1e-12)
+        assert rotation_angle_deg(R, true_R) < 0.5
 
 
 def test_relative_pose_under_noise_and_outliers_is_within_half_a_degree_and_one_percent():

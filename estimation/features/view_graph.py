@@ -1,0 +1,109 @@
+"""Look-alike pairs: verified pairs whose relative rotation contradicts the rest of the view graph.
+
+From one viewpoint, the far side of a symmetric object looks like its near side from the opposite viewpoint.
+The pair of those two views verifies (its matches fit an E), but its relative rotation is the look-alike's,
+up to a half turn from the truth, and in the tracks its matches would join the two sides into one: a model
+folded onto itself. A look-alike shares only the symmetric part of its views, so each image's true
+neighbours have more inliers than its look-alikes: the world rotations are averaged over each image's
+strongest pairs (`TwoViewConfig.anchor_pairs_per_image`), and a pair more than `max_rotation_residual_deg`
+from them is a look-alike, left out of the tracks. The limit is wide because the E of a small object seen
+from afar may trade rotation for translation by tens of degrees (lego_200: up to ~60 deg), while a
+look-alike is off by about a half turn.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+
+from estimation.config import TwoViewConfig
+from estimation.geometry.rotation_averaging import (
+    refined_rotations,
+    relative_residuals_deg,
+    spanning_tree_rotations,
+)
+from estimation.two_view.essential import project_to_essential, relative_rotations, to_normalized
+from estimation.two_view.geometry import TwoViewGeometry
+
+AVERAGING_SCALE_DEG = 5.0
+"""Cauchy scale of the rotation averaging: pairs this far from the average count half."""
+AVERAGING_SWEEPS = 20
+"""Sweeps of the averaging from the spanning tree (the residuals of lego_200's pairs settle in ~10)."""
+CHIRALITY_POINTS = 32
+"""This many of a pair's inliers (evenly picked) decide which of E's four poses it has."""
+
+
+class PairRotations(NamedTuple):
+    """The verified pairs' relative rotations: R_j = R_ij R_i (world-to-camera)."""
+
+    pairs: np.ndarray        # (P, 2) (i, j), i < j
+    R_relative: np.ndarray   # (P, 3, 3)
+    inliers: np.ndarray      # (P,) the pair's verified inliers
+
+
+class LookAlikes(NamedTuple):
+    pairs: list[tuple[int, int]]       # the pairs left out
+    residual_deg: np.ndarray           # (P,) of every pair of the PairRotations: angle(R_ij, R_j R_i^T)
+    conflicts: list[tuple[int, int]]   # strongest pairs of their images that are as far: no pair left out
+
+
+NO_LOOK_ALIKES = LookAlikes([], np.zeros(0), [])
+"""What a view graph without a check (no intrinsics, or no limit) gives."""
+
+
+def pair_rotations(geometries: dict[tuple[int, int], TwoViewGeometry],
+                   uv_of_pair: Callable[[int, int], tuple], K: np.ndarray, min_inliers: int) -> PairRotations:
+    """R_ij of each pair with E (or F: E = K_j^T F K_i) and min_inliers or more, from the pose putting most
+    of CHIRALITY_POINTS of its inliers in front of both cameras (`relative_rotations`). uv_of_pair(i, j): the
+    pixels of the pair's matches in i and in j; K (N, 3, 3): each image's intrinsics, exact or a prior."""
+    pairs = [pair for pair, geometry in geometries.items()
+             if (geometry.E is not None or geometry.F is not None) and geometry.num_inliers >= min_inliers]
+    E = np.zeros((len(pairs), 3, 3))
+    x_i, x_j = np.zeros((2, len(pairs), CHIRALITY_POINTS, 2))
+    for k, (i, j) in enumerate(pairs):
+        geometry = geometries[(i, j)]
+        E[k] = geometry.E if geometry.E is not None else project_to_essential(K[j].T @ geometry.F @ K[i])
+        uv_i, uv_j = (uv[geometry.inlier_mask] for uv in uv_of_pair(i, j))
+        # Evenly spread picks, repeated where the pair has fewer inliers (a repeat only counts twice).
+        picked = np.linspace(0, len(uv_i) - 1, CHIRALITY_POINTS).astype(int)
+        x_i[k], x_j[k] = to_normalized(K[i], uv_i[picked]), to_normalized(K[j], uv_j[picked])
+    return PairRotations(np.array(pairs, int).reshape(-1, 2), relative_rotations(E, x_i, x_j),
+                         np.array([geometries[pair].num_inliers for pair in pairs], float))
+
+
+def strongest_pairs(pairs: np.ndarray, inliers: np.ndarray, per_image: int) -> np.ndarray:
+    """(P,) bool: the pair is among the per_image pairs with the most inliers of either of its images."""
+    image = pairs.ravel()
+    pair = np.repeat(np.arange(len(pairs)), 2)
+    order = np.lexsort((pair, -inliers[pair], image))        # by image, most inliers first
+    image, pair = image[order], pair[order]
+    starts = np.flatnonzero(np.r_[True, image[1:] != image[:-1]])
+    rank = np.arange(len(image)) - np.repeat(starts, np.diff(np.r_[starts, len(image)]))
+    strongest = np.zeros(len(pairs), bool)
+    strongest[pair[rank < per_image]] = True
+    return strongest
+
+
+def look_alike_pairs(num_images: int, rotations: PairRotations, config: TwoViewConfig) -> LookAlikes:
+    """The pairs more than config.max_rotation_residual_deg from the rotations averaged over each image's
+    config.anchor_pairs_per_image strongest pairs (and the spanning tree that starts them); none when some
+    of those strongest pairs are that far themselves (`LookAlikes.conflicts`)."""
+    if len(rotations.pairs) == 0 or config.max_rotation_residual_deg is None:
+        return NO_LOOK_ALIKES
+    anchor = strongest_pairs(rotations.pairs, rotations.inliers, config.anchor_pairs_per_image)
+    # The tree takes the anchor pairs first (their inliers raised above every other pair's).
+    tree = spanning_tree_rotations(num_images, rotations.pairs, rotations.R_relative,
+                                   rotations.inliers + anchor * rotations.inliers.max())
+    used = anchor | tree.in_tree
+    averaged = refined_rotations(tree.rotations, rotations.pairs[used], rotations.R_relative[used],
+                                 rotations.inliers[used], AVERAGING_SCALE_DEG, AVERAGING_SWEEPS)
+    residual = relative_residuals_deg(averaged, rotations.pairs, rotations.R_relative)
+    far = residual > config.max_rotation_residual_deg
+    conflicts = [tuple(pair) for pair in rotations.pairs[far & anchor].tolist()]
+    if conflicts:
+        # Some image's strongest pairs contradict each other: its look-alikes are as strong as its true
+        # neighbours (a sparse ring), and which is which cannot be told from the rotations.
+        return LookAlikes([], residual, conflicts)
+    return LookAlikes([tuple(pair) for pair in rotations.pairs[far].tolist()], residual, [])

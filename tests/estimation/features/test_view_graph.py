@@ -1,0 +1,71 @@
+"""Look-alike pairs: a verified pair whose relative rotation contradicts the rotations that each image's
+strongest pairs agree on is left out; when those strongest pairs contradict each other, none is."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimation.config import TwoViewConfig
+from estimation.features.view_graph import PairRotations, look_alike_pairs, strongest_pairs
+
+HALF_TURN = Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix()
+
+
+def ring_with_look_alikes(num_images: int, neighbour_inliers: float, look_alike_inliers: float,
+                          noise_deg: float = 2.0, seed: int = 0) -> tuple[PairRotations, set]:
+    """A ring (pairs i, i+1 and i, i+2) whose images half a ring apart also verify, a half turn off: the
+    far side of a symmetric object taken for its near side."""
+    rng = np.random.default_rng(seed)
+    world = Rotation.random(num_images, random_state=seed).as_matrix()
+    ring = [(i, (i + step) % num_images) for i in range(num_images) for step in (1, 2)]
+    look_alikes = [(i, i + num_images // 2) for i in range(num_images // 2)]
+    pairs = np.array([tuple(sorted(pair)) for pair in ring + look_alikes])
+    noise = Rotation.from_rotvec(rng.normal(size=(len(pairs), 3)) * np.radians(noise_deg) / np.sqrt(3))
+    R_relative = noise.as_matrix() @ world[pairs[:, 1]] @ world[pairs[:, 0]].swapaxes(1, 2)
+    R_relative[len(ring):] = HALF_TURN @ R_relative[len(ring):]
+    inliers = np.r_[np.full(len(ring), neighbour_inliers), np.full(len(look_alikes), look_alike_inliers)]
+    inliers[:len(ring)] += rng.integers(0, 10, len(ring))
+    return PairRotations(pairs, R_relative, inliers), set(look_alikes)
+
+
+def test_each_images_strongest_pairs_are_its_per_image_pairs_with_the_most_inliers():
+    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (2, 3)])
+    inliers = np.array([50.0, 40.0, 10.0, 20.0, 30.0])
+    # 0: (0,1), (0,2); 1: (0,1), (1,2); 2: (0,2), (2,3); 3: (2,3), (0,3)
+    assert strongest_pairs(pairs, inliers, 2).tolist() == [True, True, True, True, True]
+    # 0: (0,1); 1: (0,1); 2: (0,2); 3: (2,3)
+    assert strongest_pairs(pairs, inliers, 1).tolist() == [True, True, False, False, True]
+
+
+def test_the_half_turned_look_alikes_of_a_ring_are_left_out_and_its_neighbours_kept():
+    rotations, look_alikes = ring_with_look_alikes(24, neighbour_inliers=100, look_alike_inliers=60)
+    found = look_alike_pairs(24, rotations, TwoViewConfig())
+    assert set(found.pairs) == look_alikes and not found.conflicts
+    assert found.residual_deg[:48].max() < 10.0
+
+
+def test_look_alikes_stronger_than_the_rings_weakest_links_are_still_found():
+    # A spanning tree of the most inliers alone would take a look-alike instead of the two weak links.
+    rotations, look_alikes = ring_with_look_alikes(24, neighbour_inliers=100, look_alike_inliers=60)
+    inliers = rotations.inliers.copy()
+    weak = [k for k, pair in enumerate(rotations.pairs.tolist()) if tuple(pair) in {(5, 6), (17, 18)}]
+    inliers[weak] = 30.0
+    found = look_alike_pairs(24, rotations._replace(inliers=inliers), TwoViewConfig())
+    assert set(found.pairs) == look_alikes
+
+
+def test_a_look_alike_among_an_images_strongest_pairs_leaves_every_pair_in_and_names_a_conflict():
+    rotations, _ = ring_with_look_alikes(16, neighbour_inliers=30, look_alike_inliers=20)
+    inliers = rotations.inliers.copy()
+    inliers[rotations.pairs.tolist().index([2, 10])] = 200.0     # image 2's and 10's strongest pair
+    found = look_alike_pairs(16, rotations._replace(inliers=inliers), TwoViewConfig())
+    # Either the look-alike or the ring's links it contradicts: which one cannot be told.
+    assert found.pairs == [] and found.conflicts
+
+
+@pytest.mark.parametrize("config", [TwoViewConfig(max_rotation_residual_deg=None), TwoViewConfig()])
+def test_without_the_limit_or_without_look_alikes_every_pair_is_kept(config):
+    rotations, _ = ring_with_look_alikes(12, neighbour_inliers=100, look_alike_inliers=60)
+    ring_only = PairRotations(*(array[:24] for array in rotations))
+    assert look_alike_pairs(12, rotations if config.max_rotation_residual_deg is None else ring_only,
+                            config).pairs == []
