@@ -5,10 +5,11 @@ The pair of those two views verifies (its matches fit an E), but its relative ro
 up to a half turn from the truth, and in the tracks its matches would join the two sides into one: a model
 folded onto itself. A look-alike shares only the symmetric part of its views, so each image's true
 neighbours have more inliers than its look-alikes: the world rotations are averaged over each image's
-strongest pairs (`TwoViewConfig.anchor_pairs_per_image`), and a pair more than `max_rotation_residual_deg`
-from them is a look-alike, left out of the tracks. The limit is wide because the E of a small object seen
-from afar may trade rotation for translation by tens of degrees (lego_200: up to ~60 deg), while a
-look-alike is off by about a half turn.
+strongest pairs (`TwoViewConfig.anchor_pairs_per_image`), and a pair of views that they put on different
+sides (over LOOK_ALIKE_MIN_APART_DEG apart) whose own rotation is more than `max_rotation_residual_deg` from
+them is a look-alike, left out of the tracks. The limit is wide because the E of a small object seen from
+afar may trade rotation for translation by tens of degrees (lego_200: up to ~60 deg), while a look-alike is
+off by about a half turn; a pair of views on one side is kept whatever its E says (its matches agree).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ AVERAGING_SCALE_DEG = 5.0
 """Cauchy scale of the rotation averaging: pairs this far from the average count half."""
 AVERAGING_SWEEPS = 20
 """Sweeps of the averaging from the spanning tree (the residuals of lego_200's pairs settle in ~10)."""
+LOOK_ALIKE_MIN_APART_DEG = 90.0
+"""A look-alike pairs views at least this far apart in the averaged rotations (different sides)."""
 CHIRALITY_POINTS = 32
 """This many of a pair's inliers (evenly picked) decide which of E's four poses it has."""
 
@@ -44,6 +47,8 @@ class PairRotations(NamedTuple):
 
 
 class LookAlikes(NamedTuple):
+    """What `look_alike_pairs` found in a view graph."""
+
     pairs: list[tuple[int, int]]       # the pairs left out
     residual_deg: np.ndarray           # (P,) of every pair of the PairRotations: angle(R_ij, R_j R_i^T)
     conflicts: list[tuple[int, int]]   # strongest pairs of their images that are as far: no pair left out
@@ -87,9 +92,10 @@ def strongest_pairs(pairs: np.ndarray, inliers: np.ndarray, per_image: int) -> n
 
 
 def look_alike_pairs(num_images: int, rotations: PairRotations, config: TwoViewConfig) -> LookAlikes:
-    """The pairs more than config.max_rotation_residual_deg from the rotations averaged over each image's
-    config.anchor_pairs_per_image strongest pairs (and the spanning tree that starts them); none when some
-    of those strongest pairs are that far themselves (`LookAlikes.conflicts`)."""
+    """The pairs of views over LOOK_ALIKE_MIN_APART_DEG apart and more than config.max_rotation_residual_deg
+    from the rotations averaged over each image's config.anchor_pairs_per_image strongest pairs (and the
+    spanning tree that starts them); none when some of those strongest pairs are that far themselves
+    (`LookAlikes.conflicts`)."""
     if len(rotations.pairs) == 0 or config.max_rotation_residual_deg is None:
         return NO_LOOK_ALIKES
     anchor = strongest_pairs(rotations.pairs, rotations.inliers, config.anchor_pairs_per_image)
@@ -106,4 +112,8 @@ def look_alike_pairs(num_images: int, rotations: PairRotations, config: TwoViewC
         # Some image's strongest pairs contradict each other: its look-alikes are as strong as its true
         # neighbours (a sparse ring), and which is which cannot be told from the rotations.
         return LookAlikes([], residual, conflicts)
-    return LookAlikes([tuple(pair) for pair in rotations.pairs[far].tolist()], residual, [])
+    # A look-alike joins views of different sides; a pair of views that the average puts on one side is
+    # kept whatever its E says: its matches agree, only its E traded rotation for translation.
+    apart_deg = relative_residuals_deg(averaged, rotations.pairs, np.eye(3))
+    look_alike = far & (apart_deg > LOOK_ALIKE_MIN_APART_DEG)
+    return LookAlikes([tuple(pair) for pair in rotations.pairs[look_alike].tolist()], residual, [])

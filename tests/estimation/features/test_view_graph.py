@@ -1,5 +1,6 @@
-"""Look-alike pairs: a verified pair whose relative rotation contradicts the rotations that each image's
-strongest pairs agree on is left out; when those strongest pairs contradict each other, none is."""
+"""Look-alike pairs: a verified pair of views from different sides whose relative rotation contradicts the
+rotations that each image's strongest pairs agree on is left out; when those strongest pairs contradict each
+other, none is."""
 
 import numpy as np
 import pytest
@@ -16,7 +17,10 @@ def ring_with_look_alikes(num_images: int, neighbour_inliers: float, look_alike_
     """A ring (pairs i, i+1 and i, i+2) whose images half a ring apart also verify, a half turn off: the
     far side of a symmetric object taken for its near side."""
     rng = np.random.default_rng(seed)
-    world = Rotation.random(num_images, random_state=seed).as_matrix()
+    # Cameras on a ring looking in: a turn about the vertical (y) each, tilted 20 deg down.
+    azimuth = 2 * np.pi * np.arange(num_images) / num_images
+    world = (Rotation.from_rotvec([0.35, 0.0, 0.0]) * Rotation.from_rotvec(np.outer(azimuth, [0, 1, 0]))
+             ).as_matrix()
     ring = [(i, (i + step) % num_images) for i in range(num_images) for step in (1, 2)]
     look_alikes = [(i, i + num_images // 2) for i in range(num_images // 2)]
     pairs = np.array([tuple(sorted(pair)) for pair in ring + look_alikes])
@@ -42,6 +46,17 @@ def test_the_half_turned_look_alikes_of_a_ring_are_left_out_and_its_neighbours_k
     found = look_alike_pairs(24, rotations, TwoViewConfig())
     assert set(found.pairs) == look_alikes and not found.conflicts
     assert found.residual_deg[:48].max() < 10.0
+
+
+def test_a_pair_of_neighbours_whose_e_is_far_off_is_kept_its_matches_agree():
+    # The E of a small object seen from afar may trade rotation for translation by tens of degrees.
+    rotations, look_alikes = ring_with_look_alikes(24, neighbour_inliers=100, look_alike_inliers=60)
+    R_relative = rotations.R_relative.copy()
+    k = rotations.pairs.tolist().index([3, 5])
+    R_relative[k] = Rotation.from_rotvec([0.0, 0.0, 2.2]).as_matrix() @ R_relative[k]
+    found = look_alike_pairs(24, rotations._replace(R_relative=R_relative), TwoViewConfig())
+    assert found.residual_deg[k] > 120.0
+    assert set(found.pairs) == look_alikes
 
 
 def test_look_alikes_stronger_than_the_rings_weakest_links_are_still_found():
