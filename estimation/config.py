@@ -511,11 +511,11 @@ class MapperConfig(StrictConfig):
         "(18 %), one 25 deg off 84 (16 %).",
     )
     merge_min_overlap: float = Field(
-        0.5, gt=0, le=1, description="... and this share of the moved model's points within "
+        0.45, gt=0, le=1, description="... and this share of the moved model's points within "
         "merge_overlap_spacings of a point of the largest model. On lego_ring_400: 59 % for the true "
-        "similarity, 22 % for one 25 deg off that reprojected almost as many correspondences; on its ring of "
-        "33 views from the second (RANSAC seed 1), 43 % for one from 10 shared points that left 6 views "
-        "5-11 deg off.",
+        "similarity, 22 % for one 25 deg off that reprojected almost as many correspondences, 49 % for one "
+        "that left its 10 views within 2 deg (uncalibrated, RANSAC seed 0); on its ring of 33 views from the "
+        "second (seed 1), 43 % for one from 10 shared points that left 6 views 5-11 deg off.",
     )
     merge_overlap_spacings: float = Field(
         2.0, gt=0, description="The overlap's distance, in the largest model's median distance between a "
