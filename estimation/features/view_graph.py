@@ -31,7 +31,7 @@ from estimation.two_view.geometry import TwoViewGeometry
 AVERAGING_SCALE_DEG = 5.0
 """Cauchy scale of the rotation averaging: pairs this far from the average count half."""
 AVERAGING_SWEEPS = 20
-"""Sweeps of the averaging from the spanning tree (the residuals of lego_200's pairs settle in ~10)."""
+"""Jacobi sweeps of the averaging after the spanning tree."""
 LOOK_ALIKE_MIN_APART_DEG = 90.0
 """A look-alike pairs views at least this far apart in the averaged rotations (different sides)."""
 CHIRALITY_POINTS = 32
