@@ -157,15 +157,12 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 def extract_tracks(
     images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
     K: np.ndarray | None = None, defer_planarity: bool = False, stages: FeatureStages | None = None,
-    view_graph_K: np.ndarray | None = None,
 ) -> FeatureTracks:
     """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
     pairs are verified with E when K is given, else with F. `defer_planarity`: the pairs' planarity tests
     (`features.planarity`) run in the front end's worker process beside what the caller does next, until
     the result is `finished` (or `close`d). `stages`: where SIFT's extraction chunks and matching blocks
-    run (`features.sift.FeatureStages`; default: this machine's threads and worker processes).
-    `view_graph_K` (N, 3, 3): each image's intrinsics, a prior where K is not known, that the look-alike
-    pairs are found with (`features.view_graph`; default: K's, or none without K)."""
+    run (`features.sift.FeatureStages`; default: this machine's threads and worker processes)."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -181,8 +178,7 @@ def extract_tracks(
     pool = sift_pool(config.sift)
     try:
         result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
-                             progress=report, pool=pool, defer_planarity=defer_planarity, stages=stages,
-                             view_graph_K=view_graph_K)
+                             progress=report, pool=pool, defer_planarity=defer_planarity, stages=stages)
     except BaseException:
         pool.shutdown()
         raise
@@ -529,8 +525,7 @@ def reconstruct(
         calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
         # The planarity tests run beside the mapper, which leaves the other cores idle.
         features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end),
-                                  K=calibration_K, defer_planarity=True, stages=stages,
-                                  view_graph_K=np.stack([camera.pinhole().K for camera in initial.cameras]))
+                                  K=calibration_K, defer_planarity=True, stages=stages)
 
     with _timed(seconds, "self-calibration"):
         initial = self_calibrated(initial, features.epipolar_geometries(), config)

@@ -403,17 +403,14 @@ def sift_tracks(
     pool: WorkerPool | None = None,
     defer_planarity: bool = False,
     stages: FeatureStages | None = None,
-    view_graph_K: np.ndarray | None = None,
 ) -> SiftResult:
     """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
     merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1.
     `pool`: the worker processes to use (a `sift_pool`, left running; default: one of this call's own).
     `defer_planarity`: H is left out (the tracks do not depend on it); `untested_uv` holds what
     `features.planarity` needs to test it later. `stages`: where the extraction chunks and the matching
-    blocks run (default: `PoolStages`, this machine's threads and the pool's processes). `view_graph_K`
-    (N, 3, 3): each image's intrinsics, exact or a prior, to measure the verified pairs' rotations with and
-    leave the look-alikes out of the tracks (`features.view_graph`); default: K for every image, or (without
-    K) no such check."""
+    blocks run (default: `PoolStages`, this machine's threads and the pool's processes). With `two_view` and
+    K, the look-alike pairs are left out of the tracks (`features.view_graph`)."""
     report = progress or (lambda stage, fraction: None)
     workers = resolve_workers(config.workers)
     seconds: dict[str, float] = {}
@@ -438,13 +435,13 @@ def sift_tracks(
         seconds["matching_and_verification"] = time.perf_counter() - started
 
     look_alikes = NO_LOOK_ALIKES
-    if view_graph_K is None and K is not None:
-        view_graph_K = np.broadcast_to(K, (len(features), 3, 3))
-    if two_view is not None and view_graph_K is not None:
+    # Only with K: under a focal length prior the pairs' rotations were too rough to tell look-alikes (a
+    # rendered box's strongest pairs conflicted, and lego_ring_400 lost accuracy).
+    if two_view is not None and K is not None:
         started = time.perf_counter()
         rotations = pair_rotations(geometries, lambda i, j: (work.uv[i][matches[(i, j)].index_a],
                                                              work.uv[j][matches[(i, j)].index_b]),
-                                   view_graph_K, two_view.min_inliers)
+                                   np.broadcast_to(K, (len(features), 3, 3)), two_view.min_inliers)
         look_alikes = look_alike_pairs(len(features), rotations, two_view)
         # Left out of the geometries, a look-alike neither links tracks nor votes on registrations.
         left_out = set(look_alikes.pairs)
