@@ -480,7 +480,8 @@ class MapperConfig(StrictConfig):
         "this share of the points they should share (`verification.shared_views`): a symmetric object's "
         "look-alike sides put cameras of its far side at the near side's viewpoints. Pairs that close share "
         "0.56 or more in lego_200's and lego_ring_400's models, 0.14-0.33 in the folded models of a rendered "
-        "box with look-alike opposite sides (bench_sfm.py --sets box,box24). 0: no check.",
+        "box with look-alike opposite sides (bench_sfm.py --sets box,box24, before the look-alike pairs were "
+        "left out of the tracks: `features.view_graph`). 0: no check.",
     )
     fold_max_angle_deg: float = Field(
         5.0, gt=0, description="Cameras this close (their relative rotation, and their baseline seen from "

@@ -23,10 +23,13 @@ from estimation.config import ReconstructionConfig
     ("mapper", "fold_min_shared", 1.5),
     ("mapper", "fold_max_angle_deg", 0.0),
     ("mapper", "fold_min_pairs", 0),
+    ("mapper", "merge_min_overlap", 0.0),
+    ("two_view", "max_rotation_residual_deg", 200.0),
+    ("two_view", "anchor_pairs_per_image", 0),
     ("bundle_adjustment", "local_max_iterations", 0),
     ("bundle_adjustment", "local_max_iterations_refining", 0),
 ])
-def test_an_out_of_range_mapper_or_ba_setting_is_refused_naming_its_field(section, field, value):
+def test_an_out_of_range_mapper_ba_or_pair_setting_is_refused_naming_its_field(section, field, value):
     with pytest.raises(pydantic.ValidationError) as refused:
         ReconstructionConfig(**{section: {field: value}})
     assert [error["loc"] for error in refused.value.errors()] == [(section, field)]
