@@ -441,7 +441,7 @@ def sift_tracks(
         started = time.perf_counter()
         rotations = pair_rotations(geometries, lambda i, j: (work.uv[i][matches[(i, j)].index_a],
                                                              work.uv[j][matches[(i, j)].index_b]),
-                                   np.broadcast_to(K, (len(features), 3, 3)), two_view.min_inliers)
+                                   K, two_view.min_inliers)
         look_alikes = look_alike_pairs(len(features), rotations, two_view)
         # Left out of the geometries, a look-alike neither links tracks nor votes on registrations.
         left_out = set(look_alikes.pairs)

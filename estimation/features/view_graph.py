@@ -60,20 +60,20 @@ NO_LOOK_ALIKES = LookAlikes([], np.zeros(0), [])
 
 def pair_rotations(geometries: dict[tuple[int, int], TwoViewGeometry],
                    uv_of_pair: Callable[[int, int], tuple], K: np.ndarray, min_inliers: int) -> PairRotations:
-    """R_ij of each pair with E (or F: E = K_j^T F K_i) and min_inliers or more, from the pose putting most
-    of CHIRALITY_POINTS of its inliers in front of both cameras (`relative_rotations`). uv_of_pair(i, j): the
-    pixels of the pair's matches in i and in j; K (N, 3, 3): each image's intrinsics, exact or a prior."""
+    """R_ij of each pair with E (or F: E = K^T F K) and min_inliers or more, from the pose putting most of
+    CHIRALITY_POINTS of its inliers in front of both cameras (`relative_rotations`). uv_of_pair(i, j): the
+    pixels of the pair's matches in i and in j; K: the images' calibration."""
     pairs = [pair for pair, geometry in geometries.items()
              if (geometry.E is not None or geometry.F is not None) and geometry.num_inliers >= min_inliers]
     E = np.zeros((len(pairs), 3, 3))
     x_i, x_j = np.zeros((2, len(pairs), CHIRALITY_POINTS, 2))
     for k, (i, j) in enumerate(pairs):
         geometry = geometries[(i, j)]
-        E[k] = geometry.E if geometry.E is not None else project_to_essential(K[j].T @ geometry.F @ K[i])
+        E[k] = geometry.E if geometry.E is not None else project_to_essential(K.T @ geometry.F @ K)
         uv_i, uv_j = (uv[geometry.inlier_mask] for uv in uv_of_pair(i, j))
         # Evenly spread picks, repeated where the pair has fewer inliers (a repeat only counts twice).
         picked = np.linspace(0, len(uv_i) - 1, CHIRALITY_POINTS).astype(int)
-        x_i[k], x_j[k] = to_normalized(K[i], uv_i[picked]), to_normalized(K[j], uv_j[picked])
+        x_i[k], x_j[k] = to_normalized(K, uv_i[picked]), to_normalized(K, uv_j[picked])
     return PairRotations(np.array(pairs, int).reshape(-1, 2), relative_rotations(E, x_i, x_j),
                          np.array([geometries[pair].num_inliers for pair in pairs], float))
 
