@@ -120,6 +120,7 @@ class Outcome:
     # the largest rotation std-devs (deg at 1 px) the registrations' inliers allowed, by image (ours)
     loosest_registrations: dict[str, float] | None = None
     fold_warnings: list[str] | None = None               # report.json's "possibly folded" warnings
+    look_alike_check: str = ""                           # report.json's features.look_alike_check
 
 
 def lego_set(work: Path) -> BenchSet:
@@ -265,7 +266,8 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
                    focal_px=float(result.K[0, 0]),
                    loosest_registrations=loosest_registrations(result.report),
                    fold_warnings=[warning for warning in result.report["warnings"]
-                                  if warning.startswith(FOLDED)])
+                                  if warning.startswith(FOLDED)],
+                   look_alike_check=result.report["features"].get("look_alike_check", ""))
 
 
 LOOSEST_SHOWN = 3
@@ -462,6 +464,7 @@ def main() -> None:
                 print(f"ours, loosest registrations (rotation std-dev at 1 px, deg): {loosest}", flush=True)
                 for warning in ours.fold_warnings:
                     print(f"ours, warning: {warning[:300]}", flush=True)
+                print(f"ours, look-alike check: {ours.look_alike_check}", flush=True)
             if not bench.calibrated:
                 truth_focal = (bench.K[0, 0] + bench.K[1, 1]) / 2
                 found = [(method, outcome.focal_px) for method, outcome in

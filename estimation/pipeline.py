@@ -8,11 +8,11 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -30,7 +30,14 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement, alon
 from estimation.calibration.self_calibration import focal_from_fundamentals
 from estimation.config import BundleAdjustmentConfig, CameraConfig, ReconstructionConfig
 from estimation.errors import InputError
-from estimation.geometry.projection import Camera
+from estimation.features.view_graph import (
+    LookAlikes,
+    PairRotations,
+    adopted_pairs,
+    look_alike_pairs,
+    pair_rotations,
+)
+from estimation.geometry.projection import Camera, CameraInput
 from estimation.io.export import (
     DepthObservations,
     transforms_dict,
@@ -51,11 +58,12 @@ from estimation.io.images import (
 from estimation.io.matchfile import find_match_files, load_match_tracks
 from estimation.io.video import VideoKeyframes, extract_keyframes, is_video
 from estimation.mapper.incremental import ReprojectionSummary, SparseModel, reconstruct_models
+from estimation.mapper.verification import FOLDED
 from estimation.types import ProgressCallback, Tracks
 
 if TYPE_CHECKING:
     from estimation.features.planarity import PairTypes
-    from estimation.features.sift import FeatureStages, TrackFeatures
+    from estimation.features.sift import FeatureStages, TrackFeatures, VerifiedMatches
     from estimation.two_view.geometry import TwoViewGeometry
 
 FIGURE_NAMES = {
@@ -113,6 +121,7 @@ class FeatureTracks:
     details: dict
     pair_types: PairTypes | None = None
     keypoints: TrackFeatures | None = None   # SIFT's keypoints and descriptors (guided 2D-3D matching)
+    verified: VerifiedMatches | None = None  # SIFT's verified matches (`fold_check`)
 
     def finished(self) -> FeatureTracks:
         """These tracks with every verified pair's geometry in details["two_view_geometry_per_pair"] (the
@@ -192,15 +201,58 @@ def extract_tracks(
                                       for (i, j), n in result.verified_per_pair.items()},
         "two_view_geometry_per_pair": {},           # `FeatureTracks.finished`
         "rejected_links": result.num_rejected_links,
-        # Verified pairs left out of the tracks as look-alikes, and strongest pairs that conflicted instead.
-        "look_alike_pairs": [f"{images.names[i]}|{images.names[j]}" for i, j in look_alikes.pairs],
-        "look_alike_conflicts": [f"{images.names[i]}|{images.names[j]}" for i, j in look_alikes.conflicts],
+        **look_alike_details(images.names, look_alikes),
+        "look_alike_check": "calibration file" if K is not None else "not run",
         "seconds_per_stage": result.seconds_per_stage,
     }
     # The descriptors stay in memory through the mapping only for guided matching (uint8: 128 B a keypoint).
     keypoints = result.features if config.mapper.guided_matching else None
-    features = FeatureTracks(result.tracks, source, details, pair_types, keypoints)
+    features = FeatureTracks(result.tracks, source, details, pair_types, keypoints, result.verified)
     return features if defer_planarity else features.finished()
+
+
+def look_alike_details(names: list[str], look_alikes: LookAlikes) -> dict[str, list[str]]:
+    """report.json's verified pairs left out of the tracks as look-alikes, and the strongest pairs that
+    conflicted instead (`features.view_graph`)."""
+    return {"look_alike_pairs": [f"{names[i]}|{names[j]}" for i, j in look_alikes.pairs],
+            "look_alike_conflicts": [f"{names[i]}|{names[j]}" for i, j in look_alikes.conflicts]}
+
+
+class FoldCheck(NamedTuple):
+    """The look-alike pairs under a model's refined K (`fold_check`), and what `folded` needs."""
+
+    look_alikes: LookAlikes
+    rotations: PairRotations     # the verified pairs' relative rotations under that K
+    min_adopted: int             # MapperConfig.fold_min_pairs
+
+    def adopted(self, model: SparseModel) -> list[tuple[int, int]]:
+        """The look-alikes that `model` places as their own rotation does (`view_graph.adopted_pairs`)."""
+        return adopted_pairs(self.rotations, self.look_alikes.pairs, world_rotations(model))
+
+    def folded(self, model: SparseModel) -> bool:
+        """The model's fold warning, or min_adopted look-alikes or more adopted: its far side folded onto
+        its near one."""
+        folded_warning = any(warning.startswith(FOLDED) for warning in model.warnings)
+        return folded_warning or len(self.adopted(model)) >= self.min_adopted
+
+
+def fold_check(features: FeatureTracks, model: SparseModel, config: ReconstructionConfig) -> FoldCheck | None:
+    """The look-alikes (`view_graph.look_alike_pairs`) with the verified pairs' rotations under the model's
+    refined K; None without SIFT's verified matches or with the check off."""
+    if features.verified is None or config.two_view.max_rotation_residual_deg is None:
+        return None
+    rotations = pair_rotations(features.epipolar_geometries(), features.verified.inlier_uv,
+                               _registered_cameras(model)[0].pinhole().K, config.two_view.min_inliers)
+    return FoldCheck(look_alike_pairs(len(features.verified.uv), rotations, config.two_view), rotations,
+                     config.mapper.fold_min_pairs)
+
+
+def world_rotations(model: SparseModel) -> np.ndarray:
+    """(N, 3, 3) each image's world-to-camera rotation in the model, NaN where it is not registered."""
+    rotations = np.full((len(model.image_names), 3, 3), np.nan)
+    for image, pose in model.poses.items():
+        rotations[image] = pose.R
+    return rotations
 
 
 def resolve_camera_model(camera: CameraConfig, calibrated: bool, distortion_known: bool = False) -> str:
@@ -495,6 +547,55 @@ def _timed(seconds: dict[str, float], name: str) -> Iterator[None]:
     seconds[name] = time.perf_counter() - start
 
 
+class Refolding(NamedTuple):
+    """What `reconstruct` goes on with after a first model without a calibration file (`unfolded_or_kept`)."""
+
+    features: FeatureTracks
+    models: tuple[SparseModel, ...]
+    discarded_seconds: float     # the check's, and the front end's and the mapping's not kept
+    features_seconds: float      # the front end's run again, when its result is kept
+
+
+def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...], mapping_seconds: float,
+                     extract: Callable[[np.ndarray], FeatureTracks],
+                     mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]],
+                     config: ReconstructionConfig) -> Refolding:
+    """When the largest of `models` (one shared camera, mapped in `mapping_seconds`) is folded
+    (`fold_check`): the front end (`extract(K)`: E verification and the look-alike pairs left out up front,
+    as with a calibration file) and the mapping (`mapped`) run again under its refined camera, kept unless
+    that model is folded too; else `features` and `models`. details["look_alike_check"] says which."""
+    started = time.perf_counter()
+    check = fold_check(features, models[0], config)
+    if check is None:
+        return Refolding(features, models, 0.0, 0.0)
+    found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's refined focal length, "
+             f"{len(check.adopted(models[0]))} of them adopted by it")
+    outcome, refolding = "kept", Refolding(features, models, time.perf_counter() - started, 0.0)
+    if check.folded(models[0]):
+        # Left out of the F-verified tracks, the look-alikes still left a rendered box folded (other pairs'
+        # F inliers joined its sides); verified with E under the refined K, they did not.
+        camera = _registered_cameras(models[0])[0]
+        features_started = time.perf_counter()
+        again_features = extract(camera.pinhole().K)
+        mapping_started = time.perf_counter()
+        try:
+            again = mapped(again_features, camera)
+        except BaseException:
+            again_features.close()
+            raise
+        if check.folded(again[0]):
+            again_features.close()
+            outcome = "folded; run again under its refined camera, folded too: the first model kept"
+            refolding = Refolding(features, models, time.perf_counter() - started, 0.0)
+        else:
+            features.close()
+            outcome = "folded; run again under its refined camera, which replaced it"
+            refolding = Refolding(again_features, again, features_started - started + mapping_seconds,
+                                  mapping_started - features_started)
+    details = {**refolding.features.details, "look_alike_check": f"{found}: {outcome}"}
+    return refolding._replace(features=replace(refolding.features, details=details))
+
+
 def reconstruct(
     images_dir: Path,
     out_dir: Path,
@@ -521,21 +622,41 @@ def reconstruct(
     report_input("loading images", 1.0)
 
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]
+
+    def extract(K: np.ndarray | None, report: ProgressCallback) -> FeatureTracks:
+        # The planarity tests run beside the mapper, which leaves the other cores idle.
+        return extract_tracks(images, config, report, K=K, defer_planarity=True, stages=stages)
+
     with _timed(seconds, "features"):
         calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
-        # The planarity tests run beside the mapper, which leaves the other cores idle.
-        features = extract_tracks(images, config, _scaled(progress, PROGRESS_INPUT_END, features_end),
-                                  K=calibration_K, defer_planarity=True, stages=stages)
+        features = extract(calibration_K, _scaled(progress, PROGRESS_INPUT_END, features_end))
 
     with _timed(seconds, "self-calibration"):
         initial = self_calibrated(initial, features.epipolar_geometries(), config)
-    camera = initial.cameras if initial.refine.per_image else initial.cameras[0]
+
+    def mapped(tracks: FeatureTracks, camera: CameraInput, report: ProgressCallback
+               ) -> tuple[SparseModel, ...]:
+        return tuple(reconstruct_models(tracks.tracks, camera, config, progress=report, refine=initial.refine,
+                                        pair_types=tracks.pair_types, keypoints=tracks.keypoints,
+                                        pair_geometries=tracks.epipolar_geometries()))
+
+    def again(stage: str, fraction: float) -> None:
+        # A run again after a folded model holds the bar where the mapping ended.
+        if progress is not None:
+            progress(f"{stage} (again, under the folded model's refined camera)", PROGRESS_PIPELINE_END)
+
     try:
-        models = tuple(reconstruct_models(features.tracks, camera, config,
-                                          progress=_scaled(progress, features_end, PROGRESS_PIPELINE_END),
-                                          refine=initial.refine, pair_types=features.pair_types,
-                                          pair_geometries=features.epipolar_geometries(),
-                                          keypoints=features.keypoints))
+        started = time.perf_counter()
+        models = mapped(features, initial.cameras if initial.refine.per_image else initial.cameras[0],
+                        _scaled(progress, features_end, PROGRESS_PIPELINE_END))
+        if calibration_K is None and not initial.refine.per_image:
+            refolding = unfolded_or_kept(features, models, time.perf_counter() - started,
+                                         lambda K: extract(K, again),
+                                         lambda tracks, camera: mapped(tracks, camera, again), config)
+            features, models = refolding.features, refolding.models
+            seconds["features"] += refolding.features_seconds
+            if refolding.discarded_seconds:
+                seconds["look-alike check"] = refolding.discarded_seconds
         features = features.finished()
     finally:
         features.close()

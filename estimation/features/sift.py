@@ -38,6 +38,7 @@ import numpy as np
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import DegenerateConfigurationError
 from estimation.features.matching import (
+    EMPTY_MATCHES,
     DescriptorMatches,
     DescriptorSet,
     array_namespace,
@@ -118,6 +119,7 @@ class SiftResult:
     untested_uv: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     features: TrackFeatures | None = None   # the keypoints and descriptors behind the tracks
     look_alikes: LookAlikes = NO_LOOK_ALIKES   # the verified pairs left out of the tracks (`view_graph`)
+    verified: VerifiedMatches | None = None    # what the tracks were joined from
 
 
 def root_sift(descriptors: np.ndarray) -> np.ndarray:
@@ -393,6 +395,67 @@ def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
     return matches, geometries
 
 
+@dataclass(frozen=True)
+class VerifiedMatches:
+    """Every image's keypoints and colours and each matched pair's matches that verification kept (all of
+    them without verification): what the tracks are joined from (`joined_tracks`), kept so that they can be
+    joined again without some pairs (`without`)."""
+
+    image_names: list[str]
+    uv: list[np.ndarray]                       # image index -> keypoints (N, 2) full-resolution pixels
+    colors: list[np.ndarray]                   # image index -> their RGB (N, 3)
+    matches: dict[Pair, DescriptorMatches]     # every matched pair (i, j), i < j: its kept matches
+
+    def inlier_uv(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels of pair (i, j)'s kept matches in i and in j."""
+        pair_matches = self.matches[(i, j)]
+        return self.uv[i][pair_matches.index_a], self.uv[j][pair_matches.index_b]
+
+    def per_pair(self) -> dict[Pair, int]:
+        """How many matches each pair kept."""
+        return {pair: len(pair_matches.ratio) for pair, pair_matches in self.matches.items()}
+
+    def without(self, pairs: Sequence[Pair]) -> VerifiedMatches:
+        """These matches with none kept for `pairs`."""
+        left_out = set(pairs)
+        return replace(self, matches={pair: EMPTY_MATCHES if pair in left_out else pair_matches
+                                      for pair, pair_matches in self.matches.items()})
+
+
+class JoinedTracks(NamedTuple):
+    """Tracks joined from pairwise matches, and the keypoint behind each of their observations."""
+
+    tracks: Tracks
+    observation_keypoint: np.ndarray   # (O,) keypoint index of each observation in its image
+    num_rejected_links: int            # matches that would have put an image twice into a track
+
+
+def joined_tracks(verified: VerifiedMatches) -> JoinedTracks:
+    """The kept matches joined into tracks by `assemble_tracks`, the most distinctive (lowest ratio) first;
+    only keypoints that take part in a match become nodes."""
+    offsets = np.concatenate([[0], np.cumsum([len(uv) for uv in verified.uv])])
+    links = [np.stack([offsets[i] + pair_matches.index_a, offsets[j] + pair_matches.index_b], axis=1)
+             for (i, j), pair_matches in verified.matches.items()]
+    all_links = np.concatenate(links).reshape(-1, 2) if links else np.zeros((0, 2), np.int64)
+    ratios = np.concatenate([pair_matches.ratio for pair_matches in verified.matches.values()])
+    all_links = all_links[np.argsort(ratios, kind="stable")]
+    used_nodes, compact_links = np.unique(all_links, return_inverse=True)
+    node_image = np.searchsorted(offsets, used_nodes, side="right") - 1
+    assembly = assemble_tracks(verified.image_names, node_image, np.concatenate(verified.uv)[used_nodes],
+                               np.concatenate(verified.colors)[used_nodes], compact_links.reshape(-1, 2))
+    return JoinedTracks(assembly.tracks,
+                        used_nodes[assembly.observation_node] - offsets[assembly.tracks.image_index],
+                        assembly.num_rejected_links)
+
+
+def look_alikes_under(K: np.ndarray, verified: VerifiedMatches, geometries: dict[Pair, TwoViewGeometry],
+                      config: TwoViewConfig) -> LookAlikes:
+    """The verified pairs that are look-alikes (`view_graph.look_alike_pairs`) with the pairs' rotations
+    under the calibration K."""
+    rotations = pair_rotations(geometries, verified.inlier_uv, K, config.min_inliers)
+    return look_alike_pairs(len(verified.uv), rotations, config)
+
+
 def sift_tracks(
     images: ImageSet,
     config: SiftConfig,
@@ -434,55 +497,37 @@ def sift_tracks(
             "matching", DETECTION_SHARE + (1 - DETECTION_SHARE) * fraction), stages)
         seconds["matching_and_verification"] = time.perf_counter() - started
 
+    # A pair that was not verified (too few matches) keeps none.
+    verified = VerifiedMatches(images.names, work.uv, colors, {
+        pair: DescriptorMatches(*(array[geometries[pair].inlier_mask] for array in matches[pair]))
+        if pair in geometries else EMPTY_MATCHES if two_view is not None else matches[pair]
+        for pair in pairs})
     look_alikes = NO_LOOK_ALIKES
     # Only with K: under a focal length prior the pairs' rotations were too rough to tell look-alikes (a
-    # rendered box's strongest pairs conflicted, and lego_ring_400 lost accuracy).
+    # rendered box's strongest pairs conflicted, and lego_ring_400 lost accuracy); without it the pipeline
+    # checks under a folded model's refined K instead.
     if two_view is not None and K is not None:
         started = time.perf_counter()
-        rotations = pair_rotations(geometries, lambda i, j: (work.uv[i][matches[(i, j)].index_a],
-                                                             work.uv[j][matches[(i, j)].index_b]),
-                                   K, two_view.min_inliers)
-        look_alikes = look_alike_pairs(len(features), rotations, two_view)
+        look_alikes = look_alikes_under(K, verified, geometries, two_view)
         # Left out of the geometries, a look-alike neither links tracks nor votes on registrations.
+        verified = verified.without(look_alikes.pairs)
         left_out = set(look_alikes.pairs)
         geometries = {pair: geometry for pair, geometry in geometries.items() if pair not in left_out}
         seconds["view_graph"] = time.perf_counter() - started
-
-    offsets = np.concatenate([[0], np.cumsum([len(f.uv) for f in features])])
-    links, link_ratios, verified_per_pair = [], [], {}
-    for i, j in pairs:
-        pair_matches = matches[(i, j)]
-        if two_view is not None:
-            geometry = geometries.get((i, j))     # none: too few matches to verify
-            mask = geometry.inlier_mask if geometry is not None else np.zeros(len(pair_matches.ratio), bool)
-            pair_matches = DescriptorMatches(*(array[mask] for array in pair_matches))
-        verified_per_pair[(i, j)] = len(pair_matches.ratio)
-        links.append(np.stack([offsets[i] + pair_matches.index_a, offsets[j] + pair_matches.index_b], axis=1))
-        link_ratios.append(pair_matches.ratio)
-    all_links = np.concatenate(links).reshape(-1, 2) if links else np.zeros((0, 2), np.int64)
-    if len(all_links) == 0:
+    if not any(verified.per_pair().values()):
         raise DegenerateConfigurationError(f"{images.folder}: SIFT found no matches between any two images")
-    all_links = all_links[np.argsort(np.concatenate(link_ratios), kind="stable")]
-
-    # Only keypoints that take part in a match become nodes of the track graph.
-    used_nodes, compact_links = np.unique(all_links, return_inverse=True)
-    node_image = np.searchsorted(offsets, used_nodes, side="right") - 1
-    all_uv = np.concatenate([f.uv for f in features])
-    all_colors = np.concatenate(colors)
-    assembly = assemble_tracks(
-        images.names, node_image, all_uv[used_nodes], all_colors[used_nodes], compact_links.reshape(-1, 2)
-    )
+    joined = joined_tracks(verified)
     return SiftResult(
-        tracks=assembly.tracks,
+        tracks=joined.tracks,
         keypoints_per_image=[len(f.uv) for f in features],
         matches_per_pair={pair: len(m.ratio) for pair, m in matches.items()},
-        verified_per_pair=verified_per_pair,
-        num_rejected_links=assembly.num_rejected_links,
+        verified_per_pair=verified.per_pair(),
+        num_rejected_links=joined.num_rejected_links,
         two_view=geometries,
         seconds_per_stage=seconds,
         untested_uv={(i, j): (work.uv[i][matches[(i, j)].index_a], work.uv[j][matches[(i, j)].index_b])
                      for (i, j), geometry in geometries.items() if not geometry.planarity_tested},
-        features=TrackFeatures(features, used_nodes[assembly.observation_node]
-                               - offsets[assembly.tracks.image_index]),
+        features=TrackFeatures(features, joined.observation_keypoint),
         look_alikes=look_alikes,
+        verified=verified,
     )

@@ -36,6 +36,9 @@ LOOK_ALIKE_MIN_APART_DEG = 90.0
 """A look-alike pairs views at least this far apart in the averaged rotations (different sides)."""
 CHIRALITY_POINTS = 32
 """This many of a pair's inliers (evenly picked) decide which of E's four poses it has."""
+ADOPTED_MAX_DEG = 45.0
+"""A model that puts a look-alike pair's views within this of the pair's own rotation has adopted it (its
+far side folded onto the near one); a model in place puts them about a half turn from it."""
 
 
 class PairRotations(NamedTuple):
@@ -59,10 +62,10 @@ NO_LOOK_ALIKES = LookAlikes([], np.zeros(0), [])
 
 
 def pair_rotations(geometries: dict[tuple[int, int], TwoViewGeometry],
-                   uv_of_pair: Callable[[int, int], tuple], K: np.ndarray, min_inliers: int) -> PairRotations:
+                   inlier_uv: Callable[[int, int], tuple], K: np.ndarray, min_inliers: int) -> PairRotations:
     """R_ij of each pair with E (or F: E = K^T F K) and min_inliers or more, from the pose putting most of
-    CHIRALITY_POINTS of its inliers in front of both cameras (`relative_rotations`). uv_of_pair(i, j): the
-    pixels of the pair's matches in i and in j; K: the images' calibration."""
+    CHIRALITY_POINTS of its inliers in front of both cameras (`relative_rotations`). inlier_uv(i, j): the
+    pixels of the pair's inliers in i and in j; K: the images' calibration."""
     pairs = [pair for pair, geometry in geometries.items()
              if (geometry.E is not None or geometry.F is not None) and geometry.num_inliers >= min_inliers]
     E = np.zeros((len(pairs), 3, 3))
@@ -70,7 +73,7 @@ def pair_rotations(geometries: dict[tuple[int, int], TwoViewGeometry],
     for k, (i, j) in enumerate(pairs):
         geometry = geometries[(i, j)]
         E[k] = geometry.E if geometry.E is not None else project_to_essential(K.T @ geometry.F @ K)
-        uv_i, uv_j = (uv[geometry.inlier_mask] for uv in uv_of_pair(i, j))
+        uv_i, uv_j = inlier_uv(i, j)
         # Evenly spread picks, repeated where the pair has fewer inliers (a repeat only counts twice).
         picked = np.linspace(0, len(uv_i) - 1, CHIRALITY_POINTS).astype(int)
         x_i[k], x_j[k] = to_normalized(K, uv_i[picked]), to_normalized(K, uv_j[picked])
@@ -117,3 +120,13 @@ def look_alike_pairs(num_images: int, rotations: PairRotations, config: TwoViewC
     apart_deg = relative_residuals_deg(averaged, rotations.pairs, np.eye(3))
     look_alike = far & (apart_deg > LOOK_ALIKE_MIN_APART_DEG)
     return LookAlikes([tuple(pair) for pair in rotations.pairs[look_alike].tolist()], residual, [])
+
+
+def adopted_pairs(rotations: PairRotations, pairs: list[tuple[int, int]], world_rotations: np.ndarray
+                  ) -> list[tuple[int, int]]:
+    """The `pairs` (look-alikes) whose own rotation R_ij a model's world-to-camera rotations (N, 3, 3; NaN
+    where not registered) reproduce within ADOPTED_MAX_DEG: angle(R_ij, R_j R_i^T)."""
+    chosen = set(pairs)
+    index = np.array([k for k, pair in enumerate(rotations.pairs.tolist()) if tuple(pair) in chosen], int)
+    residual = relative_residuals_deg(world_rotations, rotations.pairs[index], rotations.R_relative[index])
+    return [tuple(pair) for pair in rotations.pairs[index[residual < ADOPTED_MAX_DEG]].tolist()]

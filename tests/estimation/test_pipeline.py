@@ -16,6 +16,7 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import CameraConfig
 from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_depths, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
+from estimation.mapper.verification import FOLDED
 from estimation.pipeline import initial_intrinsics, model_summary
 from estimation.synthetic import project
 
@@ -322,19 +323,29 @@ def test_the_depths_file_holds_every_observation_with_its_sigma_along_the_ray(un
     assert depths.pixel_sigma == pytest.approx(rms * np.sqrt(residuals / 2 / (residuals - free)), rel=0.02)
 
 
-def test_a_box_whose_opposite_sides_look_alike_is_reconstructed_without_folding_onto_itself(tmp_path):
-    """A rendered ring of 20 views around a box whose opposite sides carry one texture each: every view has
-    a look-alike twin half a turn away, and those pairs verify. Their matches in the tracks folded the model
-    (the far side's cameras at the near side's viewpoints, 175-180 deg off: checked with
-    `two_view.max_rotation_residual_deg: null`); left out as look-alikes, every camera is in place."""
-    from estimation.geometry.alignment import aligned_pose_errors, relative_pose, rotation_angle_deg
+@pytest.fixture(scope="module")
+def look_alike_box():
+    """A rendered ring of 20 views (256 px) around a box whose opposite sides carry one texture each: every
+    view has a look-alike twin half a turn away, and those pairs verify."""
     from estimation.synthetic import render_box_ring
 
-    ring = render_box_ring(num_views=20, size=256, seed=1)
+    return render_box_ring(num_views=20, size=256, seed=1)
+
+
+def reconstructed_box(ring, folder: Path, calibrated: bool, progress=None):
     for k, rgb in enumerate(ring.images):
-        Image.fromarray(rgb).save(tmp_path / f"view_{k:03d}.png")
-    np.savetxt(tmp_path / "calibration.txt", ring.K)
-    result = reconstruct(tmp_path, tmp_path / "out", ReconstructionConfig(write_figures=False))
+        Image.fromarray(rgb).save(folder / f"view_{k:03d}.png")
+    if calibrated:
+        np.savetxt(folder / "calibration.txt", ring.K)
+    return reconstruct(folder, folder / "out", ReconstructionConfig(write_figures=False), progress=progress)
+
+
+def assert_in_place_without_look_alike_neighbours(result, ring) -> None:
+    """Every registered camera within 5 deg of the truth (18 of 20 or more), and the pairs left out as
+    look-alikes mostly the twins half a turn apart, with a few wrong Es of pairs far apart; never true
+    neighbours (18-40 deg apart)."""
+    from estimation.geometry.alignment import aligned_pose_errors, relative_pose, rotation_angle_deg
+
     registered = sorted(result.model.poses)
     errors = aligned_pose_errors([result.model.poses[m] for m in registered],
                                  [ring.poses[m] for m in registered])
@@ -344,6 +355,38 @@ def test_a_box_whose_opposite_sides_look_alike_is_reconstructed_without_folding_
     apart_deg = np.array([rotation_angle_deg(np.eye(3), relative_pose(ring.poses[names.index(a)],
                                                                      ring.poses[names.index(b)]).R)
                           for a, b in look_alikes])
-    # Mostly the twins half a turn apart, with a few wrong Es of pairs far apart; never true neighbours
-    # (18-40 deg apart).
     assert len(apart_deg) >= 10 and np.mean(apart_deg > 135.0) > 0.75 and apart_deg.min() > 45.0
+    assert not any(warning.startswith(FOLDED) for warning in result.report["warnings"])
+
+
+def test_a_box_whose_opposite_sides_look_alike_is_reconstructed_without_folding_onto_itself(
+        tmp_path, look_alike_box):
+    """The look-alike pairs' matches in the tracks folded the model (the far side's cameras at the near
+    side's viewpoints, 175-180 deg off: checked with `two_view.max_rotation_residual_deg: null`); with
+    calibration.txt they are left out before the tracks are built, and every camera is in place."""
+    result = reconstructed_box(look_alike_box, tmp_path, calibrated=True)
+    assert_in_place_without_look_alike_neighbours(result, look_alike_box)
+    assert result.report["features"]["look_alike_check"] == "calibration file"
+
+
+def test_without_calibration_a_folded_box_is_run_again_under_its_refined_camera(tmp_path, look_alike_box):
+    """Without calibration.txt the look-alikes are not looked for up front (under the focal length prior the
+    pairs' rotations cannot tell them): the first model folds. Under its refined focal length they are
+    found, and the model has adopted them; run again under its refined camera (E verification, the
+    look-alikes left out of the tracks), every camera is in place, and that model replaces the folded one."""
+    reports = []
+    result = reconstructed_box(look_alike_box, tmp_path, calibrated=False,
+                               progress=lambda stage, fraction: reports.append((stage, fraction)))
+    assert_in_place_without_look_alike_neighbours(result, look_alike_box)
+    fractions = [fraction for _, fraction in reports]
+    assert fractions == sorted(fractions) and any("(again, under" in stage for stage, _ in reports)
+    check = result.report["features"]["look_alike_check"]
+    assert check.endswith("folded; run again under its refined camera, which replaced it")
+    adopted = int(check.split(" of them adopted")[0].rsplit(", ", 1)[1])
+    assert adopted >= ReconstructionConfig().mapper.fold_min_pairs
+    assert result.report["seconds_per_stage"]["look-alike check"] > 0
+    # Left out, the look-alikes vote on no registration and join no track.
+    left_out = set(result.report["features"]["look_alike_pairs"])
+    assert not left_out & set(result.report["features"]["two_view_geometry_per_pair"])
+    assert all(result.report["features"]["verified_matches_per_pair"][pair] == 0 for pair in left_out)
+    assert result.report["intrinsics"]["source"] == "prior"

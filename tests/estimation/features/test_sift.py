@@ -17,14 +17,16 @@ from scipy.spatial import cKDTree
 
 from estimation.config import RansacConfig, SiftConfig, TwoViewConfig
 from estimation.errors import InputError
-from estimation.features.matching import match_descriptors
+from estimation.features.matching import DescriptorMatches, match_descriptors
 from estimation.features.sift import (
     OPENCV_SIFT_OFFSET_PX,
     FeatureStages,
+    VerifiedMatches,
     adaptive_contrast_threshold,
     detect_features,
     extract_chunk,
     image_contrast,
+    joined_tracks,
     match_block,
     root_sift,
     sample_colors,
@@ -274,6 +276,40 @@ def test_sift_tracks_on_unity_hall_are_multiview_and_consistent(unity_sift):
     assert np.all((tracks.uv >= 0) & (tracks.uv <= [images.width, images.height]))
     assert tracks.colors.dtype == np.uint8 and len(tracks.colors) == tracks.num_tracks
     assert result.look_alikes.pairs == [] and result.look_alikes.conflicts == []   # no symmetric object
+
+
+def test_the_kept_verified_matches_join_into_the_very_tracks_sift_tracks_returned(unity_sift):
+    _, result = unity_sift
+    joined = joined_tracks(result.verified)
+    for field in ("track_index", "image_index", "uv", "colors"):
+        np.testing.assert_array_equal(getattr(joined.tracks, field), getattr(result.tracks, field))
+    np.testing.assert_array_equal(joined.observation_keypoint, result.features.observation_keypoint)
+    assert result.verified.per_pair() == result.verified_per_pair
+
+
+def matches(index_a: list[int], index_b: list[int], ratio: list[float]) -> DescriptorMatches:
+    return DescriptorMatches(np.array(index_a), np.array(index_b), np.array(ratio))
+
+
+def test_a_pair_left_out_no_longer_links_its_matches_and_the_other_pairs_still_do():
+    # Three images of two keypoints each: 0-1 and 1-2 match keypoint 0 to keypoint 0, 0-2 keypoint 1 to 1.
+    uv = [np.array([[10.0, 10.0], [20.0, 20.0]]) + k for k in range(3)]
+    colors = [np.full((2, 3), 40 * k, np.uint8) for k in range(3)]
+    verified = VerifiedMatches(["a", "b", "c"], uv, colors, {
+        (0, 1): matches([0], [0], [0.5]), (1, 2): matches([0], [0], [0.6]), (0, 2): matches([1], [1], [0.7])})
+    everything = joined_tracks(verified)
+    assert everything.tracks.num_tracks == 2 and len(everything.tracks.track_index) == 5
+
+    without = verified.without([(0, 1)])
+    assert without.per_pair() == {(0, 1): 0, (1, 2): 1, (0, 2): 1}
+    joined = joined_tracks(without)
+    seen_in = {track: sorted(joined.tracks.image_index[joined.tracks.track_index == track].tolist())
+               for track in range(joined.tracks.num_tracks)}
+    assert sorted(seen_in.values()) == [[0, 2], [1, 2]]     # image 0's keypoint 0 is in no track any more
+    observations = zip(joined.tracks.image_index.tolist(), joined.tracks.uv[:, 0].tolist(), strict=True)
+    keypoint_of = dict(zip(observations, joined.observation_keypoint.tolist(), strict=True))
+    assert keypoint_of == {(0, 20.0): 1, (2, 22.0): 1, (1, 11.0): 0, (2, 12.0): 0}
+    assert verified.per_pair() == {(0, 1): 1, (1, 2): 1, (0, 2): 1}        # the original is unchanged
 
 
 def test_one_worker_detects_matches_and_verifies_exactly_as_two_do(shared_data, unity_sift):
