@@ -7,9 +7,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimation.config import TwoViewConfig
-from estimation.features.view_graph import PairRotations, look_alike_pairs, strongest_pairs
+from estimation.features.view_graph import PairRotations, adopted_pairs, look_alike_pairs, strongest_pairs
 
 HALF_TURN = Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix()
+
+
+def ring_rotations(num_images: int) -> np.ndarray:
+    """World-to-camera rotations of cameras on a ring looking in: a turn about the vertical (y) each, tilted
+    20 deg down."""
+    azimuth = 2 * np.pi * np.arange(num_images) / num_images
+    return (Rotation.from_rotvec([0.35, 0.0, 0.0]) * Rotation.from_rotvec(np.outer(azimuth, [0, 1, 0]))
+            ).as_matrix()
 
 
 def ring_with_look_alikes(num_images: int, neighbour_inliers: float, look_alike_inliers: float,
@@ -17,10 +25,7 @@ def ring_with_look_alikes(num_images: int, neighbour_inliers: float, look_alike_
     """A ring (pairs i, i+1 and i, i+2) whose images half a ring apart also verify, a half turn off: the
     far side of a symmetric object taken for its near side."""
     rng = np.random.default_rng(seed)
-    # Cameras on a ring looking in: a turn about the vertical (y) each, tilted 20 deg down.
-    azimuth = 2 * np.pi * np.arange(num_images) / num_images
-    world = (Rotation.from_rotvec([0.35, 0.0, 0.0]) * Rotation.from_rotvec(np.outer(azimuth, [0, 1, 0]))
-             ).as_matrix()
+    world = ring_rotations(num_images)
     ring = [(i, (i + step) % num_images) for i in range(num_images) for step in (1, 2)]
     look_alikes = [(i, i + num_images // 2) for i in range(num_images // 2)]
     pairs = np.array([tuple(sorted(pair)) for pair in ring + look_alikes])
@@ -84,3 +89,16 @@ def test_without_the_limit_or_without_look_alikes_every_pair_is_kept(config):
     ring_only = PairRotations(*(array[:24] for array in rotations))
     assert look_alike_pairs(12, rotations if config.max_rotation_residual_deg is None else ring_only,
                             config).pairs == []
+
+
+def test_a_model_that_placed_its_far_side_as_the_look_alikes_say_has_adopted_them_and_one_in_place_none():
+    rotations, look_alikes = ring_with_look_alikes(24, neighbour_inliers=100, look_alike_inliers=60)
+    in_place = ring_rotations(24)
+    assert adopted_pairs(rotations, sorted(look_alikes), in_place) == []
+    folded = in_place.copy()
+    for (i, j), R_ij in zip(rotations.pairs.tolist(), rotations.R_relative, strict=True):
+        if (i, j) in look_alikes:
+            folded[j] = R_ij @ in_place[i]          # the far side's camera j put where the look-alike says
+    assert set(adopted_pairs(rotations, sorted(look_alikes), folded)) == look_alikes
+    folded[0] = np.nan                              # image 0 not registered: its pair is not judged
+    assert set(adopted_pairs(rotations, sorted(look_alikes), folded)) == look_alikes - {(0, 12)}
