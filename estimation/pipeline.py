@@ -29,7 +29,7 @@ from estimation.artefacts import (
 from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement, along_ray_sigmas, bundle_adjust
 from estimation.calibration.self_calibration import focal_from_fundamentals
 from estimation.config import BundleAdjustmentConfig, CameraConfig, ReconstructionConfig
-from estimation.errors import InputError
+from estimation.errors import DegenerateConfigurationError, InputError
 from estimation.features.view_graph import (
     LookAlikes,
     PairRotations,
@@ -556,14 +556,42 @@ class Refolding(NamedTuple):
     features_seconds: float      # the front end's run again, when its result is kept
 
 
+class Rerun(NamedTuple):
+    """The front end and the mapping run again (`run_again`)."""
+
+    features: FeatureTracks
+    models: tuple[SparseModel, ...]
+    features_seconds: float
+
+
+def run_again(extract: Callable[[np.ndarray], FeatureTracks],
+              mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]], camera: Camera
+              ) -> Rerun | None:
+    """The front end under camera's K (`extract`) and the mapping from `camera` (`mapped`); None (the
+    reason logged) when they build no model."""
+    started = time.perf_counter()
+    features = extract(camera.pinhole().K)
+    features_seconds = time.perf_counter() - started
+    try:
+        return Rerun(features, mapped(features, camera), features_seconds)
+    except DegenerateConfigurationError as error:
+        logger.warning("run again after a folded model, no model: %s", error)
+        features.close()
+        return None
+    except BaseException:
+        features.close()
+        raise
+
+
 def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...], mapping_seconds: float,
                      extract: Callable[[np.ndarray], FeatureTracks],
                      mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]],
                      config: ReconstructionConfig) -> Refolding:
     """When the largest of `models` (one shared camera, mapped in `mapping_seconds`) is folded
     (`fold_check`): the front end (`extract(K)`: E verification and the look-alike pairs left out up front,
-    as with a calibration file) and the mapping (`mapped`) run again under its refined camera, kept unless
-    that model is folded too; else `features` and `models`. details["look_alike_check"] says which."""
+    as with a calibration file) and the mapping (`mapped`) run again under its refined camera (`run_again`),
+    kept unless they build no model or a folded one; else `features` and `models`. details
+    ["look_alike_check"] says which."""
     started = time.perf_counter()
     check = fold_check(features, models[0], config)
     if check is None:
@@ -574,24 +602,19 @@ def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...], m
     if check.folded(models[0]):
         # Left out of the F-verified tracks, the look-alikes still left a rendered box folded (other pairs'
         # F inliers joined its sides); verified with E under the refined K, they did not.
-        camera = _registered_cameras(models[0])[0]
-        features_started = time.perf_counter()
-        again_features = extract(camera.pinhole().K)
-        mapping_started = time.perf_counter()
-        try:
-            again = mapped(again_features, camera)
-        except BaseException:
-            again_features.close()
-            raise
-        if check.folded(again[0]):
-            again_features.close()
-            outcome = "folded; run again under its refined camera, folded too: the first model kept"
-            refolding = Refolding(features, models, time.perf_counter() - started, 0.0)
-        else:
+        again_started = time.perf_counter()
+        again = run_again(extract, mapped, _registered_cameras(models[0])[0])
+        if again is not None and not check.folded(again.models[0]):
             features.close()
             outcome = "folded; run again under its refined camera, which replaced it"
-            refolding = Refolding(again_features, again, features_started - started + mapping_seconds,
-                                  mapping_started - features_started)
+            refolding = Refolding(again.features, again.models, again_started - started + mapping_seconds,
+                                  again.features_seconds)
+        else:
+            if again is not None:
+                again.features.close()
+            what = "folded too" if again is not None else "no model"
+            outcome = f"folded; run again under its refined camera, {what}: the first model kept"
+            refolding = Refolding(features, models, time.perf_counter() - started, 0.0)
     details = {**refolding.features.details, "look_alike_check": f"{found}: {outcome}"}
     return refolding._replace(features=replace(refolding.features, details=details))
 

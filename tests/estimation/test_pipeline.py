@@ -17,7 +17,7 @@ from estimation.config import CameraConfig
 from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_depths, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
 from estimation.mapper.verification import FOLDED
-from estimation.pipeline import initial_intrinsics, model_summary
+from estimation.pipeline import initial_intrinsics, model_summary, run_again
 from estimation.synthetic import project
 
 pytestmark = pytest.mark.slow
@@ -390,3 +390,34 @@ def test_without_calibration_a_folded_box_is_run_again_under_its_refined_camera(
     assert not left_out & set(result.report["features"]["two_view_geometry_per_pair"])
     assert all(result.report["features"]["verified_matches_per_pair"][pair] == 0 for pair in left_out)
     assert result.report["intrinsics"]["source"] == "prior"
+
+
+class ClosingTracks:
+    """Stands for the FeatureTracks of a front end: whether its worker processes were ended."""
+
+    closed = False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_run_again_that_builds_no_model_gives_none_and_ends_its_front_ends_workers():
+    from estimation.errors import DegenerateConfigurationError
+    from estimation.geometry.projection import Camera
+
+    camera = Camera("simple-radial", fx=200.0, fy=200.0, cx=99.5, cy=99.5)
+    front_ends, seen_K = [], []
+
+    def extract(K):
+        seen_K.append(K)
+        front_ends.append(ClosingTracks())
+        return front_ends[-1]
+
+    def no_model(tracks, start):
+        raise DegenerateConfigurationError("no initial pair")
+
+    assert run_again(extract, no_model, camera) is None
+    assert front_ends[-1].closed
+    np.testing.assert_allclose(seen_K[-1], camera.pinhole().K)        # verified under the refined camera
+    rerun = run_again(extract, lambda tracks, start: ("model",), camera)
+    assert rerun.models == ("model",) and rerun.features is front_ends[-1] and not front_ends[-1].closed
