@@ -398,8 +398,8 @@ def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
 @dataclass(frozen=True)
 class VerifiedMatches:
     """Every image's keypoints and colours and each matched pair's matches that verification kept (all of
-    them without verification): what the tracks are joined from (`joined_tracks`), kept so that they can be
-    joined again without some pairs (`without`)."""
+    them without verification): what the tracks are joined from (`joined_tracks`), and the inliers whose
+    rotations the look-alike checks take (`inlier_uv`: `look_alikes_under`, `pipeline.fold_check`)."""
 
     image_names: list[str]
     uv: list[np.ndarray]                       # image index -> keypoints (N, 2) full-resolution pixels
@@ -437,7 +437,7 @@ def joined_tracks(verified: VerifiedMatches) -> JoinedTracks:
     links = [np.stack([offsets[i] + pair_matches.index_a, offsets[j] + pair_matches.index_b], axis=1)
              for (i, j), pair_matches in verified.matches.items()]
     all_links = np.concatenate(links).reshape(-1, 2) if links else np.zeros((0, 2), np.int64)
-    ratios = np.concatenate([pair_matches.ratio for pair_matches in verified.matches.values()])
+    ratios = np.concatenate([pair_matches.ratio for pair_matches in verified.matches.values()] or [[]])
     all_links = all_links[np.argsort(ratios, kind="stable")]
     used_nodes, compact_links = np.unique(all_links, return_inverse=True)
     node_image = np.searchsorted(offsets, used_nodes, side="right") - 1
