@@ -57,7 +57,12 @@ from estimation.io.images import (
 )
 from estimation.io.matchfile import find_match_files, load_match_tracks
 from estimation.io.video import VideoKeyframes, extract_keyframes, is_video
-from estimation.mapper.incremental import ReprojectionSummary, SparseModel, reconstruct_models
+from estimation.mapper.incremental import (
+    FoldedModelError,
+    ReprojectionSummary,
+    SparseModel,
+    reconstruct_models,
+)
 from estimation.mapper.verification import FOLDED
 from estimation.types import ProgressCallback, Tracks
 
@@ -219,32 +224,56 @@ def look_alike_details(names: list[str], look_alikes: LookAlikes) -> dict[str, l
 
 
 class FoldCheck(NamedTuple):
-    """The look-alike pairs under a model's refined K (`fold_check`), and what `folded` needs."""
+    """The look-alike pairs under one K (`fold_check`), and what `folded` needs."""
 
     look_alikes: LookAlikes
     rotations: PairRotations     # the verified pairs' relative rotations under that K
     min_adopted: int             # MapperConfig.fold_min_pairs
 
-    def adopted(self, model: SparseModel) -> list[tuple[int, int]]:
-        """The look-alikes that `model` places as their own rotation does (`view_graph.adopted_pairs`)."""
-        return adopted_pairs(self.rotations, self.look_alikes.pairs, world_rotations(model))
+    def adopted(self, world: np.ndarray) -> list[tuple[int, int]]:
+        """The look-alikes that world-to-camera rotations (N, 3, 3; NaN: not registered) place as their own
+        rotation does (`view_graph.adopted_pairs`)."""
+        return adopted_pairs(self.rotations, self.look_alikes.pairs, world)
 
     def folded(self, model: SparseModel) -> bool:
         """The model's fold warning, or min_adopted look-alikes or more adopted: its far side folded onto
         its near one."""
         folded_warning = any(warning.startswith(FOLDED) for warning in model.warnings)
-        return folded_warning or len(self.adopted(model)) >= self.min_adopted
+        return folded_warning or len(self.adopted(world_rotations(model))) >= self.min_adopted
 
 
-def fold_check(features: FeatureTracks, model: SparseModel, config: ReconstructionConfig) -> FoldCheck | None:
-    """The look-alikes (`view_graph.look_alike_pairs`) with the verified pairs' rotations under the model's
-    refined K; None without SIFT's verified matches or with the check off."""
-    if features.verified is None or config.two_view.max_rotation_residual_deg is None:
-        return None
-    rotations = pair_rotations(features.epipolar_geometries(), features.verified.inlier_uv,
-                               _registered_cameras(model)[0].pinhole().K, config.two_view.min_inliers)
+def can_check_folds(features: FeatureTracks, config: ReconstructionConfig) -> bool:
+    """Whether `fold_check` can run: SIFT's verified matches, and the look-alike check on."""
+    return features.verified is not None and config.two_view.max_rotation_residual_deg is not None
+
+
+def fold_check(features: FeatureTracks, K: np.ndarray, config: ReconstructionConfig) -> FoldCheck:
+    """The look-alikes (`view_graph.look_alike_pairs`) with the verified pairs' rotations under K (see
+    `can_check_folds`)."""
+    rotations = pair_rotations(features.epipolar_geometries(), features.verified.inlier_uv, K,
+                               config.two_view.min_inliers)
     return FoldCheck(look_alike_pairs(len(features.verified.uv), rotations, config.two_view), rotations,
                      config.mapper.fold_min_pairs)
+
+
+class FirstMappingProbe:
+    """The fold probe (`mapper.incremental.FoldProbe`) of a first mapping without a calibration file: the
+    look-alikes under the camera of its first global refinement (they barely move as the focal length is
+    refined: a rendered box's 172 at 10 % off, 167 at the end; lego_200's 10 and 11), and whether the
+    growing model has adopted fold_min_pairs of them since. The last call's camera, rotations and images
+    are kept for `unfolded_or_kept`."""
+
+    def __init__(self, features: FeatureTracks, config: ReconstructionConfig) -> None:
+        self.features, self.config = features, config
+        self.check: FoldCheck | None = None
+        self.camera: Camera | None = None
+        self.world = np.zeros((0, 3, 3))
+
+    def __call__(self, world: np.ndarray, camera: Camera) -> bool:
+        if self.check is None:
+            self.check = fold_check(self.features, camera.pinhole().K, self.config)
+        self.camera, self.world = camera, world
+        return len(self.check.adopted(world)) >= self.check.min_adopted
 
 
 def world_rotations(model: SparseModel) -> np.ndarray:
@@ -551,7 +580,7 @@ class Refolding(NamedTuple):
     """What `reconstruct` goes on with after a first model without a calibration file (`unfolded_or_kept`)."""
 
     features: FeatureTracks
-    models: tuple[SparseModel, ...]
+    models: tuple[SparseModel, ...] | None   # None: the first mapping, stopped, is to be run in full
     discarded_seconds: float     # the check's, and the front end's and the mapping's not kept
     features_seconds: float      # the front end's run again, when its result is kept
 
@@ -583,27 +612,35 @@ def run_again(extract: Callable[[np.ndarray], FeatureTracks],
         raise
 
 
-def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...], mapping_seconds: float,
-                     extract: Callable[[np.ndarray], FeatureTracks],
+def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...] | None, mapping_seconds: float,
+                     probe: FirstMappingProbe, extract: Callable[[np.ndarray], FeatureTracks],
                      mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]],
                      config: ReconstructionConfig) -> Refolding:
-    """When the largest of `models` (one shared camera, mapped in `mapping_seconds`) is folded
-    (`fold_check`): the front end (`extract(K)`: E verification and the look-alike pairs left out up front,
-    as with a calibration file) and the mapping (`mapped`) run again under its refined camera (`run_again`),
-    kept unless they build no model or a folded one; else `features` and `models`. details
-    ["look_alike_check"] says which."""
+    """After the first mapping without a calibration file (`models`, mapped in `mapping_seconds`; None when
+    `probe` stopped it as folded): when it is folded (`FoldCheck.folded` under its refined K, or the probe's
+    finding), the front end (`extract(K)`: E verification and the look-alike pairs left out up front, as
+    with a calibration file) and the mapping (`mapped`) run again under its camera (`run_again`), and
+    replace it unless they build no model or a folded one. Refolding.models is None when the first mapping
+    was stopped and is wanted after all. details["look_alike_check"] says what happened."""
     started = time.perf_counter()
-    check = fold_check(features, models[0], config)
-    if check is None:
-        return Refolding(features, models, 0.0, 0.0)
-    found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's refined focal length, "
-             f"{len(check.adopted(models[0]))} of them adopted by it")
+    if models is not None:
+        camera = _registered_cameras(models[0])[0]
+        check = fold_check(features, camera.pinhole().K, config)
+        folded = check.folded(models[0])
+        found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's refined focal length, "
+                 f"{len(check.adopted(world_rotations(models[0])))} of them adopted by it")
+    else:
+        camera, check, folded = probe.camera, probe.check, True
+        registered = int(np.isfinite(probe.world[:, 0, 0]).sum())
+        found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's first refined focal "
+                 f"length, {len(check.adopted(probe.world))} of them adopted by its first {registered} "
+                 "images, where its mapping stopped")
     outcome, refolding = "kept", Refolding(features, models, time.perf_counter() - started, 0.0)
-    if check.folded(models[0]):
+    if folded:
         # Left out of the F-verified tracks, the look-alikes still left a rendered box folded (other pairs'
         # F inliers joined its sides); verified with E under the refined K, they did not.
         again_started = time.perf_counter()
-        again = run_again(extract, mapped, _registered_cameras(models[0])[0])
+        again = run_again(extract, mapped, camera)
         if again is not None and not check.folded(again.models[0]):
             features.close()
             outcome = "folded; run again under its refined camera, which replaced it"
@@ -614,7 +651,8 @@ def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...], m
                 again.features.close()
             what = "folded too" if again is not None else "no model"
             outcome = f"folded; run again under its refined camera, {what}: the first model kept"
-            refolding = Refolding(features, models, time.perf_counter() - started, 0.0)
+            discarded = time.perf_counter() - started + (mapping_seconds if models is None else 0.0)
+            refolding = Refolding(features, models, discarded, 0.0)
     details = {**refolding.features.details, "look_alike_check": f"{found}: {outcome}"}
     return refolding._replace(features=replace(refolding.features, details=details))
 
@@ -657,29 +695,35 @@ def reconstruct(
     with _timed(seconds, "self-calibration"):
         initial = self_calibrated(initial, features.epipolar_geometries(), config)
 
-    def mapped(tracks: FeatureTracks, camera: CameraInput, report: ProgressCallback
-               ) -> tuple[SparseModel, ...]:
+    def mapped(tracks: FeatureTracks, camera: CameraInput, report: ProgressCallback,
+               probe: FirstMappingProbe | None = None) -> tuple[SparseModel, ...]:
         return tuple(reconstruct_models(tracks.tracks, camera, config, progress=report, refine=initial.refine,
                                         pair_types=tracks.pair_types, keypoints=tracks.keypoints,
-                                        pair_geometries=tracks.epipolar_geometries()))
+                                        pair_geometries=tracks.epipolar_geometries(), fold_probe=probe))
 
     def again(stage: str, fraction: float) -> None:
         # A run again after a folded model holds the bar where the mapping ended.
         if progress is not None:
             progress(f"{stage} (again, under the folded model's refined camera)", PROGRESS_PIPELINE_END)
 
+    start = initial.cameras if initial.refine.per_image else initial.cameras[0]
+    # Without a calibration file a fold is looked for while the first model grows, and after it.
+    probe = (FirstMappingProbe(features, config) if calibration_K is None and not initial.refine.per_image
+             and can_check_folds(features, config) else None)
     try:
         started = time.perf_counter()
-        models = mapped(features, initial.cameras if initial.refine.per_image else initial.cameras[0],
-                        _scaled(progress, features_end, PROGRESS_PIPELINE_END))
-        if calibration_K is None and not initial.refine.per_image:
-            refolding = unfolded_or_kept(features, models, time.perf_counter() - started,
+        try:
+            models = mapped(features, start, _scaled(progress, features_end, PROGRESS_PIPELINE_END), probe)
+        except FoldedModelError:
+            models = None
+        if probe is not None:
+            refolding = unfolded_or_kept(features, models, time.perf_counter() - started, probe,
                                          lambda K: extract(K, again),
                                          lambda tracks, camera: mapped(tracks, camera, again), config)
-            features, models = refolding.features, refolding.models
+            features = refolding.features
+            models = refolding.models or mapped(features, start, again)
             seconds["features"] += refolding.features_seconds
-            if refolding.discarded_seconds:
-                seconds["look-alike check"] = refolding.discarded_seconds
+            seconds["look-alike check"] = refolding.discarded_seconds
         features = features.finished()
     finally:
         features.close()

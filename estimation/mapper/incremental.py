@@ -17,7 +17,7 @@ the images no model holds, and moved into the largest model when a verified simi
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, NamedTuple
@@ -80,6 +80,14 @@ if TYPE_CHECKING:
 
 FINAL_BA_ROUNDS = 3
 """Converged global BA, filter, and BA again while the filter removed more than a few observations."""
+
+FoldProbe = Callable[[np.ndarray, Camera], bool]
+"""Asked after each global refinement of a growing model: is it folded onto itself, given its world-to-camera
+rotations (N, 3, 3; NaN where not registered) and its camera (`reconstruct_models`' fold_probe)."""
+
+
+class FoldedModelError(Exception):
+    """A fold probe found the model being built folded onto itself: the mapping stops."""
 
 
 class ReprojectionSummary(NamedTuple):
@@ -264,8 +272,9 @@ class _ModelBuilder:
     def __init__(self, tracks: Tracks, camera: CameraInput, refine: IntrinsicsRefinement,
                  config: ReconstructionConfig, available: np.ndarray, timer: _Timer,
                  progress: ProgressCallback | None, votes: list[list[VerifiedPair]] | None = None,
-                 keypoints: TrackFeatures | None = None) -> None:
+                 keypoints: TrackFeatures | None = None, fold_probe: FoldProbe | None = None) -> None:
         self.config, self.mapper = config, config.mapper
+        self.fold_probe = fold_probe
         # The principal point is refined only from the final global refinement on (`release_principal_point`):
         # while the model grows, its few images cannot determine it, and a drifting one bends what follows.
         self.refine = refine
@@ -858,6 +867,19 @@ class _ModelBuilder:
 
     # -------------------------------------------------------------------------------------- loop
 
+    def probe_fold(self) -> None:
+        """Raises FoldedModelError when the fold probe finds the model folded (its world-to-camera rotations,
+        NaN where not registered, and its camera)."""
+        if self.fold_probe is None:
+            return
+        reconstruction = self.reconstruction
+        rotations = np.full((len(self.tracks.image_names), 3, 3), np.nan)
+        for image in reconstruction.order:
+            rotations[image] = reconstruction.pose(image).R
+        camera = reconstruction.cameras[reconstruction.order[0]]
+        if self.fold_probe(rotations, camera):
+            raise FoldedModelError(f"the model of {len(reconstruction.order)} images is folded onto itself")
+
     def grow(self, num_images: int, images_done: int) -> None:
         """Register images until none more can be: each success triangulates and adjusts; a stall
         relaxes the thresholds once (after a global refinement that may add 2D-3D correspondences)."""
@@ -884,6 +906,7 @@ class _ModelBuilder:
                 with self.timer.stage("global refinement"):
                     self.global_refinement(self.mapper.growth_refinement_rounds)
                     self.verify_registered()
+                self.probe_fold()
                 self.thresholds.relax(self.mapper.relaxed_registration_factor)
                 self.trials[:] = 0
                 continue
@@ -895,6 +918,7 @@ class _ModelBuilder:
                 with self.timer.stage("global refinement"):
                     self.global_refinement(self.mapper.growth_refinement_rounds)
                     self.verify_registered()
+                self.probe_fold()
                 last_global = len(self.reconstruction.order)
 
 
@@ -1024,6 +1048,7 @@ def reconstruct_models(
     pair_types: dict[tuple[int, int], str] | None = None,
     pair_geometries: dict[tuple[int, int], TwoViewGeometry] | None = None,
     keypoints: TrackFeatures | None = None,
+    fold_probe: FoldProbe | None = None,
 ) -> list[SparseModel]:
     """Every model incremental SfM can build from the tracks, largest first.
 
@@ -1035,7 +1060,8 @@ def reconstruct_models(
     descriptors behind the tracks) lets an image that failed be matched again against the model
     (`guided`). `camera` (a 3x3 K, a Camera, or one
     Camera per image) is every image's initial camera; each global BA refines the intrinsics as `refine`
-    says, and the models' `cameras` carry the result.
+    says, and the models' `cameras` carry the result. `fold_probe`, asked after each global refinement,
+    stops the mapping with FoldedModelError when it finds the growing model folded.
     Raises DegenerateConfigurationError naming, per image, why no model could start.
     """
     num_images = len(tracks.image_names)
@@ -1070,7 +1096,7 @@ def reconstruct_models(
             break
         candidate = choice.candidate
         builder = _ModelBuilder(tracks, camera, refine, config, available.copy(), timer, progress, votes,
-                                keypoints)
+                                keypoints, fold_probe)
         with timer.stage("initial pair"):
             builder.initialize(candidate)
         builder.grow(num_images, num_images - int(available.sum()))

@@ -372,7 +372,7 @@ def test_a_box_whose_opposite_sides_look_alike_is_reconstructed_without_folding_
 def test_without_calibration_a_folded_box_is_run_again_under_its_refined_camera(tmp_path, look_alike_box):
     """Without calibration.txt the look-alikes are not looked for up front (under the focal length prior the
     pairs' rotations cannot tell them): the first model folds. Under its refined focal length they are
-    found, and the model has adopted them; run again under its refined camera (E verification, the
+    found, and the growing model has adopted them; run again under its refined camera (E verification, the
     look-alikes left out of the tracks), every camera is in place, and that model replaces the folded one."""
     reports = []
     result = reconstructed_box(look_alike_box, tmp_path, calibrated=False,
@@ -381,6 +381,8 @@ def test_without_calibration_a_folded_box_is_run_again_under_its_refined_camera(
     fractions = [fraction for _, fraction in reports]
     assert fractions == sorted(fractions) and any("(again, under" in stage for stage, _ in reports)
     check = result.report["features"]["look_alike_check"]
+    # Found while the first model grew, which stopped it.
+    assert "where its mapping stopped" in check
     assert check.endswith("folded; run again under its refined camera, which replaced it")
     adopted = int(check.split(" of them adopted")[0].rsplit(", ", 1)[1])
     assert adopted >= ReconstructionConfig().mapper.fold_min_pairs

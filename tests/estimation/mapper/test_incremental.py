@@ -14,6 +14,7 @@ from estimation.geometry.alignment import align_similarity, aligned_pose_errors,
 from estimation.geometry.projection import Camera
 from estimation.mapper.incremental import (
     FINAL_BA_ROUNDS,
+    FoldedModelError,
     SparseModel,
     _ModelBuilder,
     _Timer,
@@ -755,3 +756,26 @@ def test_an_image_whose_observations_were_filtered_away_is_removed_and_tried_aga
     reconstruction.filter_points(builder.max_error, builder.min_angle)
     assert builder.verify_registered() == [moved]
     assert builder.trials[moved] == CONFIG.mapper.max_registration_trials   # removed twice: given up
+
+
+def test_a_fold_probe_sees_each_global_refinement_and_stops_the_mapping_when_it_finds_a_fold():
+    scene = make_object_scene(num_cameras=16, num_points=800, noise_px=0.3, seed=2)
+    seen = []
+
+    def watching(world: np.ndarray, camera: Camera) -> bool:
+        seen.append((np.flatnonzero(np.isfinite(world[:, 0, 0])), world, camera))
+        return False
+
+    watched = reconstruct_models(scene.tracks, scene.K, CONFIG, fold_probe=watching)
+    unwatched = reconstruct_models(scene.tracks, scene.K, CONFIG)
+    assert [sorted(m.poses) for m in watched] == [sorted(m.poses) for m in unwatched]
+    np.testing.assert_array_equal(watched[0].points, unwatched[0].points)
+    # Asked as the model grows: its registered images' rotations, NaN for the others, and its camera.
+    sizes = [len(registered) for registered, _, _ in seen]
+    assert len(seen) >= 2 and sizes == sorted(sizes) and sizes[0] >= 2
+    registered, world, camera = seen[-1]
+    assert np.isnan(np.delete(world, registered, axis=0)).all() and camera.fx == pytest.approx(scene.K[0, 0])
+    np.testing.assert_allclose(world[registered[0]] @ world[registered[0]].T, np.eye(3), atol=1e-9)
+
+    with pytest.raises(FoldedModelError):
+        reconstruct_models(scene.tracks, scene.K, CONFIG, fold_probe=lambda world, camera: True)
