@@ -34,8 +34,10 @@ from estimation.features.view_graph import (
     LookAlikes,
     PairRotations,
     adopted_pairs,
+    is_adopted,
     look_alike_pairs,
     pair_rotations,
+    registered_pairs,
 )
 from estimation.geometry.projection import Camera, CameraInput
 from estimation.io.export import (
@@ -230,16 +232,22 @@ class FoldCheck(NamedTuple):
     rotations: PairRotations     # the verified pairs' relative rotations under that K
     min_adopted: int             # MapperConfig.fold_min_pairs
 
-    def adopted(self, world: np.ndarray) -> list[tuple[int, int]]:
-        """The look-alikes that world-to-camera rotations (N, 3, 3; NaN: not registered) place as their own
-        rotation does (`view_graph.adopted_pairs`)."""
-        return adopted_pairs(self.rotations, self.look_alikes.pairs, world)
+    def adopted(self, world: np.ndarray) -> str:
+        """How many look-alikes world-to-camera rotations (N, 3, 3; NaN: not registered) place as their own
+        rotation does, of those between registered images (`view_graph.adopted_pairs`), in words."""
+        between = registered_pairs(self.look_alikes.pairs, world)
+        adopted = adopted_pairs(self.rotations, between, world)
+        return f"{len(adopted)} of the {len(between)} between its images"
+
+    def adopted_by(self, world: np.ndarray) -> bool:
+        """Whether rotations (N, 3, 3; NaN: not registered) have adopted the look-alikes
+        (`view_graph.is_adopted`): the far side folded onto the near one."""
+        return is_adopted(self.rotations, self.look_alikes.pairs, world, self.min_adopted)
 
     def folded(self, model: SparseModel) -> bool:
-        """The model's fold warning, or min_adopted look-alikes or more adopted: its far side folded onto
-        its near one."""
+        """The model's fold warning, or the look-alikes adopted (`adopted_by`)."""
         folded_warning = any(warning.startswith(FOLDED) for warning in model.warnings)
-        return folded_warning or len(self.adopted(world_rotations(model))) >= self.min_adopted
+        return folded_warning or self.adopted_by(world_rotations(model))
 
 
 def can_check_folds(features: FeatureTracks, config: ReconstructionConfig) -> bool:
@@ -273,7 +281,7 @@ class FirstMappingProbe:
         if self.check is None:
             self.check = fold_check(self.features, camera.pinhole().K, self.config)
         self.camera, self.world = camera, world
-        return len(self.check.adopted(world)) >= self.check.min_adopted
+        return self.check.adopted_by(world)
 
 
 def world_rotations(model: SparseModel) -> np.ndarray:
@@ -628,13 +636,13 @@ def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...] | 
         check = fold_check(features, camera.pinhole().K, config)
         folded = check.folded(models[0])
         found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's refined focal length, "
-                 f"{len(check.adopted(world_rotations(models[0])))} of them adopted by it")
+                 f"{check.adopted(world_rotations(models[0]))} adopted by it")
     else:
         camera, check, folded = probe.camera, probe.check, True
         registered = int(np.isfinite(probe.world[:, 0, 0]).sum())
         found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's first refined focal "
-                 f"length, {len(check.adopted(probe.world))} of them adopted by its first {registered} "
-                 "images, where its mapping stopped")
+                 f"length, {check.adopted(probe.world)} adopted by it at {registered} images, where its "
+                 "mapping stopped")
     outcome, refolding = "kept", Refolding(features, models, time.perf_counter() - started, 0.0)
     if folded:
         # Left out of the F-verified tracks, the look-alikes still left a rendered box folded (other pairs'

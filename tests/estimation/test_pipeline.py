@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -384,8 +385,8 @@ def test_without_calibration_a_folded_box_is_run_again_under_its_refined_camera(
     # Found while the first model grew, which stopped it.
     assert "where its mapping stopped" in check
     assert check.endswith("folded; run again under its refined camera, which replaced it")
-    adopted = int(check.split(" of them adopted")[0].rsplit(", ", 1)[1])
-    assert adopted >= ReconstructionConfig().mapper.fold_min_pairs
+    adopted, between = map(int, re.search(r"(\d+) of the (\d+) between its images adopted", check).groups())
+    assert adopted >= ReconstructionConfig().mapper.fold_min_pairs and 2 * adopted >= between
     assert result.report["seconds_per_stage"]["look-alike check"] > 0
     # Left out, the look-alikes vote on no registration and join no track.
     left_out = set(result.report["features"]["look_alike_pairs"])

@@ -7,7 +7,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from estimation.config import TwoViewConfig
-from estimation.features.view_graph import PairRotations, adopted_pairs, look_alike_pairs, strongest_pairs
+from estimation.features.view_graph import (
+    PairRotations,
+    adopted_pairs,
+    is_adopted,
+    look_alike_pairs,
+    registered_pairs,
+    strongest_pairs,
+)
 
 HALF_TURN = Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix()
 
@@ -102,3 +109,20 @@ def test_a_model_that_placed_its_far_side_as_the_look_alikes_say_has_adopted_the
     assert set(adopted_pairs(rotations, sorted(look_alikes), folded)) == look_alikes
     folded[0] = np.nan                              # image 0 not registered: its pair is not judged
     assert set(adopted_pairs(rotations, sorted(look_alikes), folded)) == look_alikes - {(0, 12)}
+
+
+def test_a_model_is_folded_when_it_adopted_a_few_look_alikes_and_most_of_those_between_its_images():
+    rotations, look_alikes = ring_with_look_alikes(24, neighbour_inliers=100, look_alike_inliers=60)
+    pairs = sorted(look_alikes)                      # (i, i + 12)
+    in_place = ring_rotations(24)
+    folded = in_place.copy()
+    for (i, j), R_ij in zip(rotations.pairs.tolist(), rotations.R_relative, strict=True):
+        if (i, j) in look_alikes and i < 4:
+            folded[j] = R_ij @ in_place[i]          # 4 of the 12 adopted, all 12 between registered images
+    assert registered_pairs(pairs, folded) == pairs and len(adopted_pairs(rotations, pairs, folded)) == 4
+    assert not is_adopted(rotations, pairs, folded, min_adopted=3)          # 4 of 12: not most
+    partial = folded.copy()
+    partial[[16, 17, 18, 19, 20, 21, 22, 23]] = np.nan                  # 4 of the 4 between registered ones
+    assert registered_pairs(pairs, partial) == pairs[:4]
+    assert is_adopted(rotations, pairs, partial, min_adopted=3)
+    assert not is_adopted(rotations, pairs, partial, min_adopted=5)     # too few, however large the share
