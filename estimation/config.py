@@ -490,9 +490,10 @@ class MapperConfig(StrictConfig):
     fold_min_pairs: int = Field(
         3, ge=1, description="Pairs at one viewpoint sharing under fold_min_shared that make a warning, "
         "and look-alike pairs that a model without calibration.txt places as their own rotation does that "
-        "make it folded and run again under its refined camera (`pipeline.fold_check`, also while it grows: "
+        "make it folded, when they are also half of those between its images (`view_graph.is_adopted`), and "
+        "run again under its refined camera (`pipeline.fold_check`, also while it grows: "
         "`pipeline.FirstMappingProbe`): a folded model has one of each for nearly every camera of its far "
-        "side (a rendered 20-view box: 19 of 27 look-alikes adopted at the end, 6 by its first 9 images); "
+        "side (a rendered 20-view box: 19 of 27 look-alikes adopted at the end, 6 of 8 by its 9th image); "
         "one or two are poorly seen views.",
     )
     deregister_min_kept_ratio: float = Field(
