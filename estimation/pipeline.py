@@ -591,6 +591,7 @@ class Refolding(NamedTuple):
     models: tuple[SparseModel, ...] | None   # None: the first mapping, stopped, is to be run in full
     discarded_seconds: float     # the check's, and the front end's and the mapping's not kept
     features_seconds: float      # the front end's run again, when its result is kept
+    warning: str | None = None   # for the largest model, when a folded one is kept
 
 
 class Rerun(NamedTuple):
@@ -660,7 +661,8 @@ def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...] | 
             what = "folded too" if again is not None else "no model"
             outcome = f"folded; run again under its refined camera, {what}: the first model kept"
             discarded = time.perf_counter() - started + (mapping_seconds if models is None else 0.0)
-            refolding = Refolding(features, models, discarded, 0.0)
+            warning = f"{FOLDED}: {found}; run again under its refined camera, {what}"
+            refolding = Refolding(features, models, discarded, 0.0, warning)
     details = {**refolding.features.details, "look_alike_check": f"{found}: {outcome}"}
     return refolding._replace(features=replace(refolding.features, details=details))
 
@@ -732,6 +734,8 @@ def reconstruct(
             models = refolding.models or mapped(features, start, again)
             seconds["features"] += refolding.features_seconds
             seconds["look-alike check"] = refolding.discarded_seconds
+            if refolding.warning is not None:
+                models[0].warnings.append(refolding.warning)
         features = features.finished()
     finally:
         features.close()

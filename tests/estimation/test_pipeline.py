@@ -424,3 +424,18 @@ def test_a_run_again_that_builds_no_model_gives_none_and_ends_its_front_ends_wor
     np.testing.assert_allclose(seen_K[-1], camera.pinhole().K)        # verified under the refined camera
     rerun = run_again(extract, lambda tracks, start: ("model",), camera)
     assert rerun.models == ("model",) and rerun.features is front_ends[-1] and not front_ends[-1].closed
+
+
+def test_a_folded_box_whose_run_again_builds_no_model_keeps_its_first_model_in_full_and_warns(
+        tmp_path, look_alike_box, monkeypatch):
+    """When the run again after a fold does no better (here: it builds no model), the first model is kept:
+    mapped in full, since the probe stopped it, and its warnings say it is folded."""
+    import estimation.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "run_again", lambda extract, mapped, camera: None)
+    result = reconstructed_box(look_alike_box, tmp_path, calibrated=False)
+    check = result.report["features"]["look_alike_check"]
+    assert "where its mapping stopped" in check and check.endswith("no model: the first model kept")
+    assert len(result.model.poses) >= 15                   # the whole first model, not the stopped one
+    assert any(warning.startswith(FOLDED) for warning in result.report["warnings"])
+    assert result.report["features"]["look_alike_pairs"] == []     # the first front end's: none left out
