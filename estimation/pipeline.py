@@ -35,8 +35,7 @@ from estimation.features.view_graph import (
     PairRotations,
     adopted_pairs,
     is_adopted,
-    look_alike_pairs,
-    pair_rotations,
+    look_alikes_under,
     registered_pairs,
 )
 from estimation.geometry.projection import Camera, CameraInput
@@ -208,7 +207,9 @@ def extract_tracks(
                                       for (i, j), n in result.verified_per_pair.items()},
         "two_view_geometry_per_pair": {},           # `FeatureTracks.finished`
         "rejected_links": result.num_rejected_links,
-        **look_alike_details(images.names, look_alikes),
+        # Verified pairs left out of the tracks as look-alikes, and strongest pairs that conflicted instead.
+        "look_alike_pairs": [f"{images.names[i]}|{images.names[j]}" for i, j in look_alikes.pairs],
+        "look_alike_conflicts": [f"{images.names[i]}|{images.names[j]}" for i, j in look_alikes.conflicts],
         "look_alike_check": "calibration file" if K is not None else "not run",
         "seconds_per_stage": result.seconds_per_stage,
     }
@@ -216,13 +217,6 @@ def extract_tracks(
     keypoints = result.features if config.mapper.guided_matching else None
     features = FeatureTracks(result.tracks, source, details, pair_types, keypoints, result.verified)
     return features if defer_planarity else features.finished()
-
-
-def look_alike_details(names: list[str], look_alikes: LookAlikes) -> dict[str, list[str]]:
-    """report.json's verified pairs left out of the tracks as look-alikes, and the strongest pairs that
-    conflicted instead (`features.view_graph`)."""
-    return {"look_alike_pairs": [f"{names[i]}|{names[j]}" for i, j in look_alikes.pairs],
-            "look_alike_conflicts": [f"{names[i]}|{names[j]}" for i, j in look_alikes.conflicts]}
 
 
 class FoldCheck(NamedTuple):
@@ -256,12 +250,11 @@ def can_check_folds(features: FeatureTracks, config: ReconstructionConfig) -> bo
 
 
 def fold_check(features: FeatureTracks, K: np.ndarray, config: ReconstructionConfig) -> FoldCheck:
-    """The look-alikes (`view_graph.look_alike_pairs`) with the verified pairs' rotations under K (see
+    """The look-alikes with the verified pairs' rotations under K (`view_graph.look_alikes_under`; see
     `can_check_folds`)."""
-    rotations = pair_rotations(features.epipolar_geometries(), features.verified.inlier_uv, K,
-                               config.two_view.min_inliers)
-    return FoldCheck(look_alike_pairs(len(features.verified.uv), rotations, config.two_view), rotations,
-                     config.mapper.fold_min_pairs)
+    rotations, look_alikes = look_alikes_under(K, features.epipolar_geometries(), features.verified.inlier_uv,
+                                               len(features.verified.uv), config.two_view)
+    return FoldCheck(look_alikes, rotations, config.mapper.fold_min_pairs)
 
 
 class FirstMappingProbe:

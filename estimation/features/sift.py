@@ -48,7 +48,7 @@ from estimation.features.matching import (
 )
 from estimation.features.pairs import candidate_pairs
 from estimation.features.track_building import assemble_tracks
-from estimation.features.view_graph import NO_LOOK_ALIKES, LookAlikes, look_alike_pairs, pair_rotations
+from estimation.features.view_graph import NO_LOOK_ALIKES, LookAlikes, look_alikes_under
 from estimation.io.images import ImageSet, load_rgb
 from estimation.parallel import WorkerPool, resolve_workers
 from estimation.two_view.geometry import TwoViewGeometry, estimate_two_view_geometry, verify_epipolar
@@ -399,7 +399,7 @@ def match_and_verify_pairs(work: PairWork, pairs: list[Pair], pool: WorkerPool,
 class VerifiedMatches:
     """Every image's keypoints and colours and each matched pair's matches that verification kept (all of
     them without verification): what the tracks are joined from (`joined_tracks`), and the inliers whose
-    rotations the look-alike checks take (`inlier_uv`: `look_alikes_under`, `pipeline.fold_check`)."""
+    rotations the look-alike checks take (`inlier_uv`: `view_graph.look_alikes_under`)."""
 
     image_names: list[str]
     uv: list[np.ndarray]                       # image index -> keypoints (N, 2) full-resolution pixels
@@ -446,14 +446,6 @@ def joined_tracks(verified: VerifiedMatches) -> JoinedTracks:
     return JoinedTracks(assembly.tracks,
                         used_nodes[assembly.observation_node] - offsets[assembly.tracks.image_index],
                         assembly.num_rejected_links)
-
-
-def look_alikes_under(K: np.ndarray, verified: VerifiedMatches, geometries: dict[Pair, TwoViewGeometry],
-                      config: TwoViewConfig) -> LookAlikes:
-    """The verified pairs that are look-alikes (`view_graph.look_alike_pairs`) with the pairs' rotations
-    under the calibration K."""
-    rotations = pair_rotations(geometries, verified.inlier_uv, K, config.min_inliers)
-    return look_alike_pairs(len(verified.uv), rotations, config)
 
 
 def sift_tracks(
@@ -508,7 +500,7 @@ def sift_tracks(
     # checks under a folded model's refined K instead.
     if two_view is not None and K is not None:
         started = time.perf_counter()
-        look_alikes = look_alikes_under(K, verified, geometries, two_view)
+        _, look_alikes = look_alikes_under(K, geometries, verified.inlier_uv, len(images), two_view)
         # Left out of the geometries, a look-alike neither links tracks nor votes on registrations.
         verified = verified.without(look_alikes.pairs)
         left_out = set(look_alikes.pairs)

@@ -85,6 +85,15 @@ def pair_rotations(geometries: dict[tuple[int, int], TwoViewGeometry],
                          np.array([geometries[pair].num_inliers for pair in pairs], float))
 
 
+def look_alikes_under(K: np.ndarray, geometries: dict[tuple[int, int], TwoViewGeometry],
+                      inlier_uv: Callable[[int, int], tuple], num_images: int, config: TwoViewConfig
+                      ) -> tuple[PairRotations, LookAlikes]:
+    """The verified pairs' rotations under the calibration K (`pair_rotations`) and the look-alikes among
+    them (`look_alike_pairs`)."""
+    rotations = pair_rotations(geometries, inlier_uv, K, config.min_inliers)
+    return rotations, look_alike_pairs(num_images, rotations, config)
+
+
 def strongest_pairs(pairs: np.ndarray, inliers: np.ndarray, per_image: int) -> np.ndarray:
     """(P,) bool: the pair is among the per_image pairs with the most inliers of either of its images."""
     image = pairs.ravel()

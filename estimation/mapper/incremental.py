@@ -867,17 +867,16 @@ class _ModelBuilder:
 
     # -------------------------------------------------------------------------------------- loop
 
-    def probe_fold(self) -> None:
-        """Raises FoldedModelError when the fold probe finds the model folded (its world-to-camera rotations,
-        NaN where not registered, and its camera)."""
-        if self.fold_probe is None:
-            return
+    def refine_growing_model(self) -> None:
+        """A global refinement of the growing model and the check of its registrations, then the fold probe:
+        FoldedModelError when it finds the model folded (given its world-to-camera rotations, NaN where not
+        registered, and its camera)."""
+        with self.timer.stage("global refinement"):
+            self.global_refinement(self.mapper.growth_refinement_rounds)
+            self.verify_registered()
         reconstruction = self.reconstruction
-        rotations = np.full((len(self.tracks.image_names), 3, 3), np.nan)
-        for image in reconstruction.order:
-            rotations[image] = reconstruction.pose(image).R
-        camera = reconstruction.cameras[reconstruction.order[0]]
-        if self.fold_probe(rotations, camera):
+        if self.fold_probe is not None and self.fold_probe(reconstruction.R.copy(),
+                                                           reconstruction.cameras[reconstruction.order[0]]):
             raise FoldedModelError(f"the model of {len(reconstruction.order)} images is folded onto itself")
 
     def grow(self, num_images: int, images_done: int) -> None:
@@ -903,10 +902,7 @@ class _ModelBuilder:
             if registered is None:
                 if self.thresholds.relaxed or not (self.available & ~self.reconstruction.registered).any():
                     return
-                with self.timer.stage("global refinement"):
-                    self.global_refinement(self.mapper.growth_refinement_rounds)
-                    self.verify_registered()
-                self.probe_fold()
+                self.refine_growing_model()
                 self.thresholds.relax(self.mapper.relaxed_registration_factor)
                 self.trials[:] = 0
                 continue
@@ -915,10 +911,7 @@ class _ModelBuilder:
             with self.timer.stage("local bundle adjustment"):
                 self.local_bundle_adjustment(registered)
             if len(self.reconstruction.order) >= self.mapper.global_ba_growth * last_global:
-                with self.timer.stage("global refinement"):
-                    self.global_refinement(self.mapper.growth_refinement_rounds)
-                    self.verify_registered()
-                self.probe_fold()
+                self.refine_growing_model()
                 last_global = len(self.reconstruction.order)
 
 
