@@ -30,10 +30,12 @@ Sets (../shared/data):
 - ringN, darkringN (N < 50): the same with N views, every 50/N-th from the --ring-offset-th on: sparse
   rings of other spacings and starts (ring25 --ring-offset 1: the 25 views that ring25 leaves out), where
   a camera more than WRONG_DEG off (flipped, or placed by a wrong pose) is the failure to watch for.
-- box, boxN: a rendered box whose opposite sides look alike (`estimation.synthetic.render_box_ring`: one
-  texture per pair of opposite sides but for 8 marks of each, a ground of tiled random marks) seen from 36
-  (N) cameras on a ring at 400 px: views half a turn apart look alike, so every camera has a look-alike
-  twin across the ring. Ours prints report.json's warning when it finds the model folded onto itself.
+- box, boxN, boxN_seedS: a rendered box whose opposite sides look alike
+  (`estimation.synthetic.render_box_ring`: one texture per pair of opposite sides but for 8 marks of each, a
+  ground of tiled random marks) seen from 36 (N) cameras on a ring at 400 px, rendered with seed 0 (S):
+  views half a turn apart look alike, so every camera has a look-alike twin across the ring. Ours prints
+  report.json's warning when it finds the model folded onto itself, and what it did where its look-alike
+  check's strongest pairs conflicted.
 - unity: Unity Hall with the course's match files (ours only; no ground truth: RMS and Ceres left).
 
 Ours also prints the three registrations whose inliers pinned the rotation least (report.json's
@@ -121,6 +123,7 @@ class Outcome:
     loosest_registrations: dict[str, float] | None = None
     fold_warnings: list[str] | None = None               # report.json's "possibly folded" warnings
     look_alike_check: str = ""                           # report.json's features.look_alike_check
+    conflicts_outcome: str = ""                          # its look_alike_conflicts_outcome, if any
 
 
 def lego_set(work: Path) -> BenchSet:
@@ -204,15 +207,16 @@ def sparse_ring_set(work: Path, dark: bool, views: int = SPARSE_RING_VIEWS, offs
     return BenchSet(f"lego_ring_400 {'dark ' if dark else ''}({views}{start})", folder, ring.K, truth)
 
 
-BOX = re.compile(r"box(\d+)?")
-"""box, boxN: the rendered box with look-alike sides (`box_ring_set`)."""
+BOX = re.compile(r"box(\d+)?(?:_seed(\d+))?")
+"""box, boxN, boxN_seedS: the rendered box with look-alike sides (`box_ring_set`)."""
 BOX_VIEWS = 36
 
 
-def box_ring_set(work: Path, views: int) -> BenchSet:
-    """`render_box_ring`'s views written into `work` with calibration.txt and their true poses."""
-    ring = render_box_ring(num_views=views)
-    folder = work / f"box_{views}"
+def box_ring_set(work: Path, views: int, seed: int = 0) -> BenchSet:
+    """`render_box_ring`'s views (rendered with `seed`) written into `work` with calibration.txt and their
+    true poses."""
+    ring = render_box_ring(num_views=views, seed=seed)
+    folder = work / f"box_{views}_seed{seed}"
     folder.mkdir(parents=True, exist_ok=True)
     truth = {}
     for k, (rgb, pose) in enumerate(zip(ring.images, ring.poses, strict=True)):
@@ -220,7 +224,8 @@ def box_ring_set(work: Path, views: int) -> BenchSet:
         Image.fromarray(rgb).save(folder / name)
         truth[name] = pose
     np.savetxt(folder / "calibration.txt", ring.K)
-    return BenchSet(f"box with look-alike sides ({views})", folder, ring.K, truth)
+    rendered = f", seed {seed}" if seed else ""
+    return BenchSet(f"box with look-alike sides ({views}{rendered})", folder, ring.K, truth)
 
 
 STRECHA_PIXEL_OFFSET = 0.5
@@ -267,7 +272,8 @@ def run_ours(bench: BenchSet, out: Path, max_reprojection_sigmas: float | None =
                    loosest_registrations=loosest_registrations(result.report),
                    fold_warnings=[warning for warning in result.report["warnings"]
                                   if warning.startswith(FOLDED)],
-                   look_alike_check=result.report["features"].get("look_alike_check", ""))
+                   look_alike_check=result.report["features"].get("look_alike_check", ""),
+                   conflicts_outcome=result.report["features"].get("look_alike_conflicts_outcome", ""))
 
 
 LOOSEST_SHOWN = 3
@@ -372,7 +378,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sets", default="lego,fountain,herzjesu,unity",
                         help="comma-separated: lego, ring, ring16, darkring, ringN, darkringN (N views), "
-                        "box, boxN, fountain, herzjesu, unity")
+                        "box, boxN, boxN_seedS, fountain, herzjesu, unity")
     parser.add_argument("--ring-offset", type=int, default=0,
                         help="ringN, darkringN: start from the offset-th view in azimuth order")
     parser.add_argument("--no-pycolmap", action="store_true", help="ours only")
@@ -412,7 +418,8 @@ def main() -> None:
                 views = int(ring.group(2)) if ring.group(2) else SPARSE_RING_VIEWS
                 bench = sparse_ring_set(work, ring.group(1) is not None, views, args.ring_offset)
             elif box := BOX.fullmatch(key):
-                bench = box_ring_set(work, int(box.group(1)) if box.group(1) else BOX_VIEWS)
+                bench = box_ring_set(work, int(box.group(1)) if box.group(1) else BOX_VIEWS,
+                                     int(box.group(2) or 0))
             elif key == "fountain":
                 bench = strecha_set("fountain-P11", work)
             elif key == "herzjesu":
@@ -465,6 +472,8 @@ def main() -> None:
                 for warning in ours.fold_warnings:
                     print(f"ours, warning: {warning[:300]}", flush=True)
                 print(f"ours, look-alike check: {ours.look_alike_check}", flush=True)
+                if ours.conflicts_outcome:
+                    print(f"ours, look-alike conflicts: {ours.conflicts_outcome}", flush=True)
             if not bench.calibrated:
                 truth_focal = (bench.K[0, 0] + bench.K[1, 1]) / 2
                 found = [(method, outcome.focal_px) for method, outcome in

@@ -84,6 +84,9 @@ PROGRESS_INPUT_END = 0.02
 PROGRESS_FEATURES_END = {"matches": 0.05, "sift": 0.35}
 PROGRESS_PIPELINE_END = 0.93
 
+SIDES_CONFLICTED = "sides of a symmetric object possibly confused"
+"""Starts the warning of a model whose look-alike check conflicted (`with_conflicts_kept`)."""
+
 logger = logging.getLogger(__name__)
 NO_EXIF = ExifFocal(None, "none", "no EXIF focal length")
 FOCAL_FROM_PAIRS = "fundamental matrices"
@@ -128,6 +131,7 @@ class FeatureTracks:
     pair_types: PairTypes | None = None
     keypoints: TrackFeatures | None = None   # SIFT's keypoints and descriptors (guided 2D-3D matching)
     verified: VerifiedMatches | None = None  # SIFT's verified matches (`fold_check`)
+    look_alikes: LookAlikes | None = None    # SIFT's look-alike check under a calibration file (`view_graph`)
 
     def finished(self) -> FeatureTracks:
         """These tracks with every verified pair's geometry in details["two_view_geometry_per_pair"] (the
@@ -172,12 +176,15 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 def extract_tracks(
     images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
     K: np.ndarray | None = None, defer_planarity: bool = False, stages: FeatureStages | None = None,
+    conflicts_kept: bool = False,
 ) -> FeatureTracks:
     """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
     pairs are verified with E when K is given, else with F. `defer_planarity`: the pairs' planarity tests
     (`features.planarity`) run in the front end's worker process beside what the caller does next, until
     the result is `finished` (or `close`d). `stages`: where SIFT's extraction chunks and matching blocks
-    run (`features.sift.FeatureStages`; default: this machine's threads and worker processes)."""
+    run (`features.sift.FeatureStages`; default: this machine's threads and worker processes).
+    `conflicts_kept`: where the look-alike check's strongest pairs conflict, the alternative's look-alikes
+    are left out (`view_graph.LookAlikes.alternative`)."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -193,7 +200,8 @@ def extract_tracks(
     pool = sift_pool(config.sift)
     try:
         result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
-                             progress=report, pool=pool, defer_planarity=defer_planarity, stages=stages)
+                             progress=report, pool=pool, defer_planarity=defer_planarity, stages=stages,
+                             conflicts_kept=conflicts_kept)
     except BaseException:
         pool.shutdown()
         raise
@@ -215,7 +223,8 @@ def extract_tracks(
     }
     # The descriptors stay in memory through the mapping only for guided matching (uint8: 128 B a keypoint).
     keypoints = result.features if config.mapper.guided_matching else None
-    features = FeatureTracks(result.tracks, source, details, pair_types, keypoints, result.verified)
+    features = FeatureTracks(result.tracks, source, details, pair_types, keypoints, result.verified,
+                             look_alikes if K is not None else None)
     return features if defer_planarity else features.finished()
 
 
@@ -226,22 +235,32 @@ class FoldCheck(NamedTuple):
     rotations: PairRotations     # the verified pairs' relative rotations under that K
     min_adopted: int             # MapperConfig.fold_min_pairs
 
+    @property
+    def pairs(self) -> list[tuple[int, int]]:
+        """The look-alikes that a folded model adopts: the check's, or where its strongest pairs conflicted,
+        those of the rotations that keep them (`LookAlikes.alternative`)."""
+        return self.look_alikes.pairs or list(self.look_alikes.alternative)
+
     def adopted(self, world: np.ndarray) -> str:
         """How many look-alikes world-to-camera rotations (N, 3, 3; NaN: not registered) place as their own
         rotation does, of those between registered images (`view_graph.adopted_pairs`), in words."""
-        between = registered_pairs(self.look_alikes.pairs, world)
+        between = registered_pairs(self.pairs, world)
         adopted = adopted_pairs(self.rotations, between, world)
         return f"{len(adopted)} of the {len(between)} between its images"
 
     def adopted_by(self, world: np.ndarray) -> bool:
         """Whether rotations (N, 3, 3; NaN: not registered) have adopted the look-alikes
         (`view_graph.is_adopted`): the far side folded onto the near one."""
-        return is_adopted(self.rotations, self.look_alikes.pairs, world, self.min_adopted)
+        return is_adopted(self.rotations, self.pairs, world, self.min_adopted)
 
     def folded(self, model: SparseModel) -> bool:
         """The model's fold warning, or the look-alikes adopted (`adopted_by`)."""
-        folded_warning = any(warning.startswith(FOLDED) for warning in model.warnings)
-        return folded_warning or self.adopted_by(world_rotations(model))
+        return has_fold_warning(model) or self.adopted_by(world_rotations(model))
+
+
+def has_fold_warning(model: SparseModel) -> bool:
+    """Whether the model warns that it may be folded onto itself (`mapper.verification.FOLDED`)."""
+    return any(warning.startswith(FOLDED) for warning in model.warnings)
 
 
 def can_check_folds(features: FeatureTracks, config: ReconstructionConfig) -> bool:
@@ -577,6 +596,79 @@ def _timed(seconds: dict[str, float], name: str) -> Iterator[None]:
     seconds[name] = time.perf_counter() - start
 
 
+class ConflictsResolved(NamedTuple):
+    """What `reconstruct` goes on with after a first mapping whose look-alike check conflicted
+    (`with_conflicts_kept`)."""
+
+    features: FeatureTracks
+    models: tuple[SparseModel, ...]
+    discarded_seconds: float     # the front end's and the mapping's not kept
+    features_seconds: float      # the front end's run again, when its result is kept
+
+
+def has_conflicts(features: FeatureTracks) -> bool:
+    """Whether the look-alike check's strongest pairs conflicted and the rotations that keep them found
+    look-alikes (`view_graph.LookAlikes.alternative`)."""
+    return features.look_alikes is not None and bool(features.look_alikes.alternative)
+
+
+def preference(models: tuple[SparseModel, ...] | None) -> tuple[bool, int]:
+    """How `with_conflicts_kept` ranks a mapping: its largest model without a fold warning first, then by
+    its registered images (no model last)."""
+    return (False, 0) if models is None else (not has_fold_warning(models[0]), len(models[0].poses))
+
+
+def mapped_words(models: tuple[SparseModel, ...] | None) -> str:
+    """What a mapping gave, in words: its largest model's registered images and fold warning."""
+    if models is None:
+        return "no model"
+    warned = ", with a fold warning" if has_fold_warning(models[0]) else ""
+    return f"{len(models[0].poses)} images registered{warned}"
+
+
+def with_conflicts_kept(features: FeatureTracks, models: tuple[SparseModel, ...], mapping_seconds: float,
+                        extract_kept: Callable[[], FeatureTracks],
+                        mapped: Callable[[FeatureTracks], tuple[SparseModel, ...]]) -> ConflictsResolved:
+    """After a first mapping (`models`, in `mapping_seconds`) with every pair in (`has_conflicts`): the front
+    end again with the alternative's look-alikes left out (`extract_kept`) and its mapping (`mapped`). The
+    models whose largest has no fold warning where the other's has, else registers more images, are kept,
+    the first on a tie: a model folded onto itself cannot close the ring that the other registers whole,
+    unless it registers every view folded, and then it shares too few points where its cameras coincide.
+    details["look_alike_conflicts_outcome"] says what happened, and the kept model's warnings gain
+    SIDES_CONFLICTED: either mapping may still have cameras on the wrong side."""
+    started = time.perf_counter()
+    kept_features = extract_kept()
+    features_seconds = time.perf_counter() - started
+    try:
+        kept_models: tuple[SparseModel, ...] | None = mapped(kept_features)
+    except DegenerateConfigurationError as error:
+        logger.warning("with the conflicting pairs kept, no model: %s", error)
+        kept_models = None
+    except BaseException:
+        kept_features.close()
+        raise
+    again_seconds = time.perf_counter() - started
+
+    names = features.tracks.image_names
+    conflicts = ", ".join(f"{names[i]}|{names[j]}" for i, j in features.look_alikes.conflicts)
+    found = (f"strongest pairs conflicted ({conflicts}): mapped with every pair, {mapped_words(models)}; "
+             f"with the {len(features.look_alikes.alternative)} pairs that contradict them left out, "
+             f"{mapped_words(kept_models)}")
+    if preference(kept_models) > preference(models):
+        features.close()
+        resolved = ConflictsResolved(kept_features, kept_models, mapping_seconds, features_seconds)
+        outcome = "the latter kept"
+    else:
+        kept_features.close()
+        resolved = ConflictsResolved(features, models, again_seconds, 0.0)
+        outcome = "the former kept"
+    resolved.models[0].warnings.append(
+        f"{SIDES_CONFLICTED}: the look-alike check's {found}: {outcome}; views this far apart may not tell "
+        "the object's sides apart, so some cameras may sit on the wrong side")
+    details = {**resolved.features.details, "look_alike_conflicts_outcome": f"{found}: {outcome}"}
+    return resolved._replace(features=replace(resolved.features, details=details))
+
+
 class Refolding(NamedTuple):
     """What `reconstruct` goes on with after a first model without a calibration file (`unfolded_or_kept`)."""
 
@@ -595,16 +687,24 @@ class Rerun(NamedTuple):
     features_seconds: float
 
 
-def run_again(extract: Callable[[np.ndarray], FeatureTracks],
+def run_again(extract: Callable[[np.ndarray, bool], FeatureTracks],
               mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]], camera: Camera
               ) -> Rerun | None:
-    """The front end under camera's K (`extract`) and the mapping from `camera` (`mapped`); None (the
-    reason logged) when they build no model."""
+    """The front end under camera's K (`extract(K, conflicts_kept)`) and the mapping from `camera`
+    (`mapped`), again with the conflicting pairs kept where the look-alike check's conflicted
+    (`with_conflicts_kept`); None (the reason logged) when they build no model."""
     started = time.perf_counter()
-    features = extract(camera.pinhole().K)
+    K = camera.pinhole().K
+    features = extract(K, False)
     features_seconds = time.perf_counter() - started
     try:
-        return Rerun(features, mapped(features, camera), features_seconds)
+        mapping_started = time.perf_counter()
+        models = mapped(features, camera)
+        if not has_conflicts(features):
+            return Rerun(features, models, features_seconds)
+        resolved = with_conflicts_kept(features, models, time.perf_counter() - mapping_started,
+                                       lambda: extract(K, True), lambda tracks: mapped(tracks, camera))
+        return Rerun(resolved.features, resolved.models, features_seconds + resolved.features_seconds)
     except DegenerateConfigurationError as error:
         logger.warning("run again after a folded model, no model: %s", error)
         features.close()
@@ -615,26 +715,26 @@ def run_again(extract: Callable[[np.ndarray], FeatureTracks],
 
 
 def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...] | None, mapping_seconds: float,
-                     probe: FirstMappingProbe, extract: Callable[[np.ndarray], FeatureTracks],
+                     probe: FirstMappingProbe, extract: Callable[[np.ndarray, bool], FeatureTracks],
                      mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]],
                      config: ReconstructionConfig) -> Refolding:
     """After the first mapping without a calibration file (`models`, mapped in `mapping_seconds`; None when
     `probe` stopped it as folded): when it is folded (`FoldCheck.folded` under its refined K, or the probe's
-    finding), the front end (`extract(K)`: E verification and the look-alike pairs left out up front, as
-    with a calibration file) and the mapping (`mapped`) run again under its camera (`run_again`), and
-    replace it unless they build no model or a folded one. Refolding.models is None when the first mapping
-    was stopped and is wanted after all. details["look_alike_check"] says what happened."""
+    finding), the front end (`extract(K, conflicts_kept)`: E verification and the look-alike pairs left out
+    up front, as with a calibration file) and the mapping (`mapped`) run again under its camera
+    (`run_again`), and replace it unless they build no model or a folded one. Refolding.models is None when
+    the first mapping was stopped and is wanted after all. details["look_alike_check"] says what happened."""
     started = time.perf_counter()
     if models is not None:
         camera = _registered_cameras(models[0])[0]
         check = fold_check(features, camera.pinhole().K, config)
         folded = check.folded(models[0])
-        found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's refined focal length, "
+        found = (f"{len(check.pairs)} look-alike pairs under the model's refined focal length, "
                  f"{check.adopted(world_rotations(models[0]))} adopted by it")
     else:
         camera, check, folded = probe.camera, probe.check, True
         registered = int(np.isfinite(probe.world[:, 0, 0]).sum())
-        found = (f"{len(check.look_alikes.pairs)} look-alike pairs under the model's first refined focal "
+        found = (f"{len(check.pairs)} look-alike pairs under the model's first refined focal "
                  f"length, {check.adopted(probe.world)} adopted by it at {registered} images, where its "
                  "mapping stopped")
     outcome, refolding = "kept", Refolding(features, models, time.perf_counter() - started, 0.0)
@@ -687,9 +787,11 @@ def reconstruct(
 
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]
 
-    def extract(K: np.ndarray | None, report: ProgressCallback) -> FeatureTracks:
+    def extract(K: np.ndarray | None, report: ProgressCallback, conflicts_kept: bool = False
+                ) -> FeatureTracks:
         # The planarity tests run beside the mapper, which leaves the other cores idle.
-        return extract_tracks(images, config, report, K=K, defer_planarity=True, stages=stages)
+        return extract_tracks(images, config, report, K=K, defer_planarity=True, stages=stages,
+                              conflicts_kept=conflicts_kept)
 
     with _timed(seconds, "features"):
         calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
@@ -704,10 +806,14 @@ def reconstruct(
                                         pair_types=tracks.pair_types, keypoints=tracks.keypoints,
                                         pair_geometries=tracks.epipolar_geometries(), fold_probe=probe))
 
-    def again(stage: str, fraction: float) -> None:
-        # A run again after a folded model holds the bar where the mapping ended.
-        if progress is not None:
-            progress(f"{stage} (again, under the folded model's refined camera)", PROGRESS_PIPELINE_END)
+    def held(why: str) -> ProgressCallback:
+        # A run again after the first model holds the bar where the mapping ended.
+        def report(stage: str, fraction: float) -> None:
+            if progress is not None:
+                progress(f"{stage} (again, {why})", PROGRESS_PIPELINE_END)
+        return report
+
+    again = held("under the folded model's refined camera")
 
     start = initial.cameras if initial.refine.per_image else initial.cameras[0]
     # Without a calibration file a fold is looked for while the first model grows, and after it.
@@ -721,7 +827,7 @@ def reconstruct(
             models = None
         if probe is not None:
             refolding = unfolded_or_kept(features, models, time.perf_counter() - started, probe,
-                                         lambda K: extract(K, again),
+                                         lambda K, conflicts_kept: extract(K, again, conflicts_kept),
                                          lambda tracks, camera: mapped(tracks, camera, again), config)
             features = refolding.features
             models = refolding.models or mapped(features, start, again)
@@ -729,6 +835,14 @@ def reconstruct(
             seconds["look-alike check"] = refolding.discarded_seconds
             if refolding.warning is not None:
                 models[0].warnings.append(refolding.warning)
+        elif has_conflicts(features):
+            kept = held("with the conflicting pairs kept")
+            resolved = with_conflicts_kept(features, models, time.perf_counter() - started,
+                                           lambda: extract(calibration_K, kept, conflicts_kept=True),
+                                           lambda tracks: mapped(tracks, start, kept))
+            features, models = resolved.features, resolved.models
+            seconds["features"] += resolved.features_seconds
+            seconds["look-alike check"] = resolved.discarded_seconds
         features = features.finished()
     finally:
         features.close()

@@ -10,6 +10,11 @@ sides (over LOOK_ALIKE_MIN_APART_DEG apart) whose own rotation is more than `max
 them is a look-alike, left out of the tracks. The limit is wide because the E of a small object seen from
 afar may trade rotation for translation by tens of degrees (lego_200: up to ~60 deg), while a look-alike is
 off by about a half turn; a pair of views on one side is kept whatever its E says (its matches agree).
+
+Where some image's strongest pairs contradict each other (a sparse ring whose look-alikes are as strong as
+its neighbours), nothing is left out: a ring folded onto itself is as consistent as the true one but for
+the link that closes it, so the rotations cannot tell. The alternative, the look-alikes of the rotations
+that keep the contradicted pairs, is left to the mapping to try (`pipeline.with_conflicts_kept`).
 """
 
 from __future__ import annotations
@@ -59,6 +64,9 @@ class LookAlikes(NamedTuple):
     pairs: list[tuple[int, int]]       # the pairs left out
     residual_deg: np.ndarray           # (P,) of every pair of the PairRotations: angle(R_ij, R_j R_i^T)
     conflicts: list[tuple[int, int]]   # strongest pairs of their images that are as far: no pair left out
+    # With conflicts: the look-alikes of the rotations that keep the conflicting pairs (the pipeline maps
+    # with every pair and with these left out, and keeps the model that registers more images).
+    alternative: tuple[tuple[int, int], ...] = ()
 
 
 NO_LOOK_ALIKES = LookAlikes([], np.zeros(0), [])
@@ -107,32 +115,50 @@ def strongest_pairs(pairs: np.ndarray, inliers: np.ndarray, per_image: int) -> n
     return strongest
 
 
+def averaged_rotations(num_images: int, rotations: PairRotations, anchor: np.ndarray, first: np.ndarray
+                       ) -> np.ndarray:
+    """World rotations averaged (Cauchy at AVERAGING_SCALE_DEG) over the `anchor` pairs and the spanning tree
+    of the most inliers that starts them: the tree takes the `first` pairs (P,) bool, then the other anchors,
+    then the rest (their inliers raised above every other pair's)."""
+    top = rotations.inliers.max()
+    tree = spanning_tree_rotations(num_images, rotations.pairs, rotations.R_relative,
+                                   rotations.inliers + top * (anchor.astype(float) + first))
+    used = anchor | tree.in_tree
+    return refined_rotations(tree.rotations, rotations.pairs[used], rotations.R_relative[used],
+                             rotations.inliers[used], AVERAGING_SCALE_DEG, AVERAGING_SWEEPS)
+
+
+def far_side_pairs(averaged: np.ndarray, rotations: PairRotations, far: np.ndarray) -> list[tuple[int, int]]:
+    """The `far` pairs (P,) bool that the averaged rotations put over LOOK_ALIKE_MIN_APART_DEG apart: a
+    look-alike joins views of different sides; a pair of views on one side is kept whatever its E says (its
+    matches agree, only its E traded rotation for translation)."""
+    apart_deg = relative_residuals_deg(averaged, rotations.pairs, np.eye(3))
+    return [tuple(pair) for pair in rotations.pairs[far & (apart_deg > LOOK_ALIKE_MIN_APART_DEG)].tolist()]
+
+
 def look_alike_pairs(num_images: int, rotations: PairRotations, config: TwoViewConfig) -> LookAlikes:
     """The pairs of views over LOOK_ALIKE_MIN_APART_DEG apart and more than config.max_rotation_residual_deg
     from the rotations averaged over each image's config.anchor_pairs_per_image strongest pairs (and the
     spanning tree that starts them); none when some of those strongest pairs are that far themselves
-    (`LookAlikes.conflicts`)."""
+    (`LookAlikes.conflicts`), but then the look-alikes of the rotations that keep them
+    (`LookAlikes.alternative`)."""
     if len(rotations.pairs) == 0 or config.max_rotation_residual_deg is None:
         return NO_LOOK_ALIKES
+    limit = config.max_rotation_residual_deg
     anchor = strongest_pairs(rotations.pairs, rotations.inliers, config.anchor_pairs_per_image)
-    # The tree takes the anchor pairs first (their inliers raised above every other pair's).
-    tree = spanning_tree_rotations(num_images, rotations.pairs, rotations.R_relative,
-                                   rotations.inliers + anchor * rotations.inliers.max())
-    used = anchor | tree.in_tree
-    averaged = refined_rotations(tree.rotations, rotations.pairs[used], rotations.R_relative[used],
-                                 rotations.inliers[used], AVERAGING_SCALE_DEG, AVERAGING_SWEEPS)
+    averaged = averaged_rotations(num_images, rotations, anchor, np.zeros(len(anchor), bool))
     residual = relative_residuals_deg(averaged, rotations.pairs, rotations.R_relative)
-    far = residual > config.max_rotation_residual_deg
-    conflicts = [tuple(pair) for pair in rotations.pairs[far & anchor].tolist()]
-    if conflicts:
-        # Some image's strongest pairs contradict each other: its look-alikes are as strong as its true
-        # neighbours (a sparse ring), and which is which cannot be told from the rotations.
-        return LookAlikes([], residual, conflicts)
-    # A look-alike joins views of different sides; a pair of views that the average puts on one side is
-    # kept whatever its E says: its matches agree, only its E traded rotation for translation.
-    apart_deg = relative_residuals_deg(averaged, rotations.pairs, np.eye(3))
-    look_alike = far & (apart_deg > LOOK_ALIKE_MIN_APART_DEG)
-    return LookAlikes([tuple(pair) for pair in rotations.pairs[look_alike].tolist()], residual, [])
+    conflicts = (residual > limit) & anchor
+    if not conflicts.any():
+        return LookAlikes(far_side_pairs(averaged, rotations, residual > limit), residual, [])
+    # Some image's strongest pairs contradict each other: its look-alikes are as strong as its true
+    # neighbours (a sparse ring). The tree took the strongest, so a look-alike may have won over the weaker
+    # link that closes the ring; the rotations that keep that link contradict the look-alikes instead.
+    # Which of the two is right the rotations cannot tell (a fold is as consistent): the mapping decides.
+    kept = averaged_rotations(num_images, rotations, anchor, conflicts)
+    kept_residual = relative_residuals_deg(kept, rotations.pairs, rotations.R_relative)
+    return LookAlikes([], residual, [tuple(pair) for pair in rotations.pairs[conflicts].tolist()],
+                      tuple(far_side_pairs(kept, rotations, kept_residual > limit)))
 
 
 def registered_pairs(pairs: list[tuple[int, int]], world_rotations: np.ndarray) -> list[tuple[int, int]]:

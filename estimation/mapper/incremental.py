@@ -1032,6 +1032,18 @@ def _finished_model(builder: _ModelBuilder, candidate: InitialPairCandidate,
     return model
 
 
+def never_back(progress: ProgressCallback) -> ProgressCallback:
+    """`progress` with each fraction raised to the largest reported before: a later model starts where the
+    earlier one's final adjustment ended, not at the share of images its start counts."""
+    reached = 0.0
+
+    def report(stage: str, fraction: float) -> None:
+        nonlocal reached
+        reached = max(reached, float(fraction))
+        progress(stage, reached)
+    return report
+
+
 def reconstruct_models(
     tracks: Tracks,
     camera: CameraInput,
@@ -1054,12 +1066,14 @@ def reconstruct_models(
     (`guided`). `camera` (a 3x3 K, a Camera, or one
     Camera per image) is every image's initial camera; each global BA refines the intrinsics as `refine`
     says, and the models' `cameras` carry the result. `fold_probe`, asked after each global refinement,
-    stops the mapping with FoldedModelError when it finds the growing model folded.
+    stops the mapping with FoldedModelError when it finds the growing model folded. `progress` never goes
+    back (`never_back`).
     Raises DegenerateConfigurationError naming, per image, why no model could start.
     """
     num_images = len(tracks.image_names)
     if num_images < 2:
         raise InputError(f"Structure from Motion needs at least 2 images, got {num_images}")
+    progress = never_back(progress) if progress else None
     first_camera = as_camera(camera) if is_shared(camera) else camera[0]
     K = first_camera.pinhole().K
     mapper = config.mapper

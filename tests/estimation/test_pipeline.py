@@ -18,7 +18,14 @@ from estimation.config import CameraConfig
 from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_depths, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
 from estimation.mapper.verification import FOLDED
-from estimation.pipeline import initial_intrinsics, model_summary, run_again
+from estimation.pipeline import (
+    SIDES_CONFLICTED,
+    FeatureTracks,
+    initial_intrinsics,
+    model_summary,
+    run_again,
+    with_conflicts_kept,
+)
 from estimation.synthetic import project
 
 pytestmark = pytest.mark.slow
@@ -341,10 +348,10 @@ def reconstructed_box(ring, folder: Path, calibrated: bool, progress=None):
     return reconstruct(folder, folder / "out", ReconstructionConfig(write_figures=False), progress=progress)
 
 
-def assert_in_place_without_look_alike_neighbours(result, ring) -> None:
+def assert_in_place_without_look_alike_neighbours(result, ring, twin_share: float = 0.75) -> None:
     """Every registered camera within 5 deg of the truth (18 of 20 or more), and the pairs left out as
-    look-alikes mostly the twins half a turn apart, with a few wrong Es of pairs far apart; never true
-    neighbours (18-40 deg apart)."""
+    look-alikes mostly (over twin_share) the twins half a turn apart, with wrong Es of pairs far apart;
+    never true neighbours (18-40 deg apart)."""
     from estimation.geometry.alignment import aligned_pose_errors, relative_pose, rotation_angle_deg
 
     registered = sorted(result.model.poses)
@@ -356,7 +363,7 @@ def assert_in_place_without_look_alike_neighbours(result, ring) -> None:
     apart_deg = np.array([rotation_angle_deg(np.eye(3), relative_pose(ring.poses[names.index(a)],
                                                                      ring.poses[names.index(b)]).R)
                           for a, b in look_alikes])
-    assert len(apart_deg) >= 10 and np.mean(apart_deg > 135.0) > 0.75 and apart_deg.min() > 45.0
+    assert len(apart_deg) >= 10 and np.mean(apart_deg > 135.0) > twin_share and apart_deg.min() > 45.0
     assert not any(warning.startswith(FOLDED) for warning in result.report["warnings"])
 
 
@@ -399,6 +406,7 @@ class ClosingTracks:
     """Stands for the FeatureTracks of a front end: whether its worker processes were ended."""
 
     closed = False
+    look_alikes = None     # no look-alike check, so none conflicted
 
     def close(self) -> None:
         self.closed = True
@@ -411,7 +419,7 @@ def test_a_run_again_that_builds_no_model_gives_none_and_ends_its_front_ends_wor
     camera = Camera("simple-radial", fx=200.0, fy=200.0, cx=99.5, cy=99.5)
     front_ends, seen_K = [], []
 
-    def extract(K):
+    def extract(K, conflicts_kept):
         seen_K.append(K)
         front_ends.append(ClosingTracks())
         return front_ends[-1]
@@ -424,6 +432,98 @@ def test_a_run_again_that_builds_no_model_gives_none_and_ends_its_front_ends_wor
     np.testing.assert_allclose(seen_K[-1], camera.pinhole().K)        # verified under the refined camera
     rerun = run_again(extract, lambda tracks, start: ("model",), camera)
     assert rerun.models == ("model",) and rerun.features is front_ends[-1] and not front_ends[-1].closed
+
+
+def conflicted_tracks(names: list[str]) -> tuple[FeatureTracks, ClosingTracks]:
+    """Tracks whose look-alike check conflicted (image 0 and 1's strongest pair against (1, 2)), and the
+    stand-in for their planarity tests' worker processes, which says whether they were ended."""
+    from estimation.features.view_graph import LookAlikes
+    from estimation.types import Tracks
+
+    tracks = Tracks(names, np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 3), np.uint8))
+    workers = ClosingTracks()
+    look_alikes = LookAlikes([], np.zeros(0), [(0, 1)], ((1, 2),))
+    return FeatureTracks(tracks, "sift", {}, pair_types=workers, look_alikes=look_alikes), workers
+
+
+def mapping(registered: int, folded: bool = False):
+    """Stands for a mapping's models: the largest's registered images, and its fold warning."""
+    from types import SimpleNamespace
+
+    warnings = [f"{FOLDED}: 3 pairs of cameras placed within 5 deg of one viewpoint"] if folded else []
+    return (SimpleNamespace(poses=dict.fromkeys(range(registered)), warnings=warnings),)
+
+
+@pytest.mark.parametrize(("first", "kept", "kept_wins"), [
+    (mapping(2), mapping(3), True),
+    (mapping(3), mapping(3), False),                              # a tie keeps the first
+    (mapping(3), mapping(2), False),
+    (mapping(2), mapping(3, folded=True), False),                # a folded ring may register every view
+    (mapping(3, folded=True), mapping(2), True),
+])
+def test_with_the_conflicting_pairs_kept_the_unfolded_mapping_that_registers_more_is_kept(first, kept,
+                                                                                       kept_wins):
+    names = ["a.png", "b.png", "c.png"]
+    features, workers = conflicted_tracks(names)
+    kept_features, kept_workers = conflicted_tracks(names)
+    resolved = with_conflicts_kept(features, first, 1.5, lambda: kept_features,
+                                   lambda tracks: kept if tracks is kept_features else None)
+    assert resolved.models is (kept if kept_wins else first)
+    # The discarded front end's workers are ended, the kept one's are left to the caller.
+    assert workers.closed == kept_wins and kept_workers.closed != kept_wins
+    outcome = resolved.features.details["look_alike_conflicts_outcome"]
+    assert outcome.startswith(f"strongest pairs conflicted (a.png|b.png): mapped with every pair, "
+                              f"{len(first[0].poses)} images registered")
+    assert f"contradict them left out, {len(kept[0].poses)} images registered" in outcome
+    folded = [any(warning.startswith(FOLDED) for warning in models[0].warnings) for models in (first, kept)]
+    assert outcome.count("with a fold warning") == sum(folded)
+    assert outcome.endswith("the latter kept" if kept_wins else "the former kept")
+    assert (resolved.discarded_seconds == 1.5) == kept_wins
+    # Either way the sides may be confused, and the kept model says so.
+    assert resolved.models[0].warnings[-1].startswith(SIDES_CONFLICTED)
+    assert outcome in resolved.models[0].warnings[-1]
+
+
+def test_with_the_conflicting_pairs_kept_a_mapping_without_a_model_keeps_the_first():
+    from estimation.errors import DegenerateConfigurationError
+
+    features, _ = conflicted_tracks(["a.png", "b.png", "c.png"])
+    kept_features, kept_workers = conflicted_tracks(["a.png", "b.png", "c.png"])
+    first = mapping(2)
+
+    def no_model(tracks):
+        raise DegenerateConfigurationError("no initial pair")
+
+    resolved = with_conflicts_kept(features, first, 1.0, lambda: kept_features, no_model)
+    assert resolved.models is first and kept_workers.closed
+    outcome = resolved.features.details["look_alike_conflicts_outcome"]
+    assert outcome.endswith("left out, no model: the former kept")
+
+
+def test_a_sparse_box_ring_whose_strongest_pairs_conflict_is_mapped_both_ways_and_kept_in_place(tmp_path):
+    """20 views at 400 px: a look-alike beats the link that closes the ring, the check's strongest pairs
+    conflict and nothing is left out; mapped so, the model folds (16 of 20, the far side half a turn off).
+    With the conflicting link kept and the pairs that contradict it left out, every view registers in
+    place, and that model is kept. Those pairs are views at least 45 deg apart, most of them twins (three
+    in four; the rest near-twins whose E took the look-alike's rotation)."""
+    from estimation.synthetic import render_box_ring
+
+    ring = render_box_ring(num_views=20, size=400, seed=1)
+    reports = []
+    result = reconstructed_box(ring, tmp_path, calibrated=True,
+                               progress=lambda stage, fraction: reports.append((stage, fraction)))
+    assert_in_place_without_look_alike_neighbours(result, ring, twin_share=0.5)
+    assert len(result.model.poses) == 20
+    features = result.report["features"]
+    assert features["look_alike_conflicts"]
+    first, kept = map(int, re.search(r"every pair, (\d+) images registered.* left out, (\d+)",
+                                     features["look_alike_conflicts_outcome"]).groups())
+    assert first < kept == 20 and features["look_alike_conflicts_outcome"].endswith("the latter kept")
+    fractions = [fraction for _, fraction in reports]
+    assert fractions == sorted(fractions)
+    assert any("(again, with the conflicting" in stage for stage, _ in reports)
+    assert result.report["seconds_per_stage"]["look-alike check"] > 0
+    assert any(warning.startswith(SIDES_CONFLICTED) for warning in result.report["warnings"])
 
 
 def test_a_folded_box_whose_run_again_builds_no_model_keeps_its_first_model_in_full_and_warns(

@@ -1,6 +1,6 @@
 """Look-alike pairs: a verified pair of views from different sides whose relative rotation contradicts the
 rotations that each image's strongest pairs agree on is left out; when those strongest pairs contradict each
-other, none is."""
+other, none is, and the look-alikes of the rotations that keep the contradicted pairs are the alternative."""
 
 import numpy as np
 import pytest
@@ -88,6 +88,40 @@ def test_a_look_alike_among_an_images_strongest_pairs_leaves_every_pair_in_and_n
     found = look_alike_pairs(16, rotations._replace(inliers=inliers), TwoViewConfig())
     # Either the look-alike or the ring's links it contradicts: which one cannot be told.
     assert found.pairs == [] and found.conflicts
+
+
+def sparse_ring(num_images: int, link_inliers: dict, look_alike_inliers: dict, seed: int = 0
+                ) -> tuple[PairRotations, set]:
+    """A ring of neighbour pairs (i, i+1) only, 100 inliers each but for `link_inliers`, whose views half a
+    ring apart also verify, a half turn off, 40 inliers each but for `look_alike_inliers`: a sparse capture
+    of a symmetric object."""
+    rng = np.random.default_rng(seed)
+    world = ring_rotations(num_images)
+    ring = [tuple(sorted((i, (i + 1) % num_images))) for i in range(num_images)]
+    look_alikes = [(i, i + num_images // 2) for i in range(num_images // 2)]
+    pairs = np.array(ring + look_alikes)
+    noise = Rotation.from_rotvec(rng.normal(size=(len(pairs), 3)) * np.radians(2.0) / np.sqrt(3))
+    R_relative = noise.as_matrix() @ world[pairs[:, 1]] @ world[pairs[:, 0]].swapaxes(1, 2)
+    R_relative[len(ring):] = HALF_TURN @ R_relative[len(ring):]
+    inliers = np.array([link_inliers.get(pair, 100.0) for pair in ring]
+                       + [look_alike_inliers.get(pair, 40.0) for pair in look_alikes])
+    return PairRotations(pairs, R_relative, inliers), set(look_alikes)
+
+
+def test_where_a_look_alike_beats_the_link_that_closes_a_sparse_ring_the_alternative_keeps_that_link():
+    # Image 3's second strongest pair is its look-alike (3, 13): the tree of the strongest pairs takes it
+    # before the weaker links (2, 3) and (7, 8), which the averaged rotations then contradict.
+    rotations, look_alikes = sparse_ring(20, {(2, 3): 70.0, (7, 8): 80.0, (17, 18): 80.0}, {(3, 13): 90.0})
+    found = look_alike_pairs(20, rotations, TwoViewConfig())
+    assert found.pairs == [] and set(found.conflicts) == {(2, 3), (7, 8)}
+    # The rotations that keep the contradicted links put every look-alike half a turn off.
+    assert set(found.alternative) == look_alikes
+
+
+def test_without_conflicts_there_is_no_alternative():
+    rotations, look_alikes = sparse_ring(20, {}, {})
+    found = look_alike_pairs(20, rotations, TwoViewConfig())
+    assert set(found.pairs) == look_alikes and found.conflicts == [] and found.alternative == ()
 
 
 @pytest.mark.parametrize("config", [TwoViewConfig(max_rotation_residual_deg=None), TwoViewConfig()])

@@ -19,6 +19,7 @@ from estimation.mapper.incremental import (
     _ModelBuilder,
     _Timer,
     keypoint_sigma,
+    never_back,
     reconstruct_models,
     run_incremental,
     track_observation_pairs,
@@ -779,3 +780,13 @@ def test_a_fold_probe_sees_each_global_refinement_and_stops_the_mapping_when_it_
 
     with pytest.raises(FoldedModelError):
         reconstruct_models(scene.tracks, scene.K, CONFIG, fold_probe=lambda world, camera: True)
+
+
+def test_the_mappings_progress_never_goes_back_when_a_later_model_starts():
+    reports = []
+    progress = never_back(lambda stage, fraction: reports.append((stage, fraction)))
+    for stage, fraction in [("register a", 0.5), ("bundle adjustment", 0.77), ("initial pair", 0.75),
+                            ("register b", 0.82)]:
+        progress(stage, fraction)
+    assert reports == [("register a", 0.5), ("bundle adjustment", 0.77), ("initial pair", 0.77),
+                       ("register b", 0.82)]
