@@ -64,7 +64,7 @@ from estimation.mapper.incremental import (
     SparseModel,
     reconstruct_models,
 )
-from estimation.mapper.verification import FOLDED
+from estimation.mapper.verification import FOLDED, MIRROR_AMBIGUITY
 from estimation.types import ProgressCallback, Tracks
 
 if TYPE_CHECKING:
@@ -85,7 +85,7 @@ PROGRESS_FEATURES_END = {"matches": 0.05, "sift": 0.35}
 PROGRESS_PIPELINE_END = 0.93
 
 SIDES_CONFLICTED = "sides of a symmetric object possibly confused"
-"""Starts the warning of a model whose look-alike check conflicted (`with_conflicts_kept`)."""
+"""Starts the warning of a model whose look-alike check conflicted (`with_alternatives`)."""
 
 logger = logging.getLogger(__name__)
 NO_EXIF = ExifFocal(None, "none", "no EXIF focal length")
@@ -176,15 +176,15 @@ def choose_feature_source(images: ImageSet, features: str) -> str:
 def extract_tracks(
     images: ImageSet, config: ReconstructionConfig, progress: ProgressCallback | None = None,
     K: np.ndarray | None = None, defer_planarity: bool = False, stages: FeatureStages | None = None,
-    conflicts_kept: bool = False,
+    alternative: int | None = None,
 ) -> FeatureTracks:
     """Multi-view tracks from the course's match files or from SIFT (see `choose_feature_source`); SIFT
     pairs are verified with E when K is given, else with F. `defer_planarity`: the pairs' planarity tests
     (`features.planarity`) run in the front end's worker process beside what the caller does next, until
     the result is `finished` (or `close`d). `stages`: where SIFT's extraction chunks and matching blocks
     run (`features.sift.FeatureStages`; default: this machine's threads and worker processes).
-    `conflicts_kept`: where the look-alike check's strongest pairs conflict, the alternative's look-alikes
-    are left out (`view_graph.LookAlikes.alternative`)."""
+    `alternative` k: where the look-alike check's strongest pairs conflict, the k-th alternative's
+    look-alikes are left out (`view_graph.LookAlikes.alternatives`)."""
     source = choose_feature_source(images, config.features)
     report = progress or (lambda stage, fraction: None)
     if source == "matches":
@@ -201,7 +201,7 @@ def extract_tracks(
     try:
         result = sift_tracks(images, config.sift, two_view=config.two_view, ransac=config.ransac, K=K,
                              progress=report, pool=pool, defer_planarity=defer_planarity, stages=stages,
-                             conflicts_kept=conflicts_kept)
+                             alternative=alternative)
     except BaseException:
         pool.shutdown()
         raise
@@ -238,8 +238,9 @@ class FoldCheck(NamedTuple):
     @property
     def pairs(self) -> list[tuple[int, int]]:
         """The look-alikes that a folded model adopts: the check's, or where its strongest pairs conflicted,
-        those of the rotations that keep them (`LookAlikes.alternative`)."""
-        return self.look_alikes.pairs or list(self.look_alikes.alternative)
+        those of the rotations that keep them (the first of `LookAlikes.alternatives`)."""
+        look_alikes = self.look_alikes
+        return list(look_alikes.alternatives[0]) if look_alikes.conflicts else look_alikes.pairs
 
     def adopted(self, world: np.ndarray) -> str:
         """How many look-alikes world-to-camera rotations (N, 3, 3; NaN: not registered) place as their own
@@ -598,24 +599,31 @@ def _timed(seconds: dict[str, float], name: str) -> Iterator[None]:
 
 class ConflictsResolved(NamedTuple):
     """What `reconstruct` goes on with after a first mapping whose look-alike check conflicted
-    (`with_conflicts_kept`)."""
+    (`with_alternatives`)."""
 
     features: FeatureTracks
     models: tuple[SparseModel, ...]
-    discarded_seconds: float     # the front end's and the mapping's not kept
+    discarded_seconds: float     # the front ends' and the mappings' not kept
     features_seconds: float      # the front end's run again, when its result is kept
 
 
+ALTERNATIVE_WORDS = ("that contradict them", "that the rotations averaged over them put on other sides")
+"""How `with_alternatives` names the pairs of each of `LookAlikes.alternatives`."""
+
+
 def has_conflicts(features: FeatureTracks) -> bool:
-    """Whether the look-alike check's strongest pairs conflicted and the rotations that keep them found
-    look-alikes (`view_graph.LookAlikes.alternative`)."""
-    return features.look_alikes is not None and bool(features.look_alikes.alternative)
+    """Whether the look-alike check's strongest pairs conflicted and some alternative has look-alikes to
+    leave out (`view_graph.LookAlikes.alternatives`)."""
+    return features.look_alikes is not None and any(features.look_alikes.alternatives)
 
 
-def preference(models: tuple[SparseModel, ...] | None) -> tuple[bool, int]:
-    """How `with_conflicts_kept` ranks a mapping: its largest model without a fold warning first, then by
-    its registered images (no model last)."""
-    return (False, 0) if models is None else (not has_fold_warning(models[0]), len(models[0].poses))
+def preference(models: tuple[SparseModel, ...] | None) -> tuple[bool, int, bool]:
+    """How `with_alternatives` ranks a mapping: its largest model without a fold warning first, then by its
+    registered images, then without a near-mirror warning (no model last)."""
+    if models is None:
+        return False, 0, False
+    mirrored = any(warning.startswith(MIRROR_AMBIGUITY) for warning in models[0].warnings)
+    return not has_fold_warning(models[0]), len(models[0].poses), not mirrored
 
 
 def mapped_words(models: tuple[SparseModel, ...] | None) -> str:
@@ -626,47 +634,52 @@ def mapped_words(models: tuple[SparseModel, ...] | None) -> str:
     return f"{len(models[0].poses)} images registered{warned}"
 
 
-def with_conflicts_kept(features: FeatureTracks, models: tuple[SparseModel, ...], mapping_seconds: float,
-                        extract_kept: Callable[[], FeatureTracks],
-                        mapped: Callable[[FeatureTracks], tuple[SparseModel, ...]]) -> ConflictsResolved:
+def with_alternatives(features: FeatureTracks, models: tuple[SparseModel, ...], mapping_seconds: float,
+                      extract_alternative: Callable[[int], FeatureTracks],
+                      mapped: Callable[[FeatureTracks], tuple[SparseModel, ...]]) -> ConflictsResolved:
     """After a first mapping (`models`, in `mapping_seconds`) with every pair in (`has_conflicts`): the front
-    end again with the alternative's look-alikes left out (`extract_kept`) and its mapping (`mapped`). The
-    models whose largest has no fold warning where the other's has, else registers more images, are kept,
-    the first on a tie: a model folded onto itself cannot close the ring that the other registers whole,
-    unless it registers every view folded, and then it shares too few points where its cameras coincide.
-    details["look_alike_conflicts_outcome"] says what happened, and the kept model's warnings gain
-    SIDES_CONFLICTED: either mapping may still have cameras on the wrong side."""
-    started = time.perf_counter()
-    kept_features = extract_kept()
-    features_seconds = time.perf_counter() - started
-    try:
-        kept_models: tuple[SparseModel, ...] | None = mapped(kept_features)
-    except DegenerateConfigurationError as error:
-        logger.warning("with the conflicting pairs kept, no model: %s", error)
-        kept_models = None
-    except BaseException:
-        kept_features.close()
-        raise
-    again_seconds = time.perf_counter() - started
-
-    names = features.tracks.image_names
-    conflicts = ", ".join(f"{names[i]}|{names[j]}" for i, j in features.look_alikes.conflicts)
-    found = (f"strongest pairs conflicted ({conflicts}): mapped with every pair, {mapped_words(models)}; "
-             f"with the {len(features.look_alikes.alternative)} pairs that contradict them left out, "
-             f"{mapped_words(kept_models)}")
-    if preference(kept_models) > preference(models):
-        features.close()
-        resolved = ConflictsResolved(kept_features, kept_models, mapping_seconds, features_seconds)
-        outcome = "the latter kept"
-    else:
-        kept_features.close()
-        resolved = ConflictsResolved(features, models, again_seconds, 0.0)
-        outcome = "the former kept"
-    resolved.models[0].warnings.append(
-        f"{SIDES_CONFLICTED}: the look-alike check's {found}: {outcome}; views this far apart may not tell "
-        "the object's sides apart, so some cameras may sit on the wrong side")
-    details = {**resolved.features.details, "look_alike_conflicts_outcome": f"{found}: {outcome}"}
-    return resolved._replace(features=replace(resolved.features, details=details))
+    end again with each alternative's look-alikes left out (`extract_alternative(k)`) and its mapping
+    (`mapped`). The mapping ranked first by `preference` is kept, the earlier on a tie: a model folded onto
+    itself cannot close the ring that another registers whole, unless it registers every view folded, and
+    then its cameras that coincide share too few points, or some were tried on the other side.
+    details["look_alike_conflicts_outcome"] says what each gave, and the kept model's warnings gain
+    SIDES_CONFLICTED: any of them may still have cameras on the wrong side."""
+    look_alikes, names = features.look_alikes, features.tracks.image_names
+    kept, chosen, discarded = ConflictsResolved(features, models, mapping_seconds, 0.0), 0, 0.0
+    words = [f"mapped with every pair, {mapped_words(models)}"]
+    for k, pairs in enumerate(look_alikes.alternatives):
+        if not pairs:
+            continue
+        started = time.perf_counter()
+        candidate_features = extract_alternative(k)
+        features_seconds = time.perf_counter() - started
+        try:
+            candidate: tuple[SparseModel, ...] | None = mapped(candidate_features)
+        except DegenerateConfigurationError as error:
+            logger.warning("with look-alike alternative %d left out, no model: %s", k, error)
+            candidate = None
+        except BaseException:
+            candidate_features.close()
+            raise
+        seconds = time.perf_counter() - started
+        words.append(f"with the {len(pairs)} pairs {ALTERNATIVE_WORDS[k]} left out, "
+                     f"{mapped_words(candidate)}")
+        if preference(candidate) > preference(kept.models):
+            kept.features.close()
+            discarded += kept.discarded_seconds
+            kept, chosen = ConflictsResolved(candidate_features, candidate, seconds, features_seconds), k + 1
+        else:
+            candidate_features.close()
+            discarded += seconds
+    conflicts = ", ".join(f"{names[i]}|{names[j]}" for i, j in look_alikes.conflicts)
+    found = (f"strongest pairs conflicted ({conflicts}): {'; '.join(words)}: the "
+             f"{('first', 'second', 'third')[chosen]} kept")
+    kept.models[0].warnings.append(
+        f"{SIDES_CONFLICTED}: the look-alike check's {found}; views this far apart may not tell the object's "
+        "sides apart, so some cameras may sit on the wrong side")
+    details = {**kept.features.details, "look_alike_conflicts_outcome": found}
+    return ConflictsResolved(replace(kept.features, details=details), kept.models, discarded,
+                             kept.features_seconds)
 
 
 class Refolding(NamedTuple):
@@ -687,23 +700,23 @@ class Rerun(NamedTuple):
     features_seconds: float
 
 
-def run_again(extract: Callable[[np.ndarray, bool], FeatureTracks],
+def run_again(extract: Callable[[np.ndarray, int | None], FeatureTracks],
               mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]], camera: Camera
               ) -> Rerun | None:
-    """The front end under camera's K (`extract(K, conflicts_kept)`) and the mapping from `camera`
-    (`mapped`), again with the conflicting pairs kept where the look-alike check's conflicted
-    (`with_conflicts_kept`); None (the reason logged) when they build no model."""
+    """The front end under camera's K (`extract(K, alternative)`) and the mapping from `camera` (`mapped`),
+    again with the alternatives where the look-alike check's strongest pairs conflicted
+    (`with_alternatives`); None (the reason logged) when they build no model."""
     started = time.perf_counter()
     K = camera.pinhole().K
-    features = extract(K, False)
+    features = extract(K, None)
     features_seconds = time.perf_counter() - started
     try:
         mapping_started = time.perf_counter()
         models = mapped(features, camera)
         if not has_conflicts(features):
             return Rerun(features, models, features_seconds)
-        resolved = with_conflicts_kept(features, models, time.perf_counter() - mapping_started,
-                                       lambda: extract(K, True), lambda tracks: mapped(tracks, camera))
+        resolved = with_alternatives(features, models, time.perf_counter() - mapping_started,
+                                     lambda k: extract(K, k), lambda tracks: mapped(tracks, camera))
         return Rerun(resolved.features, resolved.models, features_seconds + resolved.features_seconds)
     except DegenerateConfigurationError as error:
         logger.warning("run again after a folded model, no model: %s", error)
@@ -715,12 +728,12 @@ def run_again(extract: Callable[[np.ndarray, bool], FeatureTracks],
 
 
 def unfolded_or_kept(features: FeatureTracks, models: tuple[SparseModel, ...] | None, mapping_seconds: float,
-                     probe: FirstMappingProbe, extract: Callable[[np.ndarray, bool], FeatureTracks],
+                     probe: FirstMappingProbe, extract: Callable[[np.ndarray, int | None], FeatureTracks],
                      mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]],
                      config: ReconstructionConfig) -> Refolding:
     """After the first mapping without a calibration file (`models`, mapped in `mapping_seconds`; None when
     `probe` stopped it as folded): when it is folded (`FoldCheck.folded` under its refined K, or the probe's
-    finding), the front end (`extract(K, conflicts_kept)`: E verification and the look-alike pairs left out
+    finding), the front end (`extract(K, alternative)`: E verification and the look-alike pairs left out
     up front, as with a calibration file) and the mapping (`mapped`) run again under its camera
     (`run_again`), and replace it unless they build no model or a folded one. Refolding.models is None when
     the first mapping was stopped and is wanted after all. details["look_alike_check"] says what happened."""
@@ -787,11 +800,11 @@ def reconstruct(
 
     features_end = PROGRESS_FEATURES_END[choose_feature_source(images, config.features)]
 
-    def extract(K: np.ndarray | None, report: ProgressCallback, conflicts_kept: bool = False
+    def extract(K: np.ndarray | None, report: ProgressCallback, alternative: int | None = None
                 ) -> FeatureTracks:
         # The planarity tests run beside the mapper, which leaves the other cores idle.
         return extract_tracks(images, config, report, K=K, defer_planarity=True, stages=stages,
-                              conflicts_kept=conflicts_kept)
+                              alternative=alternative)
 
     with _timed(seconds, "features"):
         calibration_K = initial.cameras[0].pinhole().K if initial.source == "calibration file" else None
@@ -827,7 +840,7 @@ def reconstruct(
             models = None
         if probe is not None:
             refolding = unfolded_or_kept(features, models, time.perf_counter() - started, probe,
-                                         lambda K, conflicts_kept: extract(K, again, conflicts_kept),
+                                         lambda K, alternative: extract(K, again, alternative),
                                          lambda tracks, camera: mapped(tracks, camera, again), config)
             features = refolding.features
             models = refolding.models or mapped(features, start, again)
@@ -836,10 +849,10 @@ def reconstruct(
             if refolding.warning is not None:
                 models[0].warnings.append(refolding.warning)
         elif has_conflicts(features):
-            kept = held("with the conflicting pairs kept")
-            resolved = with_conflicts_kept(features, models, time.perf_counter() - started,
-                                           lambda: extract(calibration_K, kept, conflicts_kept=True),
-                                           lambda tracks: mapped(tracks, start, kept))
+            alternatives = held("with other look-alikes left out")
+            resolved = with_alternatives(features, models, time.perf_counter() - started,
+                                         lambda k: extract(calibration_K, alternatives, k),
+                                         lambda tracks: mapped(tracks, start, alternatives))
             features, models = resolved.features, resolved.models
             seconds["features"] += resolved.features_seconds
             seconds["look-alike check"] = resolved.discarded_seconds

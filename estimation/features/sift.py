@@ -458,7 +458,7 @@ def sift_tracks(
     pool: WorkerPool | None = None,
     defer_planarity: bool = False,
     stages: FeatureStages | None = None,
-    conflicts_kept: bool = False,
+    alternative: int | None = None,
 ) -> SiftResult:
     """Detect, choose pairs, match (and with `two_view`, verify: E with K, else F; H for the type), and
     merge the matches into tracks. `progress(stage, fraction)` gets this step's own fraction 0..1.
@@ -467,7 +467,7 @@ def sift_tracks(
     `features.planarity` needs to test it later. `stages`: where the extraction chunks and the matching
     blocks run (default: `PoolStages`, this machine's threads and the pool's processes). With `two_view` and
     K, the look-alike pairs are left out of the tracks (`features.view_graph`); where the strongest pairs
-    conflict, none is, or with `conflicts_kept` the alternative's (`LookAlikes.alternative`)."""
+    conflict, none is, or with `alternative` k, the k-th alternative's (`LookAlikes.alternatives`)."""
     report = progress or (lambda stage, fraction: None)
     workers = resolve_workers(config.workers)
     seconds: dict[str, float] = {}
@@ -503,8 +503,8 @@ def sift_tracks(
     if two_view is not None and K is not None:
         started = time.perf_counter()
         _, look_alikes = look_alikes_under(K, geometries, verified.inlier_uv, len(images), two_view)
-        if conflicts_kept:
-            look_alikes = look_alikes._replace(pairs=list(look_alikes.alternative))
+        if alternative is not None and look_alikes.conflicts:
+            look_alikes = look_alikes._replace(pairs=list(look_alikes.alternatives[alternative]))
         # Left out of the geometries, a look-alike neither links tracks nor votes on registrations.
         verified = verified.without(look_alikes.pairs)
         left_out = set(look_alikes.pairs)

@@ -13,8 +13,9 @@ off by about a half turn; a pair of views on one side is kept whatever its E say
 
 Where some image's strongest pairs contradict each other (a sparse ring whose look-alikes are as strong as
 its neighbours), nothing is left out: a ring folded onto itself is as consistent as the true one but for
-the link that closes it, so the rotations cannot tell. The alternative, the look-alikes of the rotations
-that keep the contradicted pairs, is left to the mapping to try (`pipeline.with_conflicts_kept`).
+the link that closes it, so the rotations cannot tell. The alternatives, the look-alikes of the rotations
+that keep the contradicted pairs and those of the rotations that contradict them, are left to the mapping
+to try (`pipeline.with_alternatives`).
 """
 
 from __future__ import annotations
@@ -64,9 +65,10 @@ class LookAlikes(NamedTuple):
     pairs: list[tuple[int, int]]       # the pairs left out
     residual_deg: np.ndarray           # (P,) of every pair of the PairRotations: angle(R_ij, R_j R_i^T)
     conflicts: list[tuple[int, int]]   # strongest pairs of their images that are as far: no pair left out
-    # With conflicts: the look-alikes of the rotations that keep the conflicting pairs (the pipeline maps
-    # with every pair and with these left out, and keeps the model that registers more images).
-    alternative: tuple[tuple[int, int], ...] = ()
+    # With conflicts, pairs to leave out instead, in order: the look-alikes of the rotations that keep the
+    # conflicting pairs, then those of the rotations averaged over every strongest pair, which contradict
+    # them (the pipeline maps with every pair and with each set left out: `with_alternatives`).
+    alternatives: tuple[tuple[tuple[int, int], ...], ...] = ()
 
 
 NO_LOOK_ALIKES = LookAlikes([], np.zeros(0), [])
@@ -140,8 +142,8 @@ def look_alike_pairs(num_images: int, rotations: PairRotations, config: TwoViewC
     """The pairs of views over LOOK_ALIKE_MIN_APART_DEG apart and more than config.max_rotation_residual_deg
     from the rotations averaged over each image's config.anchor_pairs_per_image strongest pairs (and the
     spanning tree that starts them); none when some of those strongest pairs are that far themselves
-    (`LookAlikes.conflicts`), but then the look-alikes of the rotations that keep them
-    (`LookAlikes.alternative`)."""
+    (`LookAlikes.conflicts`), but then the look-alikes of the rotations that keep them and of those that do
+    not (`LookAlikes.alternatives`)."""
     if len(rotations.pairs) == 0 or config.max_rotation_residual_deg is None:
         return NO_LOOK_ALIKES
     limit = config.max_rotation_residual_deg
@@ -158,7 +160,8 @@ def look_alike_pairs(num_images: int, rotations: PairRotations, config: TwoViewC
     kept = averaged_rotations(num_images, rotations, anchor, conflicts)
     kept_residual = relative_residuals_deg(kept, rotations.pairs, rotations.R_relative)
     return LookAlikes([], residual, [tuple(pair) for pair in rotations.pairs[conflicts].tolist()],
-                      tuple(far_side_pairs(kept, rotations, kept_residual > limit)))
+                      (tuple(far_side_pairs(kept, rotations, kept_residual > limit)),
+                       tuple(far_side_pairs(averaged, rotations, residual > limit))))
 
 
 def registered_pairs(pairs: list[tuple[int, int]], world_rotations: np.ndarray) -> list[tuple[int, int]]:

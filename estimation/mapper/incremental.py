@@ -55,6 +55,7 @@ from estimation.mapper.reconstruction import Reconstruction
 from estimation.mapper.verification import (
     FOLDED,
     LOOSE_ROTATION,
+    MIRROR_AMBIGUITY,
     NEAR_MIRROR,
     InlierSupport,
     RotationAgreement,
@@ -804,10 +805,10 @@ class _ModelBuilder:
             problem = agreement_problem(self.rotation_agreement(image, self.reconstruction.pose(image)),
                                         self.mapper.verify_min_rotation_agreement, names)
             if problem is not None:
-                warnings.append(f"near-mirror ambiguity: {names[image]} is registered, but {problem}")
+                warnings.append(f"{MIRROR_AMBIGUITY}: {names[image]} is registered, but {problem}")
         flipped = sorted({names[check.image] for check in self.checks if NEAR_MIRROR in check.reason})
         if flipped:
-            warnings.append(f"near-mirror ambiguity: {len(flipped)} image(s) matched a pose on the other "
+            warnings.append(f"{MIRROR_AMBIGUITY}: {len(flipped)} image(s) matched a pose on the other "
                             f"side of the object and were refused or removed at least once "
                             f"({', '.join(flipped)}); symmetric objects need views that overlap their "
                             "neighbours well")

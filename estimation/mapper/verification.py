@@ -42,6 +42,8 @@ from estimation.types import CameraPose
 
 NEAR_MIRROR = "a near-mirror placement"
 """The words that end a refusal for disagreeing with the verified pairs (the warnings look for them)."""
+MIRROR_AMBIGUITY = "near-mirror ambiguity"
+"""How the warnings of images placed or tried on the other side of a symmetric object begin."""
 FOLDED = "possibly folded onto itself by a symmetric object"
 """How the warning of a model whose cameras at one viewpoint share few points begins (`shared_views`)."""
 LOOSE_ROTATION = "a loosely pinned rotation"

@@ -17,14 +17,14 @@ from estimation.bundle_adjustment.factor_graph import IntrinsicsRefinement
 from estimation.config import CameraConfig
 from estimation.io.export import opencv_pose_to_opengl_c2w, read_colmap_text, read_depths, read_ply
 from estimation.io.images import find_calibration, find_distortion, list_images
-from estimation.mapper.verification import FOLDED
+from estimation.mapper.verification import FOLDED, MIRROR_AMBIGUITY
 from estimation.pipeline import (
     SIDES_CONFLICTED,
     FeatureTracks,
     initial_intrinsics,
     model_summary,
     run_again,
-    with_conflicts_kept,
+    with_alternatives,
 )
 from estimation.synthetic import project
 
@@ -419,7 +419,7 @@ def test_a_run_again_that_builds_no_model_gives_none_and_ends_its_front_ends_wor
     camera = Camera("simple-radial", fx=200.0, fy=200.0, cx=99.5, cy=99.5)
     front_ends, seen_K = [], []
 
-    def extract(K, conflicts_kept):
+    def extract(K, alternative):
         seen_K.append(K)
         front_ends.append(ClosingTracks())
         return front_ends[-1]
@@ -435,77 +435,74 @@ def test_a_run_again_that_builds_no_model_gives_none_and_ends_its_front_ends_wor
 
 
 def conflicted_tracks(names: list[str]) -> tuple[FeatureTracks, ClosingTracks]:
-    """Tracks whose look-alike check conflicted (image 0 and 1's strongest pair against (1, 2)), and the
-    stand-in for their planarity tests' worker processes, which says whether they were ended."""
+    """Tracks whose look-alike check conflicted (image 0 and 1's strongest pair against (1, 2): the
+    alternatives leave out (1, 2), or (0, 1) and (0, 2)), and the stand-in for their planarity tests' worker
+    processes, which says whether they were ended."""
     from estimation.features.view_graph import LookAlikes
     from estimation.types import Tracks
 
     tracks = Tracks(names, np.zeros(0, int), np.zeros(0, int), np.zeros((0, 2)), np.zeros((0, 3), np.uint8))
     workers = ClosingTracks()
-    look_alikes = LookAlikes([], np.zeros(0), [(0, 1)], ((1, 2),))
+    look_alikes = LookAlikes([], np.zeros(0), [(0, 1)], (((1, 2),), ((0, 1), (0, 2))))
     return FeatureTracks(tracks, "sift", {}, pair_types=workers, look_alikes=look_alikes), workers
 
 
-def mapping(registered: int, folded: bool = False):
-    """Stands for a mapping's models: the largest's registered images, and its fold warning."""
+def mapping(registered: int, folded: bool = False, mirrored: bool = False):
+    """Stands for a mapping's models: the largest's registered images, its fold warning and its near-mirror
+    warning."""
     from types import SimpleNamespace
 
-    warnings = [f"{FOLDED}: 3 pairs of cameras placed within 5 deg of one viewpoint"] if folded else []
+    warnings = ([f"{FOLDED}: 3 pairs of cameras placed within 5 deg of one viewpoint"] if folded else []) + (
+        [f"{MIRROR_AMBIGUITY}: 1 image(s) matched a pose on the other side"] if mirrored else [])
     return (SimpleNamespace(poses=dict.fromkeys(range(registered)), warnings=warnings),)
 
 
-@pytest.mark.parametrize(("first", "kept", "kept_wins"), [
-    (mapping(2), mapping(3), True),
-    (mapping(3), mapping(3), False),                              # a tie keeps the first
-    (mapping(3), mapping(2), False),
-    (mapping(2), mapping(3, folded=True), False),                # a folded ring may register every view
-    (mapping(3, folded=True), mapping(2), True),
+@pytest.mark.parametrize(("first", "second", "third", "kept"), [
+    (mapping(2), mapping(3), mapping(2), 1),
+    (mapping(3), mapping(3), mapping(3), 0),                      # a tie keeps the earlier
+    (mapping(3), mapping(2), None, 0),                           # None: no model
+    (mapping(2), mapping(3, folded=True), mapping(3), 2),        # a folded ring may register every view
+    (mapping(3, folded=True), mapping(2), mapping(2), 1),
+    (mapping(2), mapping(3, mirrored=True), mapping(3), 2),      # a tie: the one tried on no other side
 ])
-def test_with_the_conflicting_pairs_kept_the_unfolded_mapping_that_registers_more_is_kept(first, kept,
-                                                                                       kept_wins):
+def test_of_the_mappings_with_each_alternative_left_out_the_unfolded_one_that_registers_most_is_kept(
+        first, second, third, kept):
+    from estimation.errors import DegenerateConfigurationError
+
     names = ["a.png", "b.png", "c.png"]
     features, workers = conflicted_tracks(names)
-    kept_features, kept_workers = conflicted_tracks(names)
-    resolved = with_conflicts_kept(features, first, 1.5, lambda: kept_features,
-                                   lambda tracks: kept if tracks is kept_features else None)
-    assert resolved.models is (kept if kept_wins else first)
-    # The discarded front end's workers are ended, the kept one's are left to the caller.
-    assert workers.closed == kept_wins and kept_workers.closed != kept_wins
+    alternatives = [conflicted_tracks(names) for _ in range(2)]
+    models = {id(alternatives[0][0]): second, id(alternatives[1][0]): third}
+
+    def mapped(tracks):
+        if models[id(tracks)] is None:
+            raise DegenerateConfigurationError("no initial pair")
+        return models[id(tracks)]
+
+    resolved = with_alternatives(features, first, 1.5, lambda k: alternatives[k][0], mapped)
+    assert resolved.models is (first, second, third)[kept]
+    # Every discarded front end's workers are ended, the kept one's are left to the caller.
+    assert [front_end.closed for front_end in (workers, *(w for _, w in alternatives))] == [
+        k != kept for k in range(3)]
     outcome = resolved.features.details["look_alike_conflicts_outcome"]
-    assert outcome.startswith(f"strongest pairs conflicted (a.png|b.png): mapped with every pair, "
+    assert outcome.startswith("strongest pairs conflicted (a.png|b.png): mapped with every pair, "
                               f"{len(first[0].poses)} images registered")
-    assert f"contradict them left out, {len(kept[0].poses)} images registered" in outcome
-    folded = [any(warning.startswith(FOLDED) for warning in models[0].warnings) for models in (first, kept)]
-    assert outcome.count("with a fold warning") == sum(folded)
-    assert outcome.endswith("the latter kept" if kept_wins else "the former kept")
-    assert (resolved.discarded_seconds == 1.5) == kept_wins
-    # Either way the sides may be confused, and the kept model says so.
+    assert "with the 1 pairs that contradict them left out, " in outcome
+    assert "with the 2 pairs that the rotations averaged over them put on other sides left out, " in outcome
+    assert outcome.endswith(f"the {('first', 'second', 'third')[kept]} kept")
+    assert (resolved.discarded_seconds >= 1.5) == (kept != 0)
+    # Whichever is kept, the sides may be confused, and it says so.
     assert resolved.models[0].warnings[-1].startswith(SIDES_CONFLICTED)
     assert outcome in resolved.models[0].warnings[-1]
 
 
-def test_with_the_conflicting_pairs_kept_a_mapping_without_a_model_keeps_the_first():
-    from estimation.errors import DegenerateConfigurationError
-
-    features, _ = conflicted_tracks(["a.png", "b.png", "c.png"])
-    kept_features, kept_workers = conflicted_tracks(["a.png", "b.png", "c.png"])
-    first = mapping(2)
-
-    def no_model(tracks):
-        raise DegenerateConfigurationError("no initial pair")
-
-    resolved = with_conflicts_kept(features, first, 1.0, lambda: kept_features, no_model)
-    assert resolved.models is first and kept_workers.closed
-    outcome = resolved.features.details["look_alike_conflicts_outcome"]
-    assert outcome.endswith("left out, no model: the former kept")
-
-
-def test_a_sparse_box_ring_whose_strongest_pairs_conflict_is_mapped_both_ways_and_kept_in_place(tmp_path):
+def test_a_sparse_box_ring_whose_strongest_pairs_conflict_is_mapped_each_way_and_kept_in_place(tmp_path):
     """20 views at 400 px: a look-alike beats the link that closes the ring, the check's strongest pairs
     conflict and nothing is left out; mapped so, the model folds (16 of 20, the far side half a turn off).
     With the conflicting link kept and the pairs that contradict it left out, every view registers in
-    place, and that model is kept. Those pairs are views at least 45 deg apart, most of them twins (three
-    in four; the rest near-twins whose E took the look-alike's rotation)."""
+    place, and that model is kept (the third way, with the look-alike kept instead, folds). Those pairs are
+    views at least 45 deg apart, most of them twins (three in four; the rest near-twins whose E took the
+    look-alike's rotation)."""
     from estimation.synthetic import render_box_ring
 
     ring = render_box_ring(num_views=20, size=400, seed=1)
@@ -516,12 +513,13 @@ def test_a_sparse_box_ring_whose_strongest_pairs_conflict_is_mapped_both_ways_an
     assert len(result.model.poses) == 20
     features = result.report["features"]
     assert features["look_alike_conflicts"]
-    first, kept = map(int, re.search(r"every pair, (\d+) images registered.* left out, (\d+)",
-                                     features["look_alike_conflicts_outcome"]).groups())
-    assert first < kept == 20 and features["look_alike_conflicts_outcome"].endswith("the latter kept")
+    outcome = features["look_alike_conflicts_outcome"]
+    first = int(re.search(r"every pair, (\d+) images registered", outcome).group(1))
+    second = int(re.search(r"contradict them left out, (\d+) images registered", outcome).group(1))
+    assert first < second == 20 and outcome.endswith("the second kept")
     fractions = [fraction for _, fraction in reports]
     assert fractions == sorted(fractions)
-    assert any("(again, with the conflicting" in stage for stage, _ in reports)
+    assert any("(again, with other look-alikes left out)" in stage for stage, _ in reports)
     assert result.report["seconds_per_stage"]["look-alike check"] > 0
     assert any(warning.startswith(SIDES_CONFLICTED) for warning in result.report["warnings"])
 

@@ -1,6 +1,7 @@
 """Look-alike pairs: a verified pair of views from different sides whose relative rotation contradicts the
 rotations that each image's strongest pairs agree on is left out; when those strongest pairs contradict each
-other, none is, and the look-alikes of the rotations that keep the contradicted pairs are the alternative."""
+other, none is, and the look-alikes of the rotations that keep the contradicted pairs, and of those that
+contradict them, are the alternatives."""
 
 import numpy as np
 import pytest
@@ -108,20 +109,23 @@ def sparse_ring(num_images: int, link_inliers: dict, look_alike_inliers: dict, s
     return PairRotations(pairs, R_relative, inliers), set(look_alikes)
 
 
-def test_where_a_look_alike_beats_the_link_that_closes_a_sparse_ring_the_alternative_keeps_that_link():
+def test_where_a_look_alike_beats_the_link_that_closes_a_sparse_ring_the_first_alternative_keeps_that_link():
     # Image 3's second strongest pair is its look-alike (3, 13): the tree of the strongest pairs takes it
     # before the weaker links (2, 3) and (7, 8), which the averaged rotations then contradict.
     rotations, look_alikes = sparse_ring(20, {(2, 3): 70.0, (7, 8): 80.0, (17, 18): 80.0}, {(3, 13): 90.0})
     found = look_alike_pairs(20, rotations, TwoViewConfig())
     assert found.pairs == [] and set(found.conflicts) == {(2, 3), (7, 8)}
     # The rotations that keep the contradicted links put every look-alike half a turn off.
-    assert set(found.alternative) == look_alikes
+    assert set(found.alternatives[0]) == look_alikes
+    # Those averaged over every strongest pair put the contradicted links on other sides, and keep the
+    # look-alike that took their place.
+    assert set(found.conflicts) <= set(found.alternatives[1]) and (3, 13) not in found.alternatives[1]
 
 
-def test_without_conflicts_there_is_no_alternative():
+def test_without_conflicts_there_are_no_alternatives():
     rotations, look_alikes = sparse_ring(20, {}, {})
     found = look_alike_pairs(20, rotations, TwoViewConfig())
-    assert set(found.pairs) == look_alikes and found.conflicts == [] and found.alternative == ()
+    assert set(found.pairs) == look_alikes and found.conflicts == [] and found.alternatives == ()
 
 
 @pytest.mark.parametrize("config", [TwoViewConfig(max_rotation_residual_deg=None), TwoViewConfig()])
