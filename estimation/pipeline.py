@@ -604,7 +604,16 @@ class ConflictsResolved(NamedTuple):
     features: FeatureTracks
     models: tuple[SparseModel, ...]
     discarded_seconds: float     # the front ends' and the mappings' not kept
-    features_seconds: float      # the front end's run again, when its result is kept
+    features_seconds: float      # the kept front end's, when it was run again
+
+
+class TriedMapping(NamedTuple):
+    """One mapping `with_alternatives` compares."""
+
+    features: FeatureTracks
+    models: tuple[SparseModel, ...] | None   # None: no model
+    seconds: float               # its front end's (when run again) and its mapping's
+    features_seconds: float      # its front end's run again (0: the first mapping's front end)
 
 
 ALTERNATIVE_WORDS = ("that contradict them", "that the rotations averaged over them put on other sides")
@@ -645,7 +654,7 @@ def with_alternatives(features: FeatureTracks, models: tuple[SparseModel, ...], 
     details["look_alike_conflicts_outcome"] says what each gave, and the kept model's warnings gain
     SIDES_CONFLICTED: any of them may still have cameras on the wrong side."""
     look_alikes, names = features.look_alikes, features.tracks.image_names
-    kept, chosen, discarded = ConflictsResolved(features, models, mapping_seconds, 0.0), 0, 0.0
+    kept, chosen, discarded = TriedMapping(features, models, mapping_seconds, 0.0), 0, 0.0
     words = [f"mapped with every pair, {mapped_words(models)}"]
     for k, pairs in enumerate(look_alikes.alternatives):
         if not pairs:
@@ -666,8 +675,8 @@ def with_alternatives(features: FeatureTracks, models: tuple[SparseModel, ...], 
                      f"{mapped_words(candidate)}")
         if preference(candidate) > preference(kept.models):
             kept.features.close()
-            discarded += kept.discarded_seconds
-            kept, chosen = ConflictsResolved(candidate_features, candidate, seconds, features_seconds), k + 1
+            discarded += kept.seconds
+            kept, chosen = TriedMapping(candidate_features, candidate, seconds, features_seconds), k + 1
         else:
             candidate_features.close()
             discarded += seconds
