@@ -6,25 +6,26 @@ from datetime import timedelta
 from uuid import uuid4
 
 from fastapi.testclient import TestClient
-from sqlalchemy import update
 
 from service.app import create_app
 from service.housekeeping import expire_finished_jobs
 from service.kinds import JobKind, JobState
 from service.layout import job_dir
-from service.store import Job, Scene, utcnow
+from service.params import parse_params
+from service.store import Job, Scene, new_job_id, utcnow
 from tests.service.conftest import make_settings
 
 
 def finished_job(store, settings, age_minutes: float) -> str:
-    """A succeeded job with a file, that ended `age_minutes` ago."""
-    job = store.create(JobKind.reconstruction, {})
-    attempt = store.claim(job.id, "test")
-    store.finish(job.id, attempt, JobState.succeeded, result={})
+    """A succeeded job with a file, that ended `age_minutes` ago. Written ended in one transaction: the
+    running service's supervisor claims a queued job within a poll and runs it (it did once, between a
+    create and a claim here), and the run's end would then leave it neither old nor succeeded."""
+    ended = utcnow() - timedelta(minutes=age_minutes)
+    job = Job(id=new_job_id(), kind=str(JobKind.reconstruction), state=JobState.succeeded, attempt=1,
+              params=parse_params(JobKind.reconstruction, {}).model_dump(mode="json"), result={},
+              created_at=ended, started_at=ended, finished_at=ended)
     with store._sessions.begin() as session:
-        session.execute(
-            update(Job).where(Job.id == job.id).values(finished_at=utcnow() - timedelta(minutes=age_minutes))
-        )
+        session.add(job)
     (job_dir(settings, job.id) / "output").mkdir(parents=True)
     (job_dir(settings, job.id) / "output" / "points.ply").write_text("ply\n")
     return job.id
