@@ -256,12 +256,13 @@ class FoldCheck(NamedTuple):
 
     def folded(self, model: SparseModel) -> bool:
         """The model's fold warning, or the look-alikes adopted (`adopted_by`)."""
-        return has_fold_warning(model) or self.adopted_by(world_rotations(model))
+        return has_warning(model, FOLDED) or self.adopted_by(world_rotations(model))
 
 
-def has_fold_warning(model: SparseModel) -> bool:
-    """Whether the model warns that it may be folded onto itself (`mapper.verification.FOLDED`)."""
-    return any(warning.startswith(FOLDED) for warning in model.warnings)
+def has_warning(model: SparseModel, kind: str) -> bool:
+    """Whether one of the model's warnings begins with `kind` (`mapper.verification.FOLDED`,
+    `MIRROR_AMBIGUITY`)."""
+    return any(warning.startswith(kind) for warning in model.warnings)
 
 
 def can_check_folds(features: FeatureTracks, config: ReconstructionConfig) -> bool:
@@ -597,18 +598,19 @@ def _timed(seconds: dict[str, float], name: str) -> Iterator[None]:
     seconds[name] = time.perf_counter() - start
 
 
-class ConflictsResolved(NamedTuple):
-    """What `reconstruct` goes on with after a first mapping whose look-alike check conflicted
-    (`with_alternatives`)."""
+class Refolding(NamedTuple):
+    """What `reconstruct` goes on with after its first mapping was checked for a fold (`unfolded_or_kept`,
+    without a calibration file) or its look-alike check conflicted (`with_alternatives`)."""
 
     features: FeatureTracks
-    models: tuple[SparseModel, ...]
-    discarded_seconds: float     # the front ends' and the mappings' not kept
+    models: tuple[SparseModel, ...] | None   # None: the first mapping, stopped, is to be run in full
+    discarded_seconds: float     # the checks', and the front ends' and the mappings' not kept
     features_seconds: float      # the kept front end's, when it was run again
+    warning: str | None = None   # for the largest model, when a folded one is kept
 
 
-class TriedMapping(NamedTuple):
-    """One mapping `with_alternatives` compares."""
+class MappingRun(NamedTuple):
+    """A front end and the mapping of its tracks (`run_again`; each that `with_alternatives` compares)."""
 
     features: FeatureTracks
     models: tuple[SparseModel, ...] | None   # None: no model
@@ -631,21 +633,21 @@ def preference(models: tuple[SparseModel, ...] | None) -> tuple[bool, int, bool]
     registered images, then without a near-mirror warning (no model last)."""
     if models is None:
         return False, 0, False
-    mirrored = any(warning.startswith(MIRROR_AMBIGUITY) for warning in models[0].warnings)
-    return not has_fold_warning(models[0]), len(models[0].poses), not mirrored
+    largest = models[0]
+    return not has_warning(largest, FOLDED), len(largest.poses), not has_warning(largest, MIRROR_AMBIGUITY)
 
 
 def mapped_words(models: tuple[SparseModel, ...] | None) -> str:
     """What a mapping gave, in words: its largest model's registered images and fold warning."""
     if models is None:
         return "no model"
-    warned = ", with a fold warning" if has_fold_warning(models[0]) else ""
+    warned = ", with a fold warning" if has_warning(models[0], FOLDED) else ""
     return f"{len(models[0].poses)} images registered{warned}"
 
 
 def with_alternatives(features: FeatureTracks, models: tuple[SparseModel, ...], mapping_seconds: float,
                       extract_alternative: Callable[[int], FeatureTracks],
-                      mapped: Callable[[FeatureTracks], tuple[SparseModel, ...]]) -> ConflictsResolved:
+                      mapped: Callable[[FeatureTracks], tuple[SparseModel, ...]]) -> Refolding:
     """After a first mapping (`models`, in `mapping_seconds`) with every pair in (`has_conflicts`): the front
     end again with each alternative's look-alikes left out (`extract_alternative(k)`) and its mapping
     (`mapped`). The mapping ranked first by `preference` is kept, the earlier on a tie: a model folded onto
@@ -654,7 +656,7 @@ def with_alternatives(features: FeatureTracks, models: tuple[SparseModel, ...], 
     details["look_alike_conflicts_outcome"] says what each gave, and the kept model's warnings gain
     SIDES_CONFLICTED: any of them may still have cameras on the wrong side."""
     look_alikes, names = features.look_alikes, features.tracks.image_names
-    kept, chosen, discarded = TriedMapping(features, models, mapping_seconds, 0.0), 0, 0.0
+    kept, chosen, discarded = MappingRun(features, models, mapping_seconds, 0.0), 0, 0.0
     words = [f"mapped with every pair, {mapped_words(models)}"]
     for k, pairs in enumerate(look_alikes.alternatives):
         if not pairs:
@@ -676,7 +678,7 @@ def with_alternatives(features: FeatureTracks, models: tuple[SparseModel, ...], 
         if preference(candidate) > preference(kept.models):
             kept.features.close()
             discarded += kept.seconds
-            kept, chosen = TriedMapping(candidate_features, candidate, seconds, features_seconds), k + 1
+            kept, chosen = MappingRun(candidate_features, candidate, seconds, features_seconds), k + 1
         else:
             candidate_features.close()
             discarded += seconds
@@ -687,31 +689,12 @@ def with_alternatives(features: FeatureTracks, models: tuple[SparseModel, ...], 
         f"{SIDES_CONFLICTED}: the look-alike check's {found}; views this far apart may not tell the object's "
         "sides apart, so some cameras may sit on the wrong side")
     details = {**kept.features.details, "look_alike_conflicts_outcome": found}
-    return ConflictsResolved(replace(kept.features, details=details), kept.models, discarded,
-                             kept.features_seconds)
-
-
-class Refolding(NamedTuple):
-    """What `reconstruct` goes on with after a first model without a calibration file (`unfolded_or_kept`)."""
-
-    features: FeatureTracks
-    models: tuple[SparseModel, ...] | None   # None: the first mapping, stopped, is to be run in full
-    discarded_seconds: float     # the check's, and the front end's and the mapping's not kept
-    features_seconds: float      # the front end's run again, when its result is kept
-    warning: str | None = None   # for the largest model, when a folded one is kept
-
-
-class Rerun(NamedTuple):
-    """The front end and the mapping run again (`run_again`)."""
-
-    features: FeatureTracks
-    models: tuple[SparseModel, ...]
-    features_seconds: float
+    return Refolding(replace(kept.features, details=details), kept.models, discarded, kept.features_seconds)
 
 
 def run_again(extract: Callable[[np.ndarray, int | None], FeatureTracks],
               mapped: Callable[[FeatureTracks, Camera], tuple[SparseModel, ...]], camera: Camera
-              ) -> Rerun | None:
+              ) -> MappingRun | None:
     """The front end under camera's K (`extract(K, alternative)`) and the mapping from `camera` (`mapped`),
     again with the alternatives where the look-alike check's strongest pairs conflicted
     (`with_alternatives`); None (the reason logged) when they build no model."""
@@ -722,11 +705,12 @@ def run_again(extract: Callable[[np.ndarray, int | None], FeatureTracks],
     try:
         mapping_started = time.perf_counter()
         models = mapped(features, camera)
-        if not has_conflicts(features):
-            return Rerun(features, models, features_seconds)
-        resolved = with_alternatives(features, models, time.perf_counter() - mapping_started,
-                                     lambda k: extract(K, k), lambda tracks: mapped(tracks, camera))
-        return Rerun(resolved.features, resolved.models, features_seconds + resolved.features_seconds)
+        if has_conflicts(features):
+            resolved = with_alternatives(features, models, time.perf_counter() - mapping_started,
+                                         lambda k: extract(K, k), lambda tracks: mapped(tracks, camera))
+            features, models = resolved.features, resolved.models
+            features_seconds += resolved.features_seconds
+        return MappingRun(features, models, time.perf_counter() - started, features_seconds)
     except DegenerateConfigurationError as error:
         logger.warning("run again after a folded model, no model: %s", error)
         features.close()
@@ -847,24 +831,23 @@ def reconstruct(
             models = mapped(features, start, _scaled(progress, features_end, PROGRESS_PIPELINE_END), probe)
         except FoldedModelError:
             models = None
+        refolding = None
         if probe is not None:
             refolding = unfolded_or_kept(features, models, time.perf_counter() - started, probe,
                                          lambda K, alternative: extract(K, again, alternative),
                                          lambda tracks, camera: mapped(tracks, camera, again), config)
+        elif has_conflicts(features):
+            alternatives = held("with other look-alikes left out")
+            refolding = with_alternatives(features, models, time.perf_counter() - started,
+                                          lambda k: extract(calibration_K, alternatives, k),
+                                          lambda tracks: mapped(tracks, start, alternatives))
+        if refolding is not None:
             features = refolding.features
             models = refolding.models or mapped(features, start, again)
             seconds["features"] += refolding.features_seconds
             seconds["look-alike check"] = refolding.discarded_seconds
             if refolding.warning is not None:
                 models[0].warnings.append(refolding.warning)
-        elif has_conflicts(features):
-            alternatives = held("with other look-alikes left out")
-            resolved = with_alternatives(features, models, time.perf_counter() - started,
-                                         lambda k: extract(calibration_K, alternatives, k),
-                                         lambda tracks: mapped(tracks, start, alternatives))
-            features, models = resolved.features, resolved.models
-            seconds["features"] += resolved.features_seconds
-            seconds["look-alike check"] = resolved.discarded_seconds
         features = features.finished()
     finally:
         features.close()
